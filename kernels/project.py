@@ -1,0 +1,84 @@
+"""Per-Gaussian stage: camera transform, EWA projection with the 0.3 px² low-pass, view-dependent colour.
+
+Written branch-free so that Warp's generated adjoint is exact: culled Gaussians still compute guarded,
+finite values (they receive a zero adjoint because they never reach a tile).
+"""
+import warp as wp
+
+from .gaussian_math import clamp_scale, quat_wxyz_to_rotation, rotation_of, symmetric2_inverse, translation_of
+from .sh import eval_sh
+
+LOW_PASS = wp.constant(0.3)  # px², added to the projected covariance as in 3DGS
+COLOR_DIRECT = wp.constant(0)
+COLOR_SH = wp.constant(1)
+
+
+@wp.kernel
+def project_gaussians(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
+    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    color_mode: int,
+    sh_degree: int,
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    cov2d: wp.array(dtype=wp.vec3),
+    depths: wp.array(dtype=float),
+    colors: wp.array(dtype=wp.vec3),
+    valid: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    V = viewmat[0]
+    R = rotation_of(V)
+    t = translation_of(V)
+    intr = intrinsics[0]
+    fx = intr[0]
+    fy = intr[1]
+    cx = intr[2]
+    cy = intr[3]
+
+    mu = means[i]
+    p = R * mu + t
+    z = p[2]
+    zs = wp.max(z, near)  # guarded depth: finite maths for culled Gaussians
+
+    # EWA Jacobian, with x/z and y/z clamped to 1.3x the field of view as in 3DGS (keeps far off-screen
+    # Gaussians from producing huge footprints).
+    tan_x = 0.5 * float(width) / fx
+    tan_y = 0.5 * float(height) / fy
+    xz = wp.clamp(p[0] / zs, -(cx / fx + 0.3 * tan_x), (float(width) - cx) / fx + 0.3 * tan_x)
+    yz = wp.clamp(p[1] / zs, -(cy / fy + 0.3 * tan_y), (float(height) - cy) / fy + 0.3 * tan_y)
+    J = wp.mat33(fx / zs, 0.0, -fx * xz / zs, 0.0, fy / zs, -fy * yz / zs, 0.0, 0.0, 0.0)
+
+    s = scales[i]
+    Rq = quat_wxyz_to_rotation(quats[i])
+    M = Rq * wp.diag(wp.vec3(clamp_scale(s[0]), clamp_scale(s[1]), clamp_scale(s[2])))
+    T = J * R * M
+    cov = T * wp.transpose(T)
+    a = cov[0, 0] + LOW_PASS
+    b = cov[0, 1]
+    c = cov[1, 1] + LOW_PASS
+
+    means2d[i] = wp.vec2(fx * p[0] / zs + cx, fy * p[1] / zs + cy)
+    conics[i] = symmetric2_inverse(a, b, c)
+    cov2d[i] = wp.vec3(a, b, c)
+    depths[i] = zs
+
+    if color_mode == COLOR_SH:
+        campos = -(wp.transpose(R) * t)
+        d = mu - campos
+        d = d / wp.sqrt(wp.max(wp.dot(d, d), 1.0e-24))
+        rgb = eval_sh(coeffs, i, sh_degree, d) + wp.vec3(0.5, 0.5, 0.5)
+        colors[i] = wp.vec3(wp.max(rgb[0], 0.0), wp.max(rgb[1], 0.0), wp.max(rgb[2], 0.0))
+    else:
+        colors[i] = coeffs[i, 0]
+
+    ok = z >= near and z <= far and wp.isfinite(a) and wp.isfinite(c)
+    valid[i] = wp.where(ok, 1, 0)

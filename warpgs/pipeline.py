@@ -1,0 +1,162 @@
+"""The rasterization pipeline on Warp arrays: project -> bin into tiles -> sort -> blend, and the blend adjoint.
+
+Torch-free: ``warpgs.render`` converts tensors and drives these stages; other frontends could too.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import warp as wp
+
+wp.config.quiet = True
+
+from warpgs.kernels import binning, blend, project  # noqa: E402  (after the quiet flag)
+
+
+@dataclass
+class Settings:
+    width: int
+    height: int
+    near: float = 0.01
+    far: float = 1e10
+    tile_size: int = 16
+    max_sigmas: float = 0.0  # 0: exact footprint (everything with alpha >= 1/255)
+    sh_degree: int = -1  # -1: plain colours
+
+    @property
+    def tiles_x(self) -> int:
+        return (self.width + self.tile_size - 1) // self.tile_size
+
+    @property
+    def tiles_y(self) -> int:
+        return (self.height + self.tile_size - 1) // self.tile_size
+
+    @property
+    def num_tiles(self) -> int:
+        return self.tiles_x * self.tiles_y
+
+    @property
+    def max_q(self) -> float:
+        return self.max_sigmas**2 if self.max_sigmas > 0 else 3.0e38
+
+
+@dataclass
+class Projected:
+    means2d: wp.array
+    conics: wp.array
+    cov2d: wp.array
+    depths: wp.array
+    colors: wp.array
+    valid: wp.array
+
+
+@dataclass
+class Bins:
+    tile_start: wp.array
+    tile_end: wp.array
+    sorted_ids: wp.array
+    num_intersections: int
+    counts: wp.array  # tiles touched per Gaussian (0: culled)
+
+
+@dataclass
+class Wanted:
+    color: bool
+    depth: bool
+    inv_depth: bool
+    num_features: int
+
+
+@dataclass
+class Blended:
+    color: wp.array
+    transmittance: wp.array
+    alpha: wp.array
+    depth: wp.array
+    inv_depth: wp.array
+    features: wp.array
+    last: wp.array
+
+
+def project_gaussians(means, quats, scales, opacities, coeffs, viewmat, intrinsics, s: Settings, requires_grad: bool):
+    n = means.shape[0]
+    dev = means.device
+    out = Projected(
+        means2d=wp.zeros(n, dtype=wp.vec2, device=dev, requires_grad=requires_grad),
+        conics=wp.zeros(n, dtype=wp.vec3, device=dev, requires_grad=requires_grad),
+        cov2d=wp.zeros(n, dtype=wp.vec3, device=dev),
+        depths=wp.zeros(n, dtype=float, device=dev, requires_grad=requires_grad),
+        colors=wp.zeros(n, dtype=wp.vec3, device=dev, requires_grad=requires_grad),
+        valid=wp.zeros(n, dtype=wp.int32, device=dev),
+    )
+    color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
+    wp.launch(
+        project.project_gaussians,
+        dim=n,
+        inputs=[means, quats, scales, coeffs, viewmat, intrinsics, s.width, s.height, s.near, s.far,
+                color_mode, max(s.sh_degree, 0)],
+        outputs=[out.means2d, out.conics, out.cov2d, out.depths, out.colors, out.valid],
+        device=dev,
+    )
+    return out
+
+
+def bin_gaussians(p: Projected, opacities, s: Settings) -> Bins:
+    n = p.means2d.shape[0]
+    dev = p.means2d.device
+    counts = wp.zeros(n, dtype=wp.int32, device=dev)
+    rects = wp.zeros(n, dtype=wp.vec4i, device=dev)
+    wp.launch(binning.tile_footprints, dim=n,
+              inputs=[p.means2d, p.cov2d, opacities, p.valid, s.width, s.height, s.tile_size, s.max_sigmas],
+              outputs=[rects, counts], device=dev)
+    total = 0
+    offsets = wp.zeros(n, dtype=wp.int32, device=dev)
+    if n > 0:
+        wp.utils.array_scan(counts, offsets, inclusive=True)
+        total = int(offsets[n - 1 : n].numpy()[0])  # the one host sync: sizes the key buffer
+    keys = wp.zeros(2 * max(total, 1), dtype=wp.int64, device=dev)
+    values = wp.zeros(2 * max(total, 1), dtype=wp.int32, device=dev)
+    tile_start = wp.zeros(s.num_tiles, dtype=wp.int32, device=dev)
+    tile_end = wp.zeros(s.num_tiles, dtype=wp.int32, device=dev)
+    if total > 0:
+        wp.launch(binning.emit_tile_keys, dim=n,
+                  inputs=[rects, offsets, counts, p.depths.view(wp.int32), s.tiles_x], outputs=[keys, values],
+                  device=dev)
+        tile_bits = max(1, (s.num_tiles - 1).bit_length())
+        wp.utils.radix_sort_pairs(keys, values, total, begin_bit=0, end_bit=32 + tile_bits)
+        wp.launch(binning.tile_ranges, dim=total, inputs=[keys, total], outputs=[tile_start, tile_end], device=dev)
+    return Bins(tile_start, tile_end, values[:max(total, 1)], total, counts)
+
+
+def _blend_inputs(p: Projected, opacities, features, s: Settings, want: Wanted):
+    return [p.means2d, p.conics, opacities, p.colors, p.depths, features, s.width, s.height, s.tiles_x,
+            s.tile_size, s.max_q, int(want.color), int(want.depth), int(want.inv_depth), want.num_features]
+
+
+def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, want: Wanted) -> Blended:
+    dev = p.means2d.device
+    npix = s.width * s.height
+    out = Blended(
+        color=wp.zeros(npix if want.color else 1, dtype=wp.vec3, device=dev),
+        transmittance=wp.zeros(npix, dtype=float, device=dev),
+        alpha=wp.zeros(npix, dtype=float, device=dev),
+        depth=wp.zeros(npix if want.depth else 1, dtype=float, device=dev),
+        inv_depth=wp.zeros(npix if want.inv_depth else 1, dtype=float, device=dev),
+        features=wp.zeros((npix, want.num_features) if want.num_features else (1, 1), dtype=float, device=dev),
+        last=wp.zeros(npix, dtype=wp.int32, device=dev),
+    )
+    wp.launch(blend.blend_forward, dim=s.num_tiles * s.tile_size**2,
+              inputs=[bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, opacities, features, s, want),
+              outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.features, out.last],
+              device=dev)
+    return out
+
+
+def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, want: Wanted, fwd: Blended,
+                   grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features):
+    """Accumulates into the .grad of means2d, conics, colors, depths (projected), opacities and features."""
+    wp.launch(blend.blend_backward, dim=s.num_tiles * s.tile_size**2,
+              inputs=[bins.tile_start, bins.sorted_ids] + _blend_inputs(p, opacities, features, s, want)
+              + [fwd.transmittance, fwd.last, grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features,
+                 p.means2d.grad, p.conics.grad, opacities.grad, p.colors.grad, p.depths.grad, features.grad],
+              device=p.means2d.device)

@@ -1,0 +1,39 @@
+"""Input checks for the render ops: every problem becomes a ValueError that names the argument."""
+from __future__ import annotations
+
+import torch
+
+
+def check_tensor(name: str, t, shape: tuple, *, floating: bool = True) -> None:
+    """`shape` uses None for a free dimension and an int for a fixed one."""
+    if not isinstance(t, torch.Tensor):
+        raise ValueError(f"{name}: expected a torch.Tensor, got {type(t).__name__}")
+    if floating and t.dtype != torch.float32:
+        raise ValueError(f"{name}: expected dtype float32, got {t.dtype} (convert with .float())")
+    if t.dim() != len(shape) or any(want is not None and got != want for got, want in zip(t.shape, shape)):
+        want = "[" + ", ".join("*" if d is None else str(d) for d in shape) + "]"
+        raise ValueError(f"{name}: expected shape {want}, got {list(t.shape)}")
+
+
+def check_same_device(named: dict) -> torch.device:
+    devices = {name: t.device for name, t in named.items() if t is not None}
+    first = next(iter(devices.values()))
+    odd = [f"{n} on {d}" for n, d in devices.items() if d != first]
+    if odd:
+        raise ValueError(f"all tensors must be on one device; {next(iter(devices))} is on {first} but " + ", ".join(odd))
+    return first
+
+
+def check_finite(named: dict, opacities: torch.Tensor) -> None:
+    """One host sync for all checks: finiteness of every tensor and opacities within [0, 1]."""
+    tensors = [t for t in named.values() if t is not None]
+    flags = [torch.isfinite(t).all() for t in tensors]
+    if opacities.numel():
+        flags.append(((opacities >= 0) & (opacities <= 1)).all())
+    ok = torch.stack(flags).cpu() if flags else torch.ones(0, dtype=torch.bool)
+    if bool(ok.all()):
+        return
+    for (name, t), good in zip([(n, t) for n, t in named.items() if t is not None], ok):
+        if not good:
+            raise ValueError(f"{name} contains NaN or Inf values")
+    raise ValueError("opacities must lie in [0, 1] (pass sigmoid(logits), not logits)")
