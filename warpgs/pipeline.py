@@ -102,6 +102,7 @@ def project_gaussians(means, quats, scales, opacities, coeffs, viewmat, intrinsi
 
 
 def bin_gaussians(p: Projected, opacities, s: Settings) -> Bins:
+    """Tiles touched by each projected 3D Gaussian (exact alpha >= 1/255 footprint), then `sort_into_tiles`."""
     n = p.means2d.shape[0]
     dev = p.means2d.device
     counts = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -109,6 +110,14 @@ def bin_gaussians(p: Projected, opacities, s: Settings) -> Bins:
     wp.launch(binning.tile_footprints, dim=n,
               inputs=[p.means2d, p.cov2d, opacities, p.valid, s.width, s.height, s.tile_size, s.max_sigmas],
               outputs=[rects, counts], device=dev)
+    return sort_into_tiles(rects, counts, p.depths, s)
+
+
+def sort_into_tiles(rects, counts, depths, s: Settings) -> Bins:
+    """Shared by every primitive kind: (tile, depth) keys for each primitive's tile rectangle, radix-sorted,
+    and each tile's [start, end) range in the sorted list. `depths` must be positive float32."""
+    n = counts.shape[0]
+    dev = counts.device
     total = 0
     offsets = wp.zeros(n, dtype=wp.int32, device=dev)
     if n > 0:
@@ -120,12 +129,12 @@ def bin_gaussians(p: Projected, opacities, s: Settings) -> Bins:
     tile_end = wp.zeros(s.num_tiles, dtype=wp.int32, device=dev)
     if total > 0:
         wp.launch(binning.emit_tile_keys, dim=n,
-                  inputs=[rects, offsets, counts, p.depths.view(wp.int32), s.tiles_x], outputs=[keys, values],
+                  inputs=[rects, offsets, counts, depths.view(wp.int32), s.tiles_x], outputs=[keys, values],
                   device=dev)
         tile_bits = max(1, (s.num_tiles - 1).bit_length())
         wp.utils.radix_sort_pairs(keys, values, total, begin_bit=0, end_bit=32 + tile_bits)
         wp.launch(binning.tile_ranges, dim=total, inputs=[keys, total], outputs=[tile_start, tile_end], device=dev)
-    return Bins(tile_start, tile_end, values[:max(total, 1)], total, counts)
+    return Bins(tile_start, tile_end, values[: max(total, 1)], total, counts)
 
 
 def _blend_inputs(p: Projected, opacities, features, s: Settings, want: Wanted):
