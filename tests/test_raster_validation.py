@@ -1,0 +1,87 @@
+"""Bad input gets a ValueError that names the argument."""
+import pytest
+import torch
+
+from random_scenes import random_scene
+from warpgs import rasterize
+
+
+def args(**over):
+    s = {k: (v.float() if isinstance(v, torch.Tensor) else v) for k, v in random_scene(n=8, seed=0).items()}
+    a = dict(means=s["means"], quats=s["quats"], scales=s["scales"], opacities=s["opacities"], colors=s["colors"],
+             viewmat=s["viewmat"], K=s["K"], width=s["width"], height=s["height"])
+    kw = {}
+    for k, v in over.items():
+        (a if k in a else kw)[k] = v
+    return a, kw
+
+
+def call(**over):
+    a, kw = args(**over)
+    return rasterize(**a, **kw)
+
+
+@pytest.mark.parametrize("name,value,match", [
+    ("means", torch.zeros(8, 2), "means"),
+    ("quats", torch.zeros(7, 4), "quats"),
+    ("scales", torch.zeros(8, 2), "scales"),
+    ("opacities", torch.zeros(8, 1), "opacities"),
+    ("colors", torch.zeros(8, 4), "colors"),
+    ("viewmat", torch.eye(3), "viewmat"),
+    ("K", torch.eye(4), "K"),
+    ("background", torch.zeros(4), "background"),
+    ("features", torch.zeros(9, 2), "features"),
+])
+def test_wrong_shapes(name, value, match):
+    with pytest.raises(ValueError, match=match):
+        call(**{name: value})
+
+
+@pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmat", "K"])
+def test_wrong_dtypes(name):
+    a, _ = args()
+    with pytest.raises(ValueError, match=f"{name}: expected dtype float32"):
+        call(**{name: a[name].double()})
+
+
+@pytest.mark.parametrize("name", ["means", "quats", "scales", "colors", "viewmat", "K"])
+def test_non_finite_values(name):
+    a, _ = args()
+    bad = a[name].clone()
+    bad.view(-1)[0] = float("nan")
+    with pytest.raises(ValueError, match=f"{name} contains NaN or Inf"):
+        call(**{name: bad})
+    bad.view(-1)[0] = float("inf")
+    with pytest.raises(ValueError, match=f"{name} contains NaN or Inf"):
+        call(**{name: bad})
+
+
+def test_opacities_outside_unit_interval():
+    with pytest.raises(ValueError, match="opacities must lie in"):
+        call(opacities=torch.full((8,), 1.5))
+
+
+def test_mixed_devices():
+    a, _ = args()
+    with pytest.raises(ValueError, match="one device"):
+        call(scales=torch.empty(8, 3, device="meta"))
+
+
+@pytest.mark.parametrize("over,match", [
+    (dict(width=0), "width"),
+    (dict(height=2.5), "height"),
+    (dict(near=0.0), "near"),
+    (dict(near=2.0, far=1.0), "near"),
+    (dict(sh_degree=4, colors=torch.zeros(8, 16, 3)), "sh_degree"),
+    (dict(sh_degree=2, colors=torch.zeros(8, 4, 3)), "needs 9 SH coefficients"),
+    (dict(outputs=("rgb", "normals")), "unknown"),
+    (dict(outputs=("features",)), "features"),
+])
+def test_bad_arguments(over, match):
+    with pytest.raises(ValueError, match=match):
+        call(**over)
+
+
+def test_not_a_tensor():
+    with pytest.raises(ValueError, match="means: expected a torch.Tensor"):
+        call(means=[[0.0, 0.0, 1.0]] * 8)
