@@ -22,9 +22,11 @@ def tile_footprints(
     max_sigmas: float,
     rects: wp.array(dtype=wp.vec4i),  # tile x0, y0, x1, y1 (inclusive)
     counts: wp.array(dtype=wp.int32),
+    q_cut: wp.array(dtype=float),  # blending skips a pixel beyond this Mahalanobis distance without an exp()
 ):
     i = wp.tid()
     counts[i] = 0
+    q_cut[i] = 0.0
     rects[i] = wp.vec4i(0, 0, -1, -1)
     o = opacities[i]
     if valid[i] == 0 or o < ALPHA_MIN:
@@ -32,6 +34,10 @@ def tile_footprints(
     q_max = 2.0 * wp.log(255.0 * o)
     if max_sigmas > 0.0:
         q_max = wp.min(q_max, max_sigmas * max_sigmas)
+    # A hair generous: the exact alpha >= 1/255 test still runs inside, so this only saves work.
+    q_cut[i] = q_max * 1.0001 + 1.0e-4
+    if max_sigmas > 0.0 and q_max < 2.0 * wp.log(255.0 * o):
+        q_cut[i] = q_max  # a hard truncation at max_sigmas: pixels beyond it are skipped
     cv = cov2d[i]
     # Slightly generous so that float rounding never drops a pixel the blending would keep.
     ex = wp.sqrt(q_max * cv[0]) * 1.0001 + 0.01

@@ -44,7 +44,7 @@ def blend_forward(
     height: int,
     tiles_x: int,
     tile_size: int,
-    max_q: float,
+    q_cut: wp.array(dtype=float),
     want_color: int,
     want_depth: int,
     want_inv_depth: int,
@@ -79,7 +79,7 @@ def blend_forward(
         dx = fx - m[0]
         dy = fy - m[1]
         q = mahalanobis(conics[g], dx, dy)
-        if q > max_q:
+        if q > q_cut[g]:
             continue
         alpha = wp.min(ALPHA_MAX, opacities[g] * wp.exp(-0.5 * q))
         if alpha < ALPHA_MIN:
@@ -124,7 +124,7 @@ def blend_backward(
     height: int,
     tiles_x: int,
     tile_size: int,
-    max_q: float,
+    q_cut: wp.array(dtype=float),
     want_color: int,
     want_depth: int,
     want_inv_depth: int,
@@ -175,7 +175,7 @@ def blend_backward(
         dy = fy - m[1]
         cn = conics[g]
         q = mahalanobis(cn, dx, dy)
-        if q > max_q:
+        if q > q_cut[g]:
             continue
         o = opacities[g]
         G = wp.exp(-0.5 * q)

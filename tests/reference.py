@@ -46,8 +46,12 @@ def sh_to_rgb(sh, degree, d):
 
 
 def render_reference(means, quats, scales, opacities, colors, viewmat, K, width, height, *, sh_degree=None,
-                     features=None, background=None, near=0.01, far=1e10):
-    """Returns a dict of [H,W,C] float64 images: rgb, alpha, depth, inv_depth and (if given) features."""
+                     features=None, background=None, near=0.01, far=1e10, pixels=None):
+    """Returns a dict of [H,W,C] float64 images: rgb, alpha, depth, inv_depth and (if given) features.
+
+    pixels: optional [P,2] integer (x, y) pixel indices; then only those are rendered and values are [P,C]
+    (for checking large scenes, where all pixels x all Gaussians would not fit in memory).
+    """
     R, t = viewmat[:3, :3], viewmat[:3, 3]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     p = means @ R.T + t
@@ -63,7 +67,7 @@ def render_reference(means, quats, scales, opacities, colors, viewmat, K, width,
                      torch.stack([zero, fy / zs, -fy * yz / zs], -1)], -2)  # [N,2,3]
     M = quat_to_rotation(quats) * torch.clamp(scales, -1e8, 1e8)[:, None, :]  # R_q diag(s)
     T = J @ R @ M
-    cov = T @ T.transpose(1, 2) + 0.3 * torch.eye(2, dtype=means.dtype)
+    cov = T @ T.transpose(1, 2) + 0.3 * torch.eye(2, dtype=means.dtype, device=means.device)
     conic = torch.linalg.inv(cov)
     mean2d = torch.stack([fx * p[:, 0] / zs + cx, fy * p[:, 1] / zs + cy], -1)
 
@@ -75,9 +79,12 @@ def render_reference(means, quats, scales, opacities, colors, viewmat, K, width,
         d = d / torch.sqrt(torch.clamp((d * d).sum(-1, keepdim=True), min=1e-24))
         rgb = sh_to_rgb(colors, sh_degree, d)
 
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=means.dtype), torch.arange(width, dtype=means.dtype),
-                            indexing="ij")
-    pix = torch.stack([xs.reshape(-1) + 0.5, ys.reshape(-1) + 0.5], -1)  # [P,2]
+    if pixels is None:
+        ys, xs = torch.meshgrid(torch.arange(height, dtype=means.dtype, device=means.device),
+                                torch.arange(width, dtype=means.dtype, device=means.device), indexing="ij")
+        pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1) + 0.5  # [P,2] pixel centres
+    else:
+        pix = pixels.to(means.dtype) + 0.5
     delta = pix[:, None, :] - mean2d[None, :, :]  # [P,N,2]
     q = torch.einsum("pni,nij,pnj->pn", delta, conic, delta)
     alpha = torch.clamp(opacities[None, :] * torch.exp(-0.5 * q), max=0.99)
@@ -92,7 +99,7 @@ def render_reference(means, quats, scales, opacities, colors, viewmat, K, width,
     T_after = torch.cumprod(1.0 - alpha, dim=1)
     T_before = torch.cat([torch.ones_like(T_after[:, :1]), T_after[:, :-1]], 1)
     w = alpha * T_before  # [P,N]
-    T_final = T_after[:, -1] if alpha.shape[1] else torch.ones(pix.shape[0], dtype=means.dtype)
+    T_final = T_after[:, -1] if alpha.shape[1] else torch.ones(pix.shape[0], dtype=means.dtype, device=means.device)
 
     zo = zs[order]
     out = {"alpha": (1.0 - T_final)[:, None]}
@@ -101,4 +108,6 @@ def render_reference(means, quats, scales, opacities, colors, viewmat, K, width,
     out["inv_depth"] = (w @ (1.0 / zo))[:, None]
     if features is not None:
         out["features"] = w @ features[order]
+    if pixels is not None:
+        return out
     return {k: v.reshape(height, width, -1) for k, v in out.items()}

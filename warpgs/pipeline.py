@@ -35,10 +35,6 @@ class Settings:
     def num_tiles(self) -> int:
         return self.tiles_x * self.tiles_y
 
-    @property
-    def max_q(self) -> float:
-        return self.max_sigmas**2 if self.max_sigmas > 0 else 3.0e38
-
 
 @dataclass
 class Projected:
@@ -57,6 +53,7 @@ class Bins:
     sorted_ids: wp.array
     num_intersections: int
     counts: wp.array  # tiles touched per Gaussian (0: culled)
+    q_cut: wp.array  # per Gaussian: largest Mahalanobis distance that can still be blended
 
 
 @dataclass
@@ -107,13 +104,14 @@ def bin_gaussians(p: Projected, opacities, s: Settings) -> Bins:
     dev = p.means2d.device
     counts = wp.zeros(n, dtype=wp.int32, device=dev)
     rects = wp.zeros(n, dtype=wp.vec4i, device=dev)
+    q_cut = wp.zeros(n, dtype=float, device=dev)
     wp.launch(binning.tile_footprints, dim=n,
               inputs=[p.means2d, p.cov2d, opacities, p.valid, s.width, s.height, s.tile_size, s.max_sigmas],
-              outputs=[rects, counts], device=dev)
-    return sort_into_tiles(rects, counts, p.depths, s)
+              outputs=[rects, counts, q_cut], device=dev)
+    return sort_into_tiles(rects, counts, p.depths, q_cut, s)
 
 
-def sort_into_tiles(rects, counts, depths, s: Settings) -> Bins:
+def sort_into_tiles(rects, counts, depths, q_cut, s: Settings) -> Bins:
     """Shared by every primitive kind: (tile, depth) keys for each primitive's tile rectangle, radix-sorted,
     and each tile's [start, end) range in the sorted list. `depths` must be positive float32."""
     n = counts.shape[0]
@@ -134,12 +132,12 @@ def sort_into_tiles(rects, counts, depths, s: Settings) -> Bins:
         tile_bits = max(1, (s.num_tiles - 1).bit_length())
         wp.utils.radix_sort_pairs(keys, values, total, begin_bit=0, end_bit=32 + tile_bits)
         wp.launch(binning.tile_ranges, dim=total, inputs=[keys, total], outputs=[tile_start, tile_end], device=dev)
-    return Bins(tile_start, tile_end, values[: max(total, 1)], total, counts)
+    return Bins(tile_start, tile_end, values[: max(total, 1)], total, counts, q_cut)
 
 
-def _blend_inputs(p: Projected, opacities, features, s: Settings, want: Wanted):
+def _blend_inputs(p: Projected, bins: Bins, opacities, features, s: Settings, want: Wanted):
     return [p.means2d, p.conics, opacities, p.colors, p.depths, features, s.width, s.height, s.tiles_x,
-            s.tile_size, s.max_q, int(want.color), int(want.depth), int(want.inv_depth), want.num_features]
+            s.tile_size, bins.q_cut, int(want.color), int(want.depth), int(want.inv_depth), want.num_features]
 
 
 def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, want: Wanted) -> Blended:
@@ -155,7 +153,7 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
         last=wp.zeros(npix, dtype=wp.int32, device=dev),
     )
     wp.launch(blend.blend_forward, dim=s.num_tiles * s.tile_size**2,
-              inputs=[bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, opacities, features, s, want),
+              inputs=[bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want),
               outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.features, out.last],
               device=dev)
     return out
@@ -165,7 +163,7 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
                    grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features):
     """Accumulates into the .grad of means2d, conics, colors, depths (projected), opacities and features."""
     wp.launch(blend.blend_backward, dim=s.num_tiles * s.tile_size**2,
-              inputs=[bins.tile_start, bins.sorted_ids] + _blend_inputs(p, opacities, features, s, want)
+              inputs=[bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want)
               + [fwd.transmittance, fwd.last, grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features,
                  p.means2d.grad, p.conics.grad, opacities.grad, p.colors.grad, p.depths.grad, features.grad],
               device=p.means2d.device)

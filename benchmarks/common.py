@@ -1,0 +1,71 @@
+"""Shared helpers for the benchmark scripts: timing, the standard scenes, result files."""
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def standard_scenes_module():
+    """../shared/bench/scenes.py (the scenes every speed figure is taken on); WARPGS_BENCH_SCENES overrides."""
+    here = os.environ.get("WARPGS_BENCH_SCENES", str(ROOT.parent / "shared" / "bench"))
+    if not (Path(here) / "scenes.py").exists():
+        raise SystemExit(f"scenes.py not found in {here}: set WARPGS_BENCH_SCENES to the folder holding it")
+    sys.path.insert(0, here)
+    import scenes
+
+    return scenes
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def time_call(fn, device: str, warmup: int = 2, repeats: int = 5) -> float:
+    """Median wall time of fn() in milliseconds, synchronising the GPU around each call."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        sync(device)
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
+
+
+def write_json(name: str, payload: dict) -> Path:
+    """Atomically writes benchmarks/results/<name>.json (or $OUT/<name>.json when OUT is set)."""
+    folder = Path(os.environ["OUT"]) if os.environ.get("OUT") else RESULTS
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{name}.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(payload, indent=2))
+    os.replace(tmp, path)
+    return path
+
+
+def print_table(rows: list[dict], columns: list[str]) -> None:
+    widths = [max(len(c), *(len(_fmt(r.get(c))) for r in rows)) for c in columns]
+    print(" | ".join(c.ljust(w) for c, w in zip(columns, widths)))
+    print("-|-".join("-" * w for w in widths))
+    for r in rows:
+        print(" | ".join(_fmt(r.get(c)).ljust(w) for c, w in zip(columns, widths)))
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.3g}" if abs(v) < 1e-2 or abs(v) >= 1e4 else f"{v:.3f}"
+    return str(v)

@@ -1,0 +1,171 @@
+"""Rasterizer speed and accuracy: forward and forward+backward time, max error against the float64 reference
+(on sampled pixels), Gaussian–pixel evaluation rate, and (with --gsplat, on CUDA) gsplat side by side.
+
+    python benchmarks/raster.py                       # CPU table: N in {1k,10k,100k} at 256x256 and 800x600
+    python benchmarks/raster.py --device cuda --gsplat --sizes 100000,1000000 --resolutions 1920x1080
+
+Prints a table and writes benchmarks/results/raster_<device>.json (or $OUT/raster_<device>.json).
+"""
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+import time
+
+import torch
+import warp as wp
+
+from common import ROOT, print_table, standard_scenes_module, sync, time_call, write_json
+
+sys.path.insert(0, str(ROOT / "tests"))
+from reference import render_reference  # noqa: E402  (the float64 oracle of the test suite)
+
+from warpgs import pipeline, rasterize  # noqa: E402
+from warpgs.render import _intrinsics_vector  # noqa: E402
+
+OUTPUTS = ("rgb", "alpha", "depth")
+FLOPS_PER_EVALUATION = 20  # q (8), exp (~8 with range reduction), clamp/compare (2), blend 3 colours + depth (8) ~ 20-26
+
+
+def sample_pixels(width, height, count, device, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.stack([torch.randint(0, width, (count,), generator=g), torch.randint(0, height, (count,), generator=g)],
+                       -1).to(device)
+
+
+def max_error_vs_reference(scene, width, height, num_pixels=128, chunk=16):
+    means, quats, scales, opacities, colors, viewmat, K = scene
+    out = rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs=OUTPUTS)
+    pix = sample_pixels(width, height, num_pixels, means.device)
+    d = [t.double() for t in scene]
+    err = 0.0
+    for i in range(0, num_pixels, chunk):
+        p = pix[i : i + chunk]
+        ref = render_reference(*d, width, height, pixels=p)
+        for name in ("rgb", "alpha"):
+            ours = getattr(out, name)[p[:, 1], p[:, 0]].double()
+            err = max(err, (ours - ref[name]).abs().max().item())
+    return err
+
+
+def evaluations(scene, width, height):
+    """Gaussian–pixel evaluations the blending loop performs (each pixel walks its tile list up to its stop)."""
+    means, quats, scales, opacities, colors, viewmat, K = scene
+    dev = "cpu" if means.device.type == "cpu" else "cuda:0"
+    with wp.ScopedDevice(dev):
+        s = pipeline.Settings(width=width, height=height)
+        w = lambda t, dt: wp.from_torch(t.contiguous(), dtype=dt)  # noqa: E731
+        proj = pipeline.project_gaussians(w(means, wp.vec3), w(quats, wp.vec4), w(scales, wp.vec3),
+                                          w(opacities, wp.float32), w(colors.reshape(-1, 1, 3), wp.vec3),
+                                          w(viewmat.reshape(1, 4, 4), wp.mat44),
+                                          w(_intrinsics_vector(K).reshape(1, 4), wp.vec4), s, requires_grad=False)
+        bins = pipeline.bin_gaussians(proj, w(opacities, wp.float32), s)
+        want = pipeline.Wanted(color=True, depth=True, inv_depth=False, num_features=0)
+        fwd = pipeline.blend_forward(proj, bins, w(opacities, wp.float32), wp.zeros((1, 1), dtype=float), s, want)
+        last = wp.to_torch(fwd.last).view(height, width).long()
+        start = wp.to_torch(bins.tile_start).long()
+    ty = torch.arange(height, device=last.device) // s.tile_size
+    tx = torch.arange(width, device=last.device) // s.tile_size
+    tile = ty[:, None] * s.tiles_x + tx[None, :]
+    walked = (last - start[tile]).clamp_min(0)
+    return int(walked.sum().item()), bins.num_intersections
+
+
+def single_core_gflops():
+    """Measured float32 FLOP rate of one core (a large single-threaded matmul): the CPU's practical peak."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+    a @ b
+    t0 = time.perf_counter()
+    for _ in range(5):
+        a @ b
+    dt = (time.perf_counter() - t0) / 5
+    torch.set_num_threads(threads)
+    return 2 * 1024**3 / dt / 1e9
+
+
+def gsplat_times(scene, width, height, device):
+    import gsplat
+
+    means, quats, scales, opacities, colors, viewmat, K = scene
+
+    def fwd(leaves=None):
+        m, q, s, o, c = leaves or (means, quats, scales, opacities, colors)
+        img, alpha, _ = gsplat.rasterization(m, q, s, o, c, viewmat[None], K[None], width, height, packed=False,
+                                             render_mode="RGB+ED")
+        return img
+
+    def fwd_bwd():
+        leaves = [t.detach().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
+        fwd(leaves).sum().backward()
+
+    return time_call(fwd, device, warmup=3, repeats=20), time_call(fwd_bwd, device, warmup=3, repeats=20)
+
+
+def warpgs_times(scene, width, height, device, repeats):
+    means, quats, scales, opacities, colors, viewmat, K = scene
+
+    def fwd():
+        return rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs=OUTPUTS,
+                         check_inputs=False)
+
+    def fwd_bwd():
+        leaves = [t.detach().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
+        out = rasterize(*leaves, viewmat, K, width, height, outputs=OUTPUTS, check_inputs=False)
+        (out.rgb.sum() + out.depth.sum()).backward()
+
+    warm = 3 if device.startswith("cuda") else 1
+    return time_call(fwd, device, warmup=warm, repeats=repeats), time_call(fwd_bwd, device, warmup=warm, repeats=repeats)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--sizes", default="1000,10000,100000")
+    ap.add_argument("--resolutions", default="256x256,800x600")
+    ap.add_argument("--gsplat", action="store_true", help="time gsplat.rasterization side by side (CUDA)")
+    ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--error-pixels", type=int, default=128)
+    args = ap.parse_args()
+    scenes = standard_scenes_module()
+    device = args.device
+    repeats = args.repeats or (20 if device.startswith("cuda") else 3)
+    peak = single_core_gflops() if device == "cpu" else None
+
+    rows = []
+    for res in args.resolutions.split(","):
+        width, height = (int(v) for v in res.split("x"))
+        for n in (int(v) for v in args.sizes.split(",")):
+            means, quats, scales, opacities, colors, viewmat, K, W, H = scenes.random_scene(
+                n, width=width, height=height, device=device)
+            scene = (means, quats, scales, opacities, colors, viewmat, K)
+            fwd_ms, fb_ms = warpgs_times(scene, W, H, device, repeats)
+            evals, pairs = evaluations(scene, W, H)
+            row = dict(device=device, n=n, resolution=f"{W}x{H}", fwd_ms=fwd_ms, fwd_bwd_ms=fb_ms,
+                       max_err=max_error_vs_reference(scene, W, H, args.error_pixels), tile_pairs=pairs,
+                       evals_per_s=evals / (fwd_ms / 1e3))
+            if peak:
+                row["frac_of_core_peak"] = row["evals_per_s"] * FLOPS_PER_EVALUATION / (peak * 1e9)
+            if args.gsplat:
+                g_fwd, g_fb = gsplat_times(scene, W, H, device)
+                row.update(gsplat_fwd_ms=g_fwd, gsplat_fwd_bwd_ms=g_fb, ratio_fwd=fwd_ms / g_fwd, ratio_fwd_bwd=fb_ms / g_fb)
+            rows.append(row)
+            print_table([row], list(row))  # progress, one row at a time
+            sync(device)
+    print()
+    columns = ["n", "resolution", "fwd_ms", "fwd_bwd_ms", "max_err", "evals_per_s"]
+    columns += ["frac_of_core_peak"] if peak else []
+    columns += ["gsplat_fwd_ms", "gsplat_fwd_bwd_ms", "ratio_fwd", "ratio_fwd_bwd"] if args.gsplat else []
+    print_table(rows, columns)
+    meta = dict(device=device, gpu=torch.cuda.get_device_name() if device.startswith("cuda") else None,
+                cpu=platform.processor() or platform.machine(), torch=torch.__version__, warp=wp.__version__,
+                single_core_gflops=peak, flops_per_evaluation=FLOPS_PER_EVALUATION, outputs=OUTPUTS,
+                repeats=repeats, scenes="shared/bench/scenes.py random_scene")
+    path = write_json(f"raster_{device.split(':')[0]}", dict(meta=meta, rows=rows))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

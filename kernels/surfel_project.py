@@ -1,0 +1,188 @@
+"""Per-surfel stage for 2D Gaussian surfels (2DGS): the ray-splat transform, camera-facing normal, colour,
+and the screen-space footprint used for tile binning.
+
+A surfel is a disk: P(u, v) = centre + s_u t_u u + s_v t_v v, with t_u, t_v the first two columns of its
+rotation and t_w (the third) its normal. Its 3x3 transform M maps (u, v, 1) to homogeneous pixel coordinates
+(x z, y z, z) = K (R P + t), rows: screen x, screen y, camera z. The blend intersects each pixel's ray with the
+surfel plane exactly through M (no affine approximation).
+
+`project_surfels` is branch-free (guarded maths, wp.where) so that Warp's generated adjoint is exact;
+`surfel_footprints` is not differentiated.
+"""
+import warp as wp
+
+from .gaussian_math import clamp_scale, quat_wxyz_to_rotation, rotation_of, translation_of
+from .sh import eval_sh
+
+COLOR_DIRECT = wp.constant(0)
+COLOR_SH = wp.constant(1)
+ALPHA_MIN = wp.constant(1.0 / 255.0)
+# The screen-space fallback G = exp(-|d|^2) is a Gaussian of standard deviation 1/sqrt(2) px: in the
+# exponent -s/2 it reads s = FILTER_INV_SQUARE |d|^2.
+FILTER_INV_SQUARE = wp.constant(2.0)
+# A disk reaching closer than this fraction of its centre depth to the camera plane gets the whole screen
+# as footprint (its image is a huge ellipse or unbounded).
+FRONT_MARGIN = wp.constant(0.01)
+
+
+@wp.func
+def homogeneous_pixel(v: wp.vec3, fx: float, fy: float, cx: float, cy: float) -> wp.vec3:
+    """K v for a camera-space vector v: (fx x + cx z, fy y + cy z, z)."""
+    return wp.vec3(fx * v[0] + cx * v[2], fy * v[1] + cy * v[2], v[2])
+
+
+@wp.kernel
+def project_surfels(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec2),
+    coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
+    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    near: float,
+    far: float,
+    color_mode: int,
+    sh_degree: int,
+    transforms: wp.array(dtype=wp.mat33),  # rows: homogeneous x, y, z as linear functions of (u, v, 1)
+    means2d: wp.array(dtype=wp.vec2),
+    depths: wp.array(dtype=float),  # camera z of the centre (sort key, depth under the screen-space fallback)
+    normals: wp.array(dtype=wp.vec3),  # world space, flipped to face the camera
+    colors: wp.array(dtype=wp.vec3),
+    valid: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    V = viewmat[0]
+    R = rotation_of(V)
+    t = translation_of(V)
+    intr = intrinsics[0]
+    fx = intr[0]
+    fy = intr[1]
+    cx = intr[2]
+    cy = intr[3]
+
+    mu = means[i]
+    p = R * mu + t
+    z = p[2]
+    zs = wp.max(z, near)  # guarded depth: finite maths for culled surfels
+
+    Rq = quat_wxyz_to_rotation(quats[i])
+    s = scales[i]
+    tu = wp.vec3(Rq[0, 0], Rq[1, 0], Rq[2, 0])
+    tv = wp.vec3(Rq[0, 1], Rq[1, 1], Rq[2, 1])
+    tw = wp.vec3(Rq[0, 2], Rq[1, 2], Rq[2, 2])
+    col_u = homogeneous_pixel(R * (tu * clamp_scale(s[0])), fx, fy, cx, cy)
+    col_v = homogeneous_pixel(R * (tv * clamp_scale(s[1])), fx, fy, cx, cy)
+    col_c = homogeneous_pixel(p, fx, fy, cx, cy)
+    transforms[i] = wp.mat33(
+        col_u[0], col_v[0], col_c[0],
+        col_u[1], col_v[1], col_c[1],
+        col_u[2], col_v[2], col_c[2],
+    )
+    means2d[i] = wp.vec2(fx * p[0] / zs + cx, fy * p[1] / zs + cy)
+    depths[i] = zs
+
+    campos = -(wp.transpose(R) * t)
+    d = mu - campos
+    # Face the camera: the flip is piecewise constant, so only t_w carries gradient.
+    normals[i] = tw * wp.where(wp.dot(tw, d) > 0.0, -1.0, 1.0)
+
+    if color_mode == COLOR_SH:
+        d = d / wp.sqrt(wp.max(wp.dot(d, d), 1.0e-24))
+        rgb = eval_sh(coeffs, i, sh_degree, d) + wp.vec3(0.5, 0.5, 0.5)
+        colors[i] = wp.vec3(wp.max(rgb[0], 0.0), wp.max(rgb[1], 0.0), wp.max(rgb[2], 0.0))
+    else:
+        colors[i] = coeffs[i, 0]
+
+    ok = z >= near and z <= far and wp.isfinite(col_u[0] + col_u[1] + col_v[0] + col_v[1] + col_c[0] + col_c[1])
+    valid[i] = wp.where(ok, 1, 0)
+
+
+@wp.func
+def disk_extent(row: wp.vec3, row_z: wp.vec3, r2: float) -> wp.vec2:
+    """(centre, half width) along one screen axis of the image of the disk u^2 + v^2 <= r2.
+
+    Rows are normalised by the centre depth (row_z[2] = 1). The image is the conic whose dual is
+    M diag(r2, r2, -1) M^T; its tangent lines x = const solve x^2 D22 - 2 x D02 + D00 = 0. The discriminant
+    is expanded with Cauchy-Binet into 2x2 minors, which avoids cancelling large squares.
+    """
+    d22 = r2 * (row_z[0] * row_z[0] + row_z[1] * row_z[1]) - 1.0  # < 0: disk in front of the camera
+    d02 = r2 * (row[0] * row_z[0] + row[1] * row_z[1]) - row[2]
+    m01 = row[0] * row_z[1] - row[1] * row_z[0]
+    m02 = row[0] - row[2] * row_z[0]
+    m12 = row[1] - row[2] * row_z[1]
+    disc = r2 * (m02 * m02 + m12 * m12 - r2 * m01 * m01)
+    return wp.vec2(d02 / d22, wp.sqrt(wp.max(disc, 0.0)) / (-d22))
+
+
+@wp.func
+def pixel_span(lo: float, hi: float, size: int) -> wp.vec2i:
+    """First and last pixel index whose centre (i + 0.5) lies in [lo, hi], clamped to the image."""
+    a = wp.clamp(lo - 0.5, -1.0, float(size) + 1.0)  # clamp in float: huge extents cannot overflow int
+    b = wp.clamp(hi - 0.5, -1.0, float(size) + 1.0)
+    return wp.vec2i(wp.max(int(wp.ceil(a)), 0), wp.min(int(wp.floor(b)), size - 1))
+
+
+@wp.kernel
+def surfel_footprints(
+    transforms: wp.array(dtype=wp.mat33),
+    means2d: wp.array(dtype=wp.vec2),
+    opacities: wp.array(dtype=float),
+    valid: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
+    tile_size: int,
+    max_sigmas: float,
+    rects: wp.array(dtype=wp.vec4i),  # tile x0, y0, x1, y1 (inclusive)
+    counts: wp.array(dtype=wp.int32),
+):
+    """Tiles holding a pixel that can receive alpha >= 1/255: G = exp(-min(s3, s2)/2) with s3 = u^2 + v^2
+    on the disk and s2 the screen-space fallback, so the footprint is the union of the disk's image with
+    u^2 + v^2 <= q_max and the circle s2 <= q_max, q_max = 2 ln(255 o). Tile size does not change the image."""
+    i = wp.tid()
+    counts[i] = 0
+    rects[i] = wp.vec4i(0, 0, -1, -1)
+    o = opacities[i]
+    if valid[i] == 0 or o < ALPHA_MIN:
+        return
+    q_max = 2.0 * wp.log(255.0 * o)
+    if max_sigmas > 0.0:
+        q_max = wp.min(q_max, max_sigmas * max_sigmas)
+
+    M = transforms[i]
+    inv_z = 1.0 / M[2, 2]  # centre depth >= near > 0 for valid surfels
+    row_x = M[0] * inv_z
+    row_y = M[1] * inv_z
+    row_z = M[2] * inv_z
+    ex = disk_extent(row_x, row_z, q_max)
+    ey = disk_extent(row_y, row_z, q_max)
+    # Slightly generous so that float rounding in the blend never finds a pixel outside.
+    hx = ex[1] * 1.001 + 0.05
+    hy = ey[1] * 1.001 + 0.05
+    x_lo = ex[0] - hx
+    x_hi = ex[0] + hx
+    y_lo = ey[0] - hy
+    y_hi = ey[0] + hy
+    reach = FRONT_MARGIN - 1.0 + q_max * (row_z[0] * row_z[0] + row_z[1] * row_z[1])
+    if reach >= 0.0 or not (wp.isfinite(x_lo) and wp.isfinite(x_hi) and wp.isfinite(y_lo) and wp.isfinite(y_hi)):
+        x_lo = -1.0e30
+        x_hi = 1.0e30
+        y_lo = -1.0e30
+        y_hi = 1.0e30
+
+    m = means2d[i]
+    r_screen = wp.sqrt(q_max / FILTER_INV_SQUARE) * 1.001 + 0.05
+    x_lo = wp.min(x_lo, m[0] - r_screen)
+    x_hi = wp.max(x_hi, m[0] + r_screen)
+    y_lo = wp.min(y_lo, m[1] - r_screen)
+    y_hi = wp.max(y_hi, m[1] + r_screen)
+
+    sx = pixel_span(x_lo, x_hi, width)
+    sy = pixel_span(y_lo, y_hi, height)
+    if sx[0] > sx[1] or sy[0] > sy[1]:
+        return
+    tx0 = sx[0] / tile_size
+    tx1 = sx[1] / tile_size
+    ty0 = sy[0] / tile_size
+    ty1 = sy[1] / tile_size
+    rects[i] = wp.vec4i(tx0, ty0, tx1, ty1)
+    counts[i] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
