@@ -1,17 +1,25 @@
 """Calls the Warp op and the float64 reference on the same scene dict."""
+import os
+
 import torch
 
 from reference import render_reference
 from warpgs import rasterize
 
 ALL_OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
+# The suite runs on the CPU (CI); WARPGS_TEST_DEVICE=cuda runs the Warp side of it on a GPU instead.
+DEVICE = os.environ.get("WARPGS_TEST_DEVICE", "cpu")
 
 
 def render_ours(scene, outputs, background=None, **kw):
-    s = {k: (v.float() if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
-    return rasterize(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], s["viewmat"], s["K"],
-                     s["width"], s["height"], sh_degree=s["sh_degree"], features=s["features"],
-                     background=None if background is None else background.float(), outputs=outputs, **kw)
+    s = {k: (v.float().to(DEVICE) if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
+    out = rasterize(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], s["viewmat"], s["K"],
+                    s["width"], s["height"], sh_degree=s["sh_degree"], features=s["features"],
+                    background=None if background is None else background.float().to(DEVICE), outputs=outputs, **kw)
+    for name in ALL_OUTPUTS + ("visible",):
+        if getattr(out, name) is not None:
+            setattr(out, name, getattr(out, name).cpu())
+    return out
 
 
 def render_ref(scene, background=None):

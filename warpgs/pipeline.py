@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import warp as wp
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING  # no banner or per-module load messages
 
-from warpgs.kernels import binning, blend, project  # noqa: E402  (after the quiet flag)
+from warpgs.kernels import binning, blend, project  # noqa: E402  (after setting the log level)
 
 
 @dataclass
