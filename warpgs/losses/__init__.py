@@ -1,0 +1,25 @@
+"""Losses: the registry and the built-in terms (importing this package registers them)."""
+from warpgs.losses.registry import (
+    DEFAULT_LOSSES,
+    KNOWN_OUTPUTS,
+    LossResult,
+    LossTerm,
+    Schedule,
+    batch_field,
+    compute_losses,
+    get_loss,
+    parse_schedule,
+    register_loss,
+    registered_losses,
+    render_output,
+    required_outputs,
+    resolve_losses,
+    unregister_loss,
+)
+from warpgs.losses import photometric  # noqa: F401  (registers "l1" and "dssim")
+
+__all__ = [
+    "DEFAULT_LOSSES", "KNOWN_OUTPUTS", "LossResult", "LossTerm", "Schedule", "batch_field", "compute_losses",
+    "get_loss", "parse_schedule", "register_loss", "registered_losses", "render_output", "required_outputs",
+    "resolve_losses", "unregister_loss",
+]
