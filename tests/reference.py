@@ -70,6 +70,8 @@ def render_reference(means, quats, scales, opacities, colors, viewmat, K, width,
     cov = T @ T.transpose(1, 2) + 0.3 * torch.eye(2, dtype=means.dtype, device=means.device)
     conic = torch.linalg.inv(cov)
     mean2d = torch.stack([fx * p[:, 0] / zs + cx, fy * p[:, 1] / zs + cy], -1)
+    if mean2d.requires_grad:
+        mean2d.retain_grad()  # tests read dL/dmeans2d from out["means2d"].grad
 
     if sh_degree is None:
         rgb = colors
@@ -102,7 +104,7 @@ def render_reference(means, quats, scales, opacities, colors, viewmat, K, width,
     T_final = T_after[:, -1] if alpha.shape[1] else torch.ones(pix.shape[0], dtype=means.dtype, device=means.device)
 
     zo = zs[order]
-    out = {"alpha": (1.0 - T_final)[:, None]}
+    out = {"alpha": (1.0 - T_final)[:, None], "means2d": mean2d}
     out["rgb"] = w @ rgb[order] + (T_final[:, None] * background[None, :] if background is not None else 0.0)
     out["depth"] = (w @ zo)[:, None] / torch.clamp(out["alpha"], min=1e-10)
     out["inv_depth"] = (w @ (1.0 / zo))[:, None]
@@ -110,4 +112,4 @@ def render_reference(means, quats, scales, opacities, colors, viewmat, K, width,
         out["features"] = w @ features[order]
     if pixels is not None:
         return out
-    return {k: v.reshape(height, width, -1) for k, v in out.items()}
+    return {k: v if k == "means2d" else v.reshape(height, width, -1) for k, v in out.items()}

@@ -6,7 +6,7 @@ Conventions follow gsplat so users can swap: OpenCV camera (x right, y down, z f
 from __future__ import annotations
 
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Optional, Sequence
 
 import torch
@@ -28,7 +28,11 @@ class RenderOutput:
     depth: Optional[torch.Tensor] = None  # expected camera z: Σ w_i z_i / alpha
     inv_depth: Optional[torch.Tensor] = None  # accumulated Σ w_i / z_i
     features: Optional[torch.Tensor] = None
+    normal: Optional[torch.Tensor] = None  # surfels only: world-space normals facing the camera, Σ w_i n_i
+    median_depth: Optional[torch.Tensor] = None  # surfels only: z where accumulated opacity crosses 0.5
+    distortion: Optional[torch.Tensor] = None  # surfels only: the 2DGS depth-distortion term
     visible: Optional[torch.Tensor] = None  # [N] (or [B, N]) bool: touched at least one tile
+    means2d: Optional[torch.Tensor] = None  # with track_means2d: projected centres; .grad = dL/dmeans2d
     num_intersections: int = 0  # Gaussian-tile pairs (summed over a batch)
 
 
@@ -42,9 +46,10 @@ def _to_wp(t: torch.Tensor, dtype, grad: Optional[torch.Tensor] = None):
 
 class _RasterizeFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, settings, wanted, means, quats, scales, opacities, coeffs, features, viewmat, intrinsics):
-        needs = ctx.needs_input_grad[2:]
-        any_grad = any(needs)
+    def forward(ctx, settings, wanted, means, quats, scales, opacities, coeffs, features, viewmat, intrinsics,
+                means2d_probe):
+        needs = ctx.needs_input_grad[2:10]
+        any_grad = any(ctx.needs_input_grad[2:])  # the means2d probe alone also needs the blend adjoint
         grads = [torch.zeros_like(t) if need else None
                  for t, need in zip((means, quats, scales, opacities, coeffs, features, viewmat, intrinsics), needs)]
         # Arrays the hand-written blend adjoint writes into always need a grad buffer when anything is learnt.
@@ -74,6 +79,8 @@ class _RasterizeFunction(torch.autograd.Function):
         inv_depth = wp.to_torch(fwd.inv_depth).view(H, W, 1) if wanted.inv_depth else None
         feats = wp.to_torch(fwd.features).view(H, W, -1) if wanted.num_features else None
         visible = wp.to_torch(bins.counts) > 0
+        if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
+            means2d_probe.data.copy_(wp.to_torch(proj.means2d).view(-1, 2))
         ctx.state = (tape, proj, bins, fwd, w_opac, w_feat, settings, wanted, grads)
         empty = means.new_zeros(0)
         outs = [color, alpha, depth, inv_depth, feats]
@@ -100,13 +107,17 @@ class _RasterizeFunction(torch.autograd.Function):
             nf = wanted.num_features
             gf = wp.from_torch(upstream(g_feat, (npix, nf))) if nf else wp.zeros((1, 1), dtype=float)
 
+            g2d = []
+
             def blend_adjoint():
                 pipeline.blend_backward(proj, bins, w_opac, w_feat, settings, wanted, fwd, gc, ga, gd, gi, gf)
+                if ctx.needs_input_grad[10]:  # read before the projection adjoint consumes it
+                    g2d.append(wp.to_torch(proj.means2d.grad).view(-1, 2).clone())
 
             tape.record_func(blend_adjoint, [proj.means2d, proj.conics, proj.colors, proj.depths, w_opac, w_feat])
             tape.backward()
         ctx.state = None
-        return (None, None) + tuple(grads)
+        return (None, None) + tuple(grads) + (g2d[0] if g2d else None,)
 
 
 def _intrinsics_vector(K: torch.Tensor) -> torch.Tensor:
@@ -133,12 +144,16 @@ def rasterize(
     tile_size: int = 16,
     max_sigmas: float = 0.0,
     check_inputs: bool = True,
+    track_means2d: bool = False,
+    _means2d_probe: Optional[torch.Tensor] = None,
 ) -> RenderOutput:
     """Render N 3D Gaussians from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
 
     colors: [N,3] plain colours, or SH coefficients [N,K,3] with `sh_degree` d (K >= (d+1)^2; evaluated
     from the camera centre, plus 0.5, clamped at 0). features: [N,C] rendered into `out.features` when
     "features" is in `outputs`. Only the requested outputs are computed.
+    track_means2d: also return `out.means2d` [N,2] (or [B,N,2]), the projected centres in pixels, a leaf
+    whose `.grad` after backward is dL/dmeans2d (what 3DGS-style densification thresholds).
     """
     outputs = tuple(outputs)
     unknown = [o for o in outputs if o not in OUTPUTS]
@@ -149,11 +164,18 @@ def rasterize(
     _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
                      background, near, far, tile_size, check_inputs)
     if viewmat.dim() == 3:
+        probe = means.new_zeros(viewmat.shape[0], means.shape[0], 2, requires_grad=True) if track_means2d else None
         per_camera = [rasterize(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
                                 sh_degree=sh_degree, features=features, background=background, outputs=outputs,
-                                near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, check_inputs=False)
+                                near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, check_inputs=False,
+                                _means2d_probe=None if probe is None else probe[b])
                       for b in range(viewmat.shape[0])]
-        return _stack(per_camera)
+        out = _stack(per_camera)
+        out.means2d = probe
+        return out
+    probe = _means2d_probe
+    if probe is None and track_means2d:
+        probe = means.new_zeros(means.shape[0], 2, requires_grad=True)
 
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
@@ -168,9 +190,9 @@ def rasterize(
         stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
         with stream:
             color, alpha, zacc, inv, fout, visible, count = _RasterizeFunction.apply(
-                settings, wanted, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K))
+                settings, wanted, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K), probe)
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible,
-                       num_intersections=int(count))
+                       num_intersections=int(count), means2d=probe)
     if wanted.color:
         out.rgb = color if background is None else color + (1.0 - alpha) * background
     if wanted.depth:
@@ -187,17 +209,18 @@ def _stack(per_camera: list) -> RenderOutput:
         vals = [getattr(o, name) for o in per_camera]
         return None if vals[0] is None else torch.stack(vals)
 
-    out = RenderOutput(**{f: cat(f) for f in ("rgb", "alpha", "depth", "inv_depth", "features", "visible")})
+    out = RenderOutput(**{f.name: cat(f.name) for f in fields(RenderOutput)
+                          if f.name not in ("num_intersections", "means2d")})
     out.num_intersections = sum(o.num_intersections for o in per_camera)
     return out
 
 
 def _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
-                     background, near, far, tile_size, check_values):
+                     background, near, far, tile_size, check_values, scale_dims=3):
     check_tensor("means", means, (None, 3))
     n = means.shape[0]
     check_tensor("quats", quats, (n, 4))
-    check_tensor("scales", scales, (n, 3))
+    check_tensor("scales", scales, (n, scale_dims))
     check_tensor("opacities", opacities, (n,))
     if sh_degree is None:
         check_tensor("colors", colors, (n, 3))
