@@ -44,6 +44,7 @@ def blend_forward(
     height: int,
     tiles_x: int,
     tile_size: int,
+    first_tile: int,  # launches may cover a sub-range of tiles (the CPU splits them over threads)
     q_cut: wp.array(dtype=float),
     want_color: int,
     want_depth: int,
@@ -57,7 +58,7 @@ def blend_forward(
     out_features: wp.array2d(dtype=float),
     out_last: wp.array(dtype=wp.int32),
 ):
-    tid = wp.tid()
+    tid = wp.tid() + first_tile * tile_size * tile_size
     pxy = pixel_of(tid, tiles_x, tile_size)
     if pxy[0] >= width or pxy[1] >= height:
         return
@@ -124,6 +125,7 @@ def blend_backward(
     height: int,
     tiles_x: int,
     tile_size: int,
+    first_tile: int,  # launches may cover a sub-range of tiles (the CPU splits them over threads)
     q_cut: wp.array(dtype=float),
     want_color: int,
     want_depth: int,
@@ -143,7 +145,7 @@ def blend_backward(
     adj_depths: wp.array(dtype=float),
     adj_features: wp.array2d(dtype=float),
 ):
-    tid = wp.tid()
+    tid = wp.tid() + first_tile * tile_size * tile_size
     pxy = pixel_of(tid, tiles_x, tile_size)
     if pxy[0] >= width or pxy[1] >= height:
         return
@@ -212,3 +214,10 @@ def blend_backward(
             wp.atomic_add(
                 adj_means2d, g, -d_q * wp.vec2(2.0 * (cn[0] * dx + cn[1] * dy), 2.0 * (cn[1] * dx + cn[2] * dy))
             )
+
+
+@wp.kernel
+def accumulate(src: wp.array(dtype=float), dst: wp.array(dtype=float)):
+    """dst += src (merges the gradient buffers of CPU threads)."""
+    i = wp.tid()
+    dst[i] = dst[i] + src[i]

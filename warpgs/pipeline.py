@@ -5,11 +5,13 @@ Torch-free: ``warpgs.render`` converts tensors and drives these stages; other fr
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import List, Tuple
 
 import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING  # no banner or per-module load messages
 
+from warpgs.cpu_threads import cpu_threads, run_threads, tile_ranges_per_thread  # noqa: E402
 from warpgs.kernels import binning, blend, project  # noqa: E402  (after setting the log level)
 
 
@@ -137,7 +139,17 @@ def sort_into_tiles(rects, counts, depths, q_cut, s: Settings) -> Bins:
 
 def _blend_inputs(p: Projected, bins: Bins, opacities, features, s: Settings, want: Wanted):
     return [p.means2d, p.conics, opacities, p.colors, p.depths, features, s.width, s.height, s.tiles_x,
-            s.tile_size, bins.q_cut, int(want.color), int(want.depth), int(want.inv_depth), want.num_features]
+            s.tile_size]
+
+
+def _blend_flags(bins: Bins, want: Wanted):
+    return [bins.q_cut, int(want.color), int(want.depth), int(want.inv_depth), want.num_features]
+
+
+def _tile_launches(s: Settings, device) -> List[List[Tuple[int, int]]]:
+    """(first_tile, count) chunks per worker: one launch on a GPU, several threads on the CPU."""
+    threads = cpu_threads() if device.is_cpu else 1
+    return tile_ranges_per_thread(s.num_tiles, threads)
 
 
 def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, want: Wanted) -> Blended:
@@ -152,18 +164,46 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
         features=wp.zeros((npix, want.num_features) if want.num_features else (1, 1), dtype=float, device=dev),
         last=wp.zeros(npix, dtype=wp.int32, device=dev),
     )
-    wp.launch(blend.blend_forward, dim=s.num_tiles * s.tile_size**2,
-              inputs=[bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want),
-              outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.features, out.last],
-              device=dev)
+    head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want)
+    tail = _blend_flags(bins, want)
+
+    def work(_thread, chunks):  # each chunk writes only its own pixels
+        for first, count in chunks:
+            wp.launch(blend.blend_forward, dim=count * s.tile_size**2, inputs=head + [first] + tail,
+                      outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.features,
+                               out.last], device=dev)
+
+    run_threads(work, _tile_launches(s, dev))
     return out
 
 
 def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, want: Wanted, fwd: Blended,
                    grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features):
-    """Accumulates into the .grad of means2d, conics, colors, depths (projected), opacities and features."""
-    wp.launch(blend.blend_backward, dim=s.num_tiles * s.tile_size**2,
-              inputs=[bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want)
-              + [fwd.transmittance, fwd.last, grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features,
-                 p.means2d.grad, p.conics.grad, opacities.grad, p.colors.grad, p.depths.grad, features.grad],
-              device=p.means2d.device)
+    """Accumulates into the .grad of means2d, conics, colors, depths (projected), opacities and features.
+
+    CPU threads would race on those sums (Warp's CPU atomics are plain adds), so every thread but the first
+    accumulates into private buffers that are added in afterwards."""
+    dev = p.means2d.device
+    targets = [p.means2d.grad, p.conics.grad, opacities.grad, p.colors.grad, p.depths.grad, features.grad]
+    head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want)
+    tail = _blend_flags(bins, want) + [fwd.transmittance, fwd.last, grad_color, grad_alpha, grad_depth,
+                                       grad_inv_depth, grad_features]
+    per_thread = _tile_launches(s, dev)
+    buffers = [targets] + [[wp.zeros_like(t) for t in targets] for _ in per_thread[1:]]
+
+    def work(thread, chunks):
+        for first, count in chunks:
+            wp.launch(blend.blend_backward, dim=count * s.tile_size**2, inputs=head + [first] + tail + buffers[thread],
+                      device=dev)
+
+    run_threads(work, per_thread)
+    for private in buffers[1:]:
+        for dst, src in zip(targets, private):
+            if dst.size == 0:
+                continue
+            flat_dst, flat_src = _as_flat_floats(dst), _as_flat_floats(src)
+            wp.launch(blend.accumulate, dim=flat_dst.shape[0], inputs=[flat_src], outputs=[flat_dst], device=dev)
+
+
+def _as_flat_floats(a):
+    return a.view(wp.float32).flatten() if a.dtype != wp.float32 else a.flatten()
