@@ -88,6 +88,10 @@ def main():
     from common import time_call
 
     print(f"whole op forward+backward: {time_call(op, args.device, warmup=2, repeats=runs):.3f} ms")
+    if args.device.startswith("cuda"):  # per-kernel GPU times of one op call (Warp's CUDA activity timing)
+        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        op()
+        wp.timing_print(wp.timing_end())
 
 
 if __name__ == "__main__":
