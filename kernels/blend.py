@@ -111,6 +111,85 @@ def blend_forward(
         out_inv_depth[pix] = inv_acc
 
 
+# One pixel's gradient for one Gaussian: d means2d (2), d conic (3), d opacity, d colour (3), d depth,
+# 1 if the pixel blended this Gaussian (else all 0), then the pixel's updated T and suffix, and the blend
+# weight alpha*T (for feature gradients).
+GradRow = wp.types.vector(length=14, dtype=float)
+ROW_USED = wp.constant(10)
+ROW_T = wp.constant(11)
+ROW_SUFFIX = wp.constant(12)
+ROW_WEIGHT = wp.constant(13)
+
+
+@wp.func
+def pixel_gradient(
+    g: int, fx: float, fy: float, T: float, suffix: float, g_alpha: float, g_rgb: wp.vec3, g_z: float,
+    g_inv: float, pix: int, means2d: wp.array(dtype=wp.vec2), conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float), colors: wp.array(dtype=wp.vec3), depths: wp.array(dtype=float),
+    features: wp.array2d(dtype=float), grad_features: wp.array2d(dtype=float), q_cut: wp.array(dtype=float),
+    want_color: int, want_depth: int, want_inv_depth: int, num_features: int,
+) -> GradRow:
+    """One back-to-front step of the blending adjoint at one pixel. T is the transmittance behind this
+    Gaussian; suffix is Σ_channels g·(what is seen behind it), per unit transmittance."""
+    row = GradRow()
+    row[ROW_T] = T
+    row[ROW_SUFFIX] = suffix
+    m = means2d[g]
+    dx = fx - m[0]
+    dy = fy - m[1]
+    cn = conics[g]
+    q = mahalanobis(cn, dx, dy)
+    if q > q_cut[g]:
+        return row
+    G = wp.exp(-0.5 * q)
+    raw = opacities[g] * G
+    alpha = wp.min(ALPHA_MAX, raw)
+    if alpha < ALPHA_MIN:
+        return row
+    T = T / (1.0 - alpha)  # transmittance in front of this Gaussian
+    w = alpha * T
+    z = depths[g]
+    c_tilde = g_alpha
+    if want_color != 0:
+        c_tilde += wp.dot(colors[g], g_rgb)
+        row[6] = w * g_rgb[0]
+        row[7] = w * g_rgb[1]
+        row[8] = w * g_rgb[2]
+    if want_depth != 0:
+        c_tilde += z * g_z
+    if want_inv_depth != 0:
+        c_tilde += g_inv / z
+    row[9] = w * (g_z - g_inv / (z * z))
+    for c in range(num_features):
+        c_tilde += features[g, c] * grad_features[pix, c]
+    d_alpha = T * (c_tilde - suffix)
+    if raw < ALPHA_MAX:  # the 0.99 clamp has zero derivative
+        row[5] = d_alpha * G
+        d_q = -0.5 * alpha * d_alpha
+        row[2] = d_q * dx * dx
+        row[3] = d_q * 2.0 * dx * dy
+        row[4] = d_q * dy * dy
+        # q depends on the mean through (dx, dy) = pixel - mean
+        row[0] = -d_q * 2.0 * (cn[0] * dx + cn[1] * dy)
+        row[1] = -d_q * 2.0 * (cn[1] * dx + cn[2] * dy)
+    row[ROW_USED] = 1.0
+    row[ROW_WEIGHT] = w
+    row[ROW_T] = T
+    row[ROW_SUFFIX] = alpha * c_tilde + (1.0 - alpha) * suffix
+    return row
+
+
+@wp.func
+def add_gradient_row(g: int, row: GradRow, adj_means2d: wp.array(dtype=wp.vec2), adj_conics: wp.array(dtype=wp.vec3),
+                     adj_opacities: wp.array(dtype=float), adj_colors: wp.array(dtype=wp.vec3),
+                     adj_depths: wp.array(dtype=float)):
+    wp.atomic_add(adj_means2d, g, wp.vec2(row[0], row[1]))
+    wp.atomic_add(adj_conics, g, wp.vec3(row[2], row[3], row[4]))
+    wp.atomic_add(adj_opacities, g, row[5])
+    wp.atomic_add(adj_colors, g, wp.vec3(row[6], row[7], row[8]))
+    wp.atomic_add(adj_depths, g, row[9])
+
+
 @wp.kernel
 def blend_backward(
     tile_start: wp.array(dtype=wp.int32),
@@ -125,7 +204,7 @@ def blend_backward(
     height: int,
     tiles_x: int,
     tile_size: int,
-    first_tile: int,  # launches may cover a sub-range of tiles (the CPU splits them over threads)
+    first_tile: int,
     q_cut: wp.array(dtype=float),
     want_color: int,
     want_depth: int,
@@ -145,17 +224,15 @@ def blend_backward(
     adj_depths: wp.array(dtype=float),
     adj_features: wp.array2d(dtype=float),
 ):
+    """The blending adjoint, one thread per pixel, adding each pixel's gradient to global memory (CPU)."""
     tid = wp.tid() + first_tile * tile_size * tile_size
     pxy = pixel_of(tid, tiles_x, tile_size)
     if pxy[0] >= width or pxy[1] >= height:
         return
     pix = pxy[1] * width + pxy[0]
-    tile = tid / (tile_size * tile_size)
-    start = tile_start[tile]
+    start = tile_start[tid / (tile_size * tile_size)]
     fx = float(pxy[0]) + 0.5
     fy = float(pxy[1]) + 0.5
-
-    g_alpha = grad_alpha[pix]
     g_rgb = wp.vec3(0.0)
     if want_color != 0:
         g_rgb = grad_color[pix]
@@ -165,55 +242,117 @@ def blend_backward(
     g_inv = float(0.0)
     if want_inv_depth != 0:
         g_inv = grad_inv_depth[pix]
-
-    T = transmittance[pix]  # transmittance behind the current Gaussian, walking back to front
-    suffix = float(0.0)  # Σ_channels g·(what is seen behind the current Gaussian), per unit transmittance
+    g_alpha = grad_alpha[pix]
+    T = transmittance[pix]
+    suffix = float(0.0)
     k = last_index[pix] - 1
     while k >= start:
         g = sorted_ids[k]
         k -= 1
-        m = means2d[g]
-        dx = fx - m[0]
-        dy = fy - m[1]
-        cn = conics[g]
-        q = mahalanobis(cn, dx, dy)
-        if q > q_cut[g]:
-            continue
-        o = opacities[g]
-        G = wp.exp(-0.5 * q)
-        raw = o * G
-        alpha = wp.min(ALPHA_MAX, raw)
-        if alpha < ALPHA_MIN:
-            continue
-        T = T / (1.0 - alpha)  # transmittance in front of this Gaussian
-        w = alpha * T
-        z = depths[g]
+        row = pixel_gradient(g, fx, fy, T, suffix, g_alpha, g_rgb, g_z, g_inv, pix, means2d, conics, opacities,
+                             colors, depths, features, grad_features, q_cut, want_color, want_depth,
+                             want_inv_depth, num_features)
+        if row[ROW_USED] > 0.0:
+            T = row[ROW_T]
+            suffix = row[ROW_SUFFIX]
+            add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
+            for c in range(num_features):
+                wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])
 
-        c_tilde = g_alpha
+
+_cooperative_kernels = {}
+
+
+def blend_backward_cooperative(block_dim: int):
+    """The blending adjoint for GPUs, compiled for blocks of `block_dim` = tile_size² threads (one tile).
+
+    The threads of a block walk the tile's list in lockstep from the block's largest stopping point, and
+    each Gaussian's gradient is summed over the block before one thread adds it to global memory: without
+    that, all pixels of a tile would hit the same addresses with atomics at once. Same per-pixel maths as
+    `blend_backward` (pixel_gradient).
+    """
+    if block_dim not in _cooperative_kernels:
+        _cooperative_kernels[block_dim] = _make_cooperative(block_dim)
+    return _cooperative_kernels[block_dim]
+
+
+def _make_cooperative(block_dim: int):
+    @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False})
+    def blend_backward_blocks(
+        tile_start: wp.array(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=wp.vec3),
+        depths: wp.array(dtype=float),
+        features: wp.array2d(dtype=float),
+        width: int,
+        height: int,
+        tiles_x: int,
+        tile_size: int,
+        first_tile: int,
+        q_cut: wp.array(dtype=float),
+        want_color: int,
+        want_depth: int,
+        want_inv_depth: int,
+        num_features: int,
+        transmittance: wp.array(dtype=float),
+        last_index: wp.array(dtype=wp.int32),
+        grad_color: wp.array(dtype=wp.vec3),
+        grad_alpha: wp.array(dtype=float),
+        grad_depth: wp.array(dtype=float),
+        grad_inv_depth: wp.array(dtype=float),
+        grad_features: wp.array2d(dtype=float),
+        adj_means2d: wp.array(dtype=wp.vec2),
+        adj_conics: wp.array(dtype=wp.vec3),
+        adj_opacities: wp.array(dtype=float),
+        adj_colors: wp.array(dtype=wp.vec3),
+        adj_depths: wp.array(dtype=float),
+        adj_features: wp.array2d(dtype=float),
+    ):
+        tid = wp.tid() + first_tile * tile_size * tile_size
+        lane = tid % wp.static(block_dim)
+        pxy = pixel_of(tid, tiles_x, tile_size)
+        # Threads past the image edge still take part in the block sums, with nothing to add.
+        inside = pxy[0] < width and pxy[1] < height
+        pix = wp.where(inside, pxy[1] * width + pxy[0], 0)
+        start = tile_start[tid / (tile_size * tile_size)]
+        fx = float(pxy[0]) + 0.5
+        fy = float(pxy[1]) + 0.5
+        g_rgb = wp.vec3(0.0)
         if want_color != 0:
-            c_tilde += wp.dot(colors[g], g_rgb)
-            wp.atomic_add(adj_colors, g, w * g_rgb)
+            g_rgb = grad_color[pix]
+        g_z = float(0.0)
         if want_depth != 0:
-            c_tilde += z * g_z
+            g_z = grad_depth[pix]
+        g_inv = float(0.0)
         if want_inv_depth != 0:
-            c_tilde += g_inv / z
-        if want_depth != 0 or want_inv_depth != 0:
-            wp.atomic_add(adj_depths, g, w * (g_z - g_inv / (z * z)))
-        for c in range(num_features):
-            gf = grad_features[pix, c]
-            c_tilde += features[g, c] * gf
-            wp.atomic_add(adj_features, g, c, w * gf)
+            g_inv = grad_inv_depth[pix]
+        g_alpha = grad_alpha[pix]
+        T = transmittance[pix]
+        suffix = float(0.0)
+        last = wp.where(inside, last_index[pix], start)
+        block_last = wp.tile_max(wp.tile(last))[0]
+        for step in range(block_last - start):
+            k = block_last - 1 - step
+            g = sorted_ids[k]
+            row = GradRow()
+            if k < last:
+                row = pixel_gradient(g, fx, fy, T, suffix, g_alpha, g_rgb, g_z, g_inv, pix, means2d, conics,
+                                     opacities, colors, depths, features, grad_features, q_cut, want_color,
+                                     want_depth, want_inv_depth, num_features)
+                T = row[ROW_T]
+                suffix = row[ROW_SUFFIX]
+            total = wp.tile_sum(wp.tile(row, preserve_type=True))[0]
+            if lane == 0 and total[ROW_USED] > 0.0:
+                add_gradient_row(g, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
+            for c in range(num_features):
+                f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * grad_features[pix, c]))[0]
+                if lane == 0 and total[ROW_USED] > 0.0:
+                    wp.atomic_add(adj_features, g, c, f_total)
 
-        d_alpha = T * (c_tilde - suffix)
-        suffix = alpha * c_tilde + (1.0 - alpha) * suffix
-        if raw < ALPHA_MAX:  # the 0.99 clamp has zero derivative
-            wp.atomic_add(adj_opacities, g, d_alpha * G)
-            d_q = -0.5 * alpha * d_alpha
-            wp.atomic_add(adj_conics, g, d_q * wp.vec3(dx * dx, 2.0 * dx * dy, dy * dy))
-            # q depends on the mean through (dx, dy) = pixel - mean
-            wp.atomic_add(
-                adj_means2d, g, -d_q * wp.vec2(2.0 * (cn[0] * dx + cn[1] * dy), 2.0 * (cn[1] * dx + cn[2] * dy))
-            )
+    return blend_backward_blocks
 
 
 @wp.kernel

@@ -191,10 +191,14 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
     per_thread = _tile_launches(s, dev)
     buffers = [targets] + [[wp.zeros_like(t) for t in targets] for _ in per_thread[1:]]
 
+    # GPU: one block per tile, gradients summed over the block; CPU: one thread per pixel.
+    block_dim = 1 if dev.is_cpu else s.tile_size**2
+    kernel = blend.blend_backward if dev.is_cpu else blend.blend_backward_cooperative(block_dim)
+
     def work(thread, chunks):
         for first, count in chunks:
-            wp.launch(blend.blend_backward, dim=count * s.tile_size**2, inputs=head + [first] + tail + buffers[thread],
-                      device=dev)
+            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [first] + tail + buffers[thread],
+                      device=dev, block_dim=block_dim)
 
     run_threads(work, per_thread)
     for private in buffers[1:]:

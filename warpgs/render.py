@@ -246,6 +246,8 @@ def _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width,
     for name, v in (("width", width), ("height", height), ("tile_size", tile_size)):
         if int(v) != v or int(v) < 1:
             raise ValueError(f"{name}: expected a positive integer, got {v}")
+    if tile_size > 32:
+        raise ValueError(f"tile_size: at most 32 (a tile is one GPU block of tile_size² threads), got {tile_size}")
     if not (0 < near < far):
         raise ValueError(f"near/far: expected 0 < near < far, got near={near}, far={far}")
     named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
