@@ -1,8 +1,10 @@
 """Per-pixel front-to-back alpha blending over a tile's depth-sorted Gaussians, and its hand-written adjoint.
 
 One thread per pixel; a launch covers num_tiles * tile_size² threads so that the threads of one block
-share one tile's list. Rules as in 3DGS: alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255, stop before
-transmittance would drop under 1e-4. The background is not blended here: the op adds T_final * bg.
+share one tile's list. The kernels here are the per-thread versions the CPU runs; `blend_gpu.py` has the
+block-cooperative versions of the same per-pixel steps (the @wp.func's below) for GPUs.
+Rules as in 3DGS: alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255, stop before transmittance would
+drop under 1e-4. The background is not blended here: the op adds T_final * bg.
 
 The backward walks each pixel's list back to front from the stored stopping point, recovering T_i from
 T_final by division (alpha <= 0.99 keeps that safe). Every output channel (rgb, alpha, depth, inverse
@@ -27,6 +29,72 @@ def pixel_of(tid: int, tiles_x: int, tile_size: int) -> wp.vec2i:
 @wp.func
 def mahalanobis(conic: wp.vec3, dx: float, dy: float) -> float:
     return conic[0] * dx * dx + 2.0 * conic[1] * dx * dy + conic[2] * dy * dy
+
+
+@wp.struct
+class PixelState:
+    T: float  # transmittance so far
+    rgb: wp.vec3
+    depth: float  # Σ w z
+    inv_depth: float  # Σ w / z
+    last: int  # one past the last blended index of the tile list
+    done: int  # 1 once transmittance would drop under T_MIN
+
+
+@wp.func
+def new_pixel_state(start: int) -> PixelState:
+    st = PixelState()
+    st.T = 1.0
+    st.last = start
+    return st
+
+
+@wp.func
+def blend_one(st: PixelState, k: int, g: int, mean: wp.vec2, conic: wp.vec3, opacity: float, q_cut: float,
+              color: wp.vec3, depth: float, fx: float, fy: float, pix: int, features: wp.array2d(dtype=float),
+              out_features: wp.array2d(dtype=float), want_color: int, want_depth: int, want_inv_depth: int,
+              num_features: int) -> PixelState:
+    """Front-to-back step: blends Gaussian g (entry k of the tile list) into a pixel."""
+    dx = fx - mean[0]
+    dy = fy - mean[1]
+    q = mahalanobis(conic, dx, dy)
+    if q > q_cut:  # outside the footprint: alpha would be < 1/255, skip the exp()
+        return st
+    alpha = wp.min(ALPHA_MAX, opacity * wp.exp(-0.5 * q))
+    if alpha < ALPHA_MIN:
+        return st
+    next_T = st.T * (1.0 - alpha)
+    if next_T < T_MIN:
+        st.done = 1
+        return st
+    w = alpha * st.T
+    if want_color != 0:
+        st.rgb = st.rgb + w * color
+    if want_depth != 0:
+        st.depth = st.depth + w * depth
+    if want_inv_depth != 0:
+        st.inv_depth = st.inv_depth + w / depth
+    for c in range(num_features):
+        out_features[pix, c] = out_features[pix, c] + w * features[g, c]
+    st.T = next_T
+    st.last = k + 1
+    return st
+
+
+@wp.func
+def write_pixel(st: PixelState, pix: int, want_color: int, want_depth: int, want_inv_depth: int,
+                out_color: wp.array(dtype=wp.vec3), out_transmittance: wp.array(dtype=float),
+                out_alpha: wp.array(dtype=float), out_depth: wp.array(dtype=float),
+                out_inv_depth: wp.array(dtype=float), out_last: wp.array(dtype=wp.int32)):
+    out_transmittance[pix] = st.T
+    out_alpha[pix] = 1.0 - st.T
+    out_last[pix] = st.last
+    if want_color != 0:
+        out_color[pix] = st.rgb
+    if want_depth != 0:
+        out_depth[pix] = st.depth
+    if want_inv_depth != 0:
+        out_inv_depth[pix] = st.inv_depth
 
 
 @wp.kernel
@@ -69,46 +137,15 @@ def blend_forward(
     fx = float(pxy[0]) + 0.5
     fy = float(pxy[1]) + 0.5
 
-    T = float(1.0)
-    rgb = wp.vec3(0.0)
-    z_acc = float(0.0)
-    inv_acc = float(0.0)
-    last = start
+    st = new_pixel_state(start)
     for k in range(start, end):
         g = sorted_ids[k]
-        m = means2d[g]
-        dx = fx - m[0]
-        dy = fy - m[1]
-        q = mahalanobis(conics[g], dx, dy)
-        if q > q_cut[g]:
-            continue
-        alpha = wp.min(ALPHA_MAX, opacities[g] * wp.exp(-0.5 * q))
-        if alpha < ALPHA_MIN:
-            continue
-        next_T = T * (1.0 - alpha)
-        if next_T < T_MIN:
+        st = blend_one(st, k, g, means2d[g], conics[g], opacities[g], q_cut[g], colors[g], depths[g], fx, fy, pix,
+                       features, out_features, want_color, want_depth, want_inv_depth, num_features)
+        if st.done != 0:
             break
-        w = alpha * T
-        if want_color != 0:
-            rgb += w * colors[g]
-        if want_depth != 0:
-            z_acc += w * depths[g]
-        if want_inv_depth != 0:
-            inv_acc += w / depths[g]
-        for c in range(num_features):
-            out_features[pix, c] = out_features[pix, c] + w * features[g, c]
-        T = next_T
-        last = k + 1
-
-    out_transmittance[pix] = T
-    out_alpha[pix] = 1.0 - T
-    out_last[pix] = last
-    if want_color != 0:
-        out_color[pix] = rgb
-    if want_depth != 0:
-        out_depth[pix] = z_acc
-    if want_inv_depth != 0:
-        out_inv_depth[pix] = inv_acc
+    write_pixel(st, pix, want_color, want_depth, want_inv_depth, out_color, out_transmittance, out_alpha, out_depth,
+                out_inv_depth, out_last)
 
 
 # One pixel's gradient for one Gaussian: d means2d (2), d conic (3), d opacity, d colour (3), d depth,
@@ -123,10 +160,9 @@ ROW_WEIGHT = wp.constant(13)
 
 @wp.func
 def pixel_gradient(
-    g: int, fx: float, fy: float, T: float, suffix: float, g_alpha: float, g_rgb: wp.vec3, g_z: float,
-    g_inv: float, pix: int, means2d: wp.array(dtype=wp.vec2), conics: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float), colors: wp.array(dtype=wp.vec3), depths: wp.array(dtype=float),
-    features: wp.array2d(dtype=float), grad_features: wp.array2d(dtype=float), q_cut: wp.array(dtype=float),
+    g: int, mean: wp.vec2, conic: wp.vec3, opacity: float, q_cut: float, color: wp.vec3, depth: float,
+    fx: float, fy: float, T: float, suffix: float, g_alpha: float, g_rgb: wp.vec3, g_z: float, g_inv: float,
+    pix: int, features: wp.array2d(dtype=float), grad_features: wp.array2d(dtype=float),
     want_color: int, want_depth: int, want_inv_depth: int, num_features: int,
 ) -> GradRow:
     """One back-to-front step of the blending adjoint at one pixel. T is the transmittance behind this
@@ -134,24 +170,23 @@ def pixel_gradient(
     row = GradRow()
     row[ROW_T] = T
     row[ROW_SUFFIX] = suffix
-    m = means2d[g]
-    dx = fx - m[0]
-    dy = fy - m[1]
-    cn = conics[g]
+    dx = fx - mean[0]
+    dy = fy - mean[1]
+    cn = conic
     q = mahalanobis(cn, dx, dy)
-    if q > q_cut[g]:
+    if q > q_cut:
         return row
     G = wp.exp(-0.5 * q)
-    raw = opacities[g] * G
+    raw = opacity * G
     alpha = wp.min(ALPHA_MAX, raw)
     if alpha < ALPHA_MIN:
         return row
     T = T / (1.0 - alpha)  # transmittance in front of this Gaussian
     w = alpha * T
-    z = depths[g]
+    z = depth
     c_tilde = g_alpha
     if want_color != 0:
-        c_tilde += wp.dot(colors[g], g_rgb)
+        c_tilde += wp.dot(color, g_rgb)
         row[6] = w * g_rgb[0]
         row[7] = w * g_rgb[1]
         row[8] = w * g_rgb[2]
@@ -249,110 +284,15 @@ def blend_backward(
     while k >= start:
         g = sorted_ids[k]
         k -= 1
-        row = pixel_gradient(g, fx, fy, T, suffix, g_alpha, g_rgb, g_z, g_inv, pix, means2d, conics, opacities,
-                             colors, depths, features, grad_features, q_cut, want_color, want_depth,
-                             want_inv_depth, num_features)
+        row = pixel_gradient(g, means2d[g], conics[g], opacities[g], q_cut[g], colors[g], depths[g], fx, fy, T,
+                             suffix, g_alpha, g_rgb, g_z, g_inv, pix, features, grad_features, want_color,
+                             want_depth, want_inv_depth, num_features)
         if row[ROW_USED] > 0.0:
             T = row[ROW_T]
             suffix = row[ROW_SUFFIX]
             add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
             for c in range(num_features):
                 wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])
-
-
-_cooperative_kernels = {}
-
-
-def blend_backward_cooperative(block_dim: int):
-    """The blending adjoint for GPUs, compiled for blocks of `block_dim` = tile_size² threads (one tile).
-
-    The threads of a block walk the tile's list in lockstep from the block's largest stopping point, and
-    each Gaussian's gradient is summed over the block before one thread adds it to global memory: without
-    that, all pixels of a tile would hit the same addresses with atomics at once. Same per-pixel maths as
-    `blend_backward` (pixel_gradient).
-    """
-    if block_dim not in _cooperative_kernels:
-        _cooperative_kernels[block_dim] = _make_cooperative(block_dim)
-    return _cooperative_kernels[block_dim]
-
-
-def _make_cooperative(block_dim: int):
-    @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False})
-    def blend_backward_blocks(
-        tile_start: wp.array(dtype=wp.int32),
-        sorted_ids: wp.array(dtype=wp.int32),
-        means2d: wp.array(dtype=wp.vec2),
-        conics: wp.array(dtype=wp.vec3),
-        opacities: wp.array(dtype=float),
-        colors: wp.array(dtype=wp.vec3),
-        depths: wp.array(dtype=float),
-        features: wp.array2d(dtype=float),
-        width: int,
-        height: int,
-        tiles_x: int,
-        tile_size: int,
-        first_tile: int,
-        q_cut: wp.array(dtype=float),
-        want_color: int,
-        want_depth: int,
-        want_inv_depth: int,
-        num_features: int,
-        transmittance: wp.array(dtype=float),
-        last_index: wp.array(dtype=wp.int32),
-        grad_color: wp.array(dtype=wp.vec3),
-        grad_alpha: wp.array(dtype=float),
-        grad_depth: wp.array(dtype=float),
-        grad_inv_depth: wp.array(dtype=float),
-        grad_features: wp.array2d(dtype=float),
-        adj_means2d: wp.array(dtype=wp.vec2),
-        adj_conics: wp.array(dtype=wp.vec3),
-        adj_opacities: wp.array(dtype=float),
-        adj_colors: wp.array(dtype=wp.vec3),
-        adj_depths: wp.array(dtype=float),
-        adj_features: wp.array2d(dtype=float),
-    ):
-        tid = wp.tid() + first_tile * tile_size * tile_size
-        lane = tid % wp.static(block_dim)
-        pxy = pixel_of(tid, tiles_x, tile_size)
-        # Threads past the image edge still take part in the block sums, with nothing to add.
-        inside = pxy[0] < width and pxy[1] < height
-        pix = wp.where(inside, pxy[1] * width + pxy[0], 0)
-        start = tile_start[tid / (tile_size * tile_size)]
-        fx = float(pxy[0]) + 0.5
-        fy = float(pxy[1]) + 0.5
-        g_rgb = wp.vec3(0.0)
-        if want_color != 0:
-            g_rgb = grad_color[pix]
-        g_z = float(0.0)
-        if want_depth != 0:
-            g_z = grad_depth[pix]
-        g_inv = float(0.0)
-        if want_inv_depth != 0:
-            g_inv = grad_inv_depth[pix]
-        g_alpha = grad_alpha[pix]
-        T = transmittance[pix]
-        suffix = float(0.0)
-        last = wp.where(inside, last_index[pix], start)
-        block_last = wp.tile_max(wp.tile(last))[0]
-        for step in range(block_last - start):
-            k = block_last - 1 - step
-            g = sorted_ids[k]
-            row = GradRow()
-            if k < last:
-                row = pixel_gradient(g, fx, fy, T, suffix, g_alpha, g_rgb, g_z, g_inv, pix, means2d, conics,
-                                     opacities, colors, depths, features, grad_features, q_cut, want_color,
-                                     want_depth, want_inv_depth, num_features)
-                T = row[ROW_T]
-                suffix = row[ROW_SUFFIX]
-            total = wp.tile_sum(wp.tile(row, preserve_type=True))[0]
-            if lane == 0 and total[ROW_USED] > 0.0:
-                add_gradient_row(g, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
-            for c in range(num_features):
-                f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * grad_features[pix, c]))[0]
-                if lane == 0 and total[ROW_USED] > 0.0:
-                    wp.atomic_add(adj_features, g, c, f_total)
-
-    return blend_backward_blocks
 
 
 @wp.kernel

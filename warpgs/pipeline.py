@@ -4,15 +4,18 @@ Torch-free: ``warpgs.render`` converts tensors and drives these stages; other fr
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import List, Tuple
 
 import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING  # no banner or per-module load messages
+if os.environ.get("WARPGS_CPU_COOPERATIVE") == "1":
+    wp.config.enable_cpu_blocks = True
 
 from warpgs.cpu_threads import cpu_threads, run_threads, tile_ranges_per_thread  # noqa: E402
-from warpgs.kernels import binning, blend, project  # noqa: E402  (after setting the log level)
+from warpgs.kernels import binning, blend, blend_gpu, project  # noqa: E402  (after setting the log level)
 
 
 @dataclass
@@ -148,8 +151,19 @@ def _blend_flags(bins: Bins, want: Wanted):
 
 def _tile_launches(s: Settings, device) -> List[List[Tuple[int, int]]]:
     """(first_tile, count) chunks per worker: one launch on a GPU, several threads on the CPU."""
-    threads = cpu_threads() if device.is_cpu else 1
+    threads = 1 if _cooperative(device) else cpu_threads()
     return tile_ranges_per_thread(s.num_tiles, threads)
+
+
+def _cooperative(device) -> bool:
+    """Block-cooperative kernels (blend_gpu.py) on GPUs. WARPGS_CPU_COOPERATIVE=1 runs them on the CPU too,
+    with Warp's CPU blocks (fibers), so their maths can be tested without a GPU."""
+    return not device.is_cpu or os.environ.get("WARPGS_CPU_COOPERATIVE") == "1"
+
+
+def _block_reduce() -> bool:
+    """Sum each Gaussian's gradient over the block before the atomics (WARPGS_BLOCK_REDUCE=0 turns it off)."""
+    return os.environ.get("WARPGS_BLOCK_REDUCE", "1") != "0"
 
 
 def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, want: Wanted) -> Blended:
@@ -167,11 +181,15 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
     head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want)
     tail = _blend_flags(bins, want)
 
+    coop = _cooperative(dev)
+    block_dim = s.tile_size**2 if coop else 1
+    kernel = blend_gpu.forward_kernel(block_dim) if coop else blend.blend_forward
+
     def work(_thread, chunks):  # each chunk writes only its own pixels
         for first, count in chunks:
-            wp.launch(blend.blend_forward, dim=count * s.tile_size**2, inputs=head + [first] + tail,
+            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [first] + tail,
                       outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.features,
-                               out.last], device=dev)
+                               out.last], device=dev, block_dim=block_dim)
 
     run_threads(work, _tile_launches(s, dev))
     return out
@@ -191,9 +209,9 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
     per_thread = _tile_launches(s, dev)
     buffers = [targets] + [[wp.zeros_like(t) for t in targets] for _ in per_thread[1:]]
 
-    # GPU: one block per tile, gradients summed over the block; CPU: one thread per pixel.
-    block_dim = 1 if dev.is_cpu else s.tile_size**2
-    kernel = blend.blend_backward if dev.is_cpu else blend.blend_backward_cooperative(block_dim)
+    coop = _cooperative(dev)  # GPU: one block per tile; CPU: one thread per pixel
+    block_dim = s.tile_size**2 if coop else 1
+    kernel = blend_gpu.backward_kernel(block_dim, _block_reduce()) if coop else blend.blend_backward
 
     def work(thread, chunks):
         for first, count in chunks:

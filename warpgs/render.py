@@ -98,7 +98,8 @@ class _RasterizeFunction(torch.autograd.Function):
         def upstream(g, shape):
             return (torch.zeros(shape, device=device) if g is None else g).contiguous().view(shape)
 
-        with wp.ScopedDevice(proj.means2d.device):
+        stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
+        with wp.ScopedDevice(proj.means2d.device), stream:  # on torch's stream: no race with its kernels
             # Outputs that were not computed get a 1-element dummy the kernel never reads.
             gc = wp.from_torch(upstream(g_color, (npix, 3)), dtype=wp.vec3) if wanted.color else wp.zeros(1, dtype=wp.vec3)
             ga = wp.from_torch(upstream(g_alpha, (npix,)))

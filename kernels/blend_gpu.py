@@ -1,0 +1,204 @@
+"""Block-cooperative blending for GPUs: one block of tile_size² threads per tile.
+
+The per-thread kernels in blend.py load each Gaussian of a tile's list one after another, so every step
+waits on a dependent global load. Here the block fetches the list in batches of block_dim Gaussians into
+shared memory (each thread gathers one), then every thread walks the batch from shared memory. The
+forward stops a tile once all its pixels are saturated; the backward walks back to front in lockstep
+from the block's largest stopping point and, optionally, sums each Gaussian's gradient over the block
+before one thread adds it to global memory. The per-pixel maths are blend.py's @wp.func's.
+Kernels are compiled per block size (tile_size²), since tile shapes are fixed at compile time.
+"""
+import warp as wp
+
+from .blend import (
+    ALPHA_MIN,
+    ROW_USED,
+    ROW_SUFFIX,
+    ROW_T,
+    ROW_WEIGHT,
+    GradRow,
+    add_gradient_row,
+    blend_one,
+    new_pixel_state,
+    pixel_gradient,
+    pixel_of,
+    write_pixel,
+)
+
+_kernels = {}
+
+
+def forward_kernel(block_dim: int):
+    key = ("forward", block_dim)
+    if key not in _kernels:
+        _kernels[key] = _make_forward(block_dim)
+    return _kernels[key]
+
+
+def backward_kernel(block_dim: int, block_reduce: bool):
+    key = ("backward", block_dim, block_reduce)
+    if key not in _kernels:
+        _kernels[key] = _make_backward(block_dim, block_reduce)
+    return _kernels[key]
+
+
+def _make_forward(block_dim: int):
+    @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False})
+    def blend_forward_blocks(
+        tile_start: wp.array(dtype=wp.int32),
+        tile_end: wp.array(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=wp.vec3),
+        depths: wp.array(dtype=float),
+        features: wp.array2d(dtype=float),
+        width: int,
+        height: int,
+        tiles_x: int,
+        tile_size: int,
+        first_tile: int,
+        q_cut: wp.array(dtype=float),
+        want_color: int,
+        want_depth: int,
+        want_inv_depth: int,
+        num_features: int,
+        out_color: wp.array(dtype=wp.vec3),
+        out_transmittance: wp.array(dtype=float),
+        out_alpha: wp.array(dtype=float),
+        out_depth: wp.array(dtype=float),
+        out_inv_depth: wp.array(dtype=float),
+        out_features: wp.array2d(dtype=float),
+        out_last: wp.array(dtype=wp.int32),
+    ):
+        tid = wp.tid() + first_tile * tile_size * tile_size
+        pxy = pixel_of(tid, tiles_x, tile_size)
+        inside = pxy[0] < width and pxy[1] < height  # outside threads still help fetch
+        pix = wp.where(inside, pxy[1] * width + pxy[0], 0)
+        tile = tid / (tile_size * tile_size)
+        start = tile_start[tile]
+        end = tile_end[tile]
+        fx = float(pxy[0]) + 0.5
+        fy = float(pxy[1]) + 0.5
+        st = new_pixel_state(start)
+        if not inside:
+            st.done = 1
+        for b in range((end - start + wp.static(block_dim) - 1) / wp.static(block_dim)):
+            if wp.tile_sum(wp.tile(1 - st.done))[0] == 0:  # every pixel of the tile is saturated
+                break
+            lo = start + b * wp.static(block_dim)
+            ids = wp.tile_load(sorted_ids, shape=wp.static(block_dim), offset=lo, storage="shared")
+            m_t = wp.tile_load_indexed(means2d, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            c_t = wp.tile_load_indexed(conics, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            o_t = wp.tile_load_indexed(opacities, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            q_t = wp.tile_load_indexed(q_cut, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            rgb_t = wp.tile_load_indexed(colors, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            z_t = wp.tile_load_indexed(depths, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            for j in range(wp.min(wp.static(block_dim), end - lo)):
+                if st.done == 0:
+                    st = blend_one(st, lo + j, wp.tile_extract(ids, j), wp.tile_extract(m_t, j),
+                                   wp.tile_extract(c_t, j), wp.tile_extract(o_t, j), wp.tile_extract(q_t, j),
+                                   wp.tile_extract(rgb_t, j), wp.tile_extract(z_t, j), fx, fy, pix, features,
+                                   out_features, want_color, want_depth, want_inv_depth, num_features)
+        if inside:
+            write_pixel(st, pix, want_color, want_depth, want_inv_depth, out_color, out_transmittance, out_alpha,
+                        out_depth, out_inv_depth, out_last)
+
+    return blend_forward_blocks
+
+
+def _make_backward(block_dim: int, block_reduce: bool):
+    @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False})
+    def blend_backward_blocks(
+        tile_start: wp.array(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=wp.vec3),
+        depths: wp.array(dtype=float),
+        features: wp.array2d(dtype=float),
+        width: int,
+        height: int,
+        tiles_x: int,
+        tile_size: int,
+        first_tile: int,
+        q_cut: wp.array(dtype=float),
+        want_color: int,
+        want_depth: int,
+        want_inv_depth: int,
+        num_features: int,
+        transmittance: wp.array(dtype=float),
+        last_index: wp.array(dtype=wp.int32),
+        grad_color: wp.array(dtype=wp.vec3),
+        grad_alpha: wp.array(dtype=float),
+        grad_depth: wp.array(dtype=float),
+        grad_inv_depth: wp.array(dtype=float),
+        grad_features: wp.array2d(dtype=float),
+        adj_means2d: wp.array(dtype=wp.vec2),
+        adj_conics: wp.array(dtype=wp.vec3),
+        adj_opacities: wp.array(dtype=float),
+        adj_colors: wp.array(dtype=wp.vec3),
+        adj_depths: wp.array(dtype=float),
+        adj_features: wp.array2d(dtype=float),
+    ):
+        tid = wp.tid() + first_tile * tile_size * tile_size
+        lane = tid % wp.static(block_dim)
+        pxy = pixel_of(tid, tiles_x, tile_size)
+        inside = pxy[0] < width and pxy[1] < height  # outside threads still help fetch and sum
+        pix = wp.where(inside, pxy[1] * width + pxy[0], 0)
+        start = tile_start[tid / (tile_size * tile_size)]
+        fx = float(pxy[0]) + 0.5
+        fy = float(pxy[1]) + 0.5
+        g_rgb = wp.vec3(0.0)
+        if want_color != 0:
+            g_rgb = grad_color[pix]
+        g_z = float(0.0)
+        if want_depth != 0:
+            g_z = grad_depth[pix]
+        g_inv = float(0.0)
+        if want_inv_depth != 0:
+            g_inv = grad_inv_depth[pix]
+        g_alpha = grad_alpha[pix]
+        T = transmittance[pix]
+        suffix = float(0.0)
+        last = wp.where(inside, last_index[pix], start)
+        block_last = wp.tile_max(wp.tile(last))[0]
+        for b in range((block_last - start + wp.static(block_dim) - 1) / wp.static(block_dim)):
+            hi = block_last - b * wp.static(block_dim)
+            lo = wp.max(start, hi - wp.static(block_dim))
+            ids = wp.tile_load(sorted_ids, shape=wp.static(block_dim), offset=lo, storage="shared")
+            m_t = wp.tile_load_indexed(means2d, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            c_t = wp.tile_load_indexed(conics, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            o_t = wp.tile_load_indexed(opacities, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            q_t = wp.tile_load_indexed(q_cut, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            rgb_t = wp.tile_load_indexed(colors, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            z_t = wp.tile_load_indexed(depths, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            for step in range(hi - lo):
+                j = hi - lo - 1 - step
+                g = wp.tile_extract(ids, j)
+                row = GradRow()
+                if lo + j < last:
+                    row = pixel_gradient(g, wp.tile_extract(m_t, j), wp.tile_extract(c_t, j),
+                                         wp.tile_extract(o_t, j), wp.tile_extract(q_t, j),
+                                         wp.tile_extract(rgb_t, j), wp.tile_extract(z_t, j), fx, fy, T, suffix,
+                                         g_alpha, g_rgb, g_z, g_inv, pix, features, grad_features, want_color,
+                                         want_depth, want_inv_depth, num_features)
+                    T = row[ROW_T]
+                    suffix = row[ROW_SUFFIX]
+                if wp.static(block_reduce):
+                    total = wp.tile_sum(wp.tile(row, preserve_type=True))[0]
+                    if lane == 0 and total[ROW_USED] > 0.0:
+                        add_gradient_row(g, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
+                    for c in range(num_features):
+                        f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * grad_features[pix, c]))[0]
+                        if lane == 0 and total[ROW_USED] > 0.0:
+                            wp.atomic_add(adj_features, g, c, f_total)
+                else:
+                    if row[ROW_USED] > 0.0:
+                        add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
+                        for c in range(num_features):
+                            wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])
+
+    return blend_backward_blocks
