@@ -3,6 +3,7 @@
 
     python benchmarks/raster.py                       # CPU table: N in {1k,10k,100k} at 256x256 and 800x600
     python benchmarks/raster.py --device cuda --gsplat --sizes 100000,1000000 --resolutions 1920x1080
+    python benchmarks/raster.py --primitive surfels ...   # 2D surfels (gsplat: rasterization_2dgs)
 
 Prints a table and writes benchmarks/results/raster_<device>.json (or $OUT/raster_<device>.json).
 """
@@ -19,9 +20,11 @@ import warp as wp
 from common import ROOT, print_table, standard_scenes_module, sync, time_call, write_json
 
 sys.path.insert(0, str(ROOT / "tests"))
-from reference import render_reference  # noqa: E402  (the float64 oracle of the test suite)
+from reference import render_reference  # noqa: E402  (the float64 oracles of the test suite)
+from reference_surfels import render_surfels_reference  # noqa: E402
 
-from warpgs import pipeline, rasterize  # noqa: E402
+from warpgs import pipeline, rasterize, rasterize_surfels  # noqa: E402
+from warpgs.render_surfels import surfel_work  # noqa: E402
 from warpgs.render import _intrinsics_vector  # noqa: E402
 
 OUTPUTS = ("rgb", "alpha", "depth")
@@ -34,15 +37,16 @@ def sample_pixels(width, height, count, device, seed=0):
                        -1).to(device)
 
 
-def max_error_vs_reference(scene, width, height, num_pixels=128, chunk=16):
+def max_error_vs_reference(scene, width, height, surfels, num_pixels=128, chunk=16):
+    render, reference = (rasterize_surfels, render_surfels_reference) if surfels else (rasterize, render_reference)
     means, quats, scales, opacities, colors, viewmat, K = scene
-    out = rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs=OUTPUTS)
+    out = render(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs=OUTPUTS)
     pix = sample_pixels(width, height, num_pixels, means.device)
     d = [t.double() for t in scene]
     err = 0.0
     for i in range(0, num_pixels, chunk):
         p = pix[i : i + chunk]
-        ref = render_reference(*d, width, height, pixels=p)
+        ref = reference(*d, width, height, pixels=p)
         for name in ("rgb", "alpha"):
             ours = getattr(out, name)[p[:, 1], p[:, 0]].double()
             err = max(err, (ours - ref[name]).abs().max().item())
@@ -86,13 +90,17 @@ def single_core_gflops():
     return 2 * 1024**3 / dt / 1e9
 
 
-def gsplat_times(scene, width, height, device):
+def gsplat_times(scene, width, height, device, surfels):
     import gsplat
 
     means, quats, scales, opacities, colors, viewmat, K = scene
 
     def fwd(leaves=None):
         m, q, s, o, c = leaves or (means, quats, scales, opacities, colors)
+        if surfels:  # gsplat takes [N,3] scales and ignores the third
+            s3 = torch.cat([s, torch.zeros_like(s[:, :1])], 1)
+            return gsplat.rasterization_2dgs(m, q, s3, o, c[None], viewmat[None], K[None], width, height,
+                                             render_mode="RGB+ED")[0]
         img, alpha, _ = gsplat.rasterization(m, q, s, o, c, viewmat[None], K[None], width, height, packed=False,
                                              render_mode="RGB+ED")
         return img
@@ -104,16 +112,17 @@ def gsplat_times(scene, width, height, device):
     return time_call(fwd, device, warmup=3, repeats=20), time_call(fwd_bwd, device, warmup=3, repeats=20)
 
 
-def warpgs_times(scene, width, height, device, repeats):
+def warpgs_times(scene, width, height, device, repeats, surfels):
+    render = rasterize_surfels if surfels else rasterize
     means, quats, scales, opacities, colors, viewmat, K = scene
 
     def fwd():
-        return rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs=OUTPUTS,
-                         check_inputs=False)
+        return render(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs=OUTPUTS,
+                      check_inputs=False)
 
     def fwd_bwd():
         leaves = [t.detach().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
-        out = rasterize(*leaves, viewmat, K, width, height, outputs=OUTPUTS, check_inputs=False)
+        out = render(*leaves, viewmat, K, width, height, outputs=OUTPUTS, check_inputs=False)
         (out.rgb.sum() + out.depth.sum()).backward()
 
     warm = 3 if device.startswith("cuda") else 1
@@ -128,6 +137,7 @@ def main():
     ap.add_argument("--gsplat", action="store_true", help="time gsplat.rasterization side by side (CUDA)")
     ap.add_argument("--repeats", type=int, default=None)
     ap.add_argument("--error-pixels", type=int, default=128)
+    ap.add_argument("--primitive", choices=["gaussians", "surfels"], default="gaussians")
     args = ap.parse_args()
     scenes = standard_scenes_module()
     device = args.device
@@ -140,16 +150,23 @@ def main():
         for n in (int(v) for v in args.sizes.split(",")):
             means, quats, scales, opacities, colors, viewmat, K, W, H = scenes.random_scene(
                 n, width=width, height=height, device=device)
+            surfels = args.primitive == "surfels"
+            if surfels:
+                scales = scales[:, :2].contiguous()
             scene = (means, quats, scales, opacities, colors, viewmat, K)
-            fwd_ms, fb_ms = warpgs_times(scene, W, H, device, repeats)
-            evals, pairs = evaluations(scene, W, H)
-            row = dict(device=device, n=n, resolution=f"{W}x{H}", fwd_ms=fwd_ms, fwd_bwd_ms=fb_ms,
-                       max_err=max_error_vs_reference(scene, W, H, args.error_pixels), tile_pairs=pairs,
-                       evals_per_s=evals / (fwd_ms / 1e3))
+            fwd_ms, fb_ms = warpgs_times(scene, W, H, device, repeats, surfels)
+            if surfels:
+                work = surfel_work(means, quats, scales, opacities, viewmat, K, W, H)
+                evals, pairs = work["evaluations"], work["tile_pairs"]
+            else:
+                evals, pairs = evaluations(scene, W, H)
+            row = dict(primitive=args.primitive, device=device, n=n, resolution=f"{W}x{H}", fwd_ms=fwd_ms,
+                       fwd_bwd_ms=fb_ms, max_err=max_error_vs_reference(scene, W, H, surfels, args.error_pixels),
+                       tile_pairs=pairs, evals_per_s=evals / (fwd_ms / 1e3))
             if peak:
                 row["frac_of_core_peak"] = row["evals_per_s"] * FLOPS_PER_EVALUATION / (peak * 1e9)
             if args.gsplat:
-                g_fwd, g_fb = gsplat_times(scene, W, H, device)
+                g_fwd, g_fb = gsplat_times(scene, W, H, device, surfels)
                 row.update(gsplat_fwd_ms=g_fwd, gsplat_fwd_bwd_ms=g_fb, ratio_fwd=fwd_ms / g_fwd, ratio_fwd_bwd=fb_ms / g_fb)
             rows.append(row)
             print_table([row], list(row))  # progress, one row at a time
@@ -163,7 +180,8 @@ def main():
                 cpu=platform.processor() or platform.machine(), torch=torch.__version__, warp=wp.__version__,
                 single_core_gflops=peak, flops_per_evaluation=FLOPS_PER_EVALUATION, outputs=OUTPUTS,
                 repeats=repeats, scenes="shared/bench/scenes.py random_scene")
-    path = write_json(f"raster_{device.split(':')[0]}", dict(meta=meta, rows=rows))
+    suffix = "" if args.primitive == "gaussians" else "_surfels"
+    path = write_json(f"raster_{device.split(':')[0]}{suffix}", dict(meta=meta, rows=rows))
     print(f"wrote {path}")
 
 

@@ -27,6 +27,25 @@ from .blend import (
 
 _kernels = {}
 
+# What the block sums per Gaussian: the ten gradient entries of a GradRow and its "used" flag.
+GradSum = wp.types.vector(length=11, dtype=float)
+
+
+@wp.func
+def gradient_sum_part(row: GradRow) -> GradSum:
+    return GradSum(row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7], row[8], row[9], row[ROW_USED])
+
+
+@wp.func
+def add_gradient_sum(g: int, total: GradSum, adj_means2d: wp.array(dtype=wp.vec2), adj_conics: wp.array(dtype=wp.vec3),
+                     adj_opacities: wp.array(dtype=float), adj_colors: wp.array(dtype=wp.vec3),
+                     adj_depths: wp.array(dtype=float)):
+    wp.atomic_add(adj_means2d, g, wp.vec2(total[0], total[1]))
+    wp.atomic_add(adj_conics, g, wp.vec3(total[2], total[3], total[4]))
+    wp.atomic_add(adj_opacities, g, total[5])
+    wp.atomic_add(adj_colors, g, wp.vec3(total[6], total[7], total[8]))
+    wp.atomic_add(adj_depths, g, total[9])
+
 
 def forward_kernel(block_dim: int):
     key = ("forward", block_dim)
@@ -188,12 +207,12 @@ def _make_backward(block_dim: int, block_reduce: bool):
                     T = row[ROW_T]
                     suffix = row[ROW_SUFFIX]
                 if wp.static(block_reduce):
-                    total = wp.tile_sum(wp.tile(row, preserve_type=True))[0]
-                    if lane == 0 and total[ROW_USED] > 0.0:
-                        add_gradient_row(g, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
+                    total = wp.tile_sum(wp.tile(gradient_sum_part(row), preserve_type=True))[0]
+                    if lane == 0 and total[10] > 0.0:
+                        add_gradient_sum(g, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
                     for c in range(num_features):
                         f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * grad_features[pix, c]))[0]
-                        if lane == 0 and total[ROW_USED] > 0.0:
+                        if lane == 0 and total[10] > 0.0:
                             wp.atomic_add(adj_features, g, c, f_total)
                 else:
                     if row[ROW_USED] > 0.0:

@@ -4,6 +4,7 @@ Torch-free: ``warpgs.render`` converts tensors and drives these stages; other fr
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from typing import List, Tuple
@@ -161,6 +162,16 @@ def _cooperative(device) -> bool:
     return not device.is_cpu or os.environ.get("WARPGS_CPU_COOPERATIVE") == "1"
 
 
+def _block_dims(s: Settings) -> Tuple[int, int]:
+    """Threads per block of the cooperative forward and backward: consecutive pixels of one tile.
+    Defaults: a whole tile for the forward (one shared fetch per batch), one warp for the backward (its
+    per-Gaussian sums then need no block-wide synchronisation). WARPGS_FWD_BLOCK / WARPGS_BWD_BLOCK override."""
+    per_tile = s.tile_size**2
+    fwd = int(os.environ.get("WARPGS_FWD_BLOCK", per_tile))
+    bwd = int(os.environ.get("WARPGS_BWD_BLOCK", 32))
+    return math.gcd(per_tile, fwd), math.gcd(per_tile, bwd)
+
+
 def _block_reduce() -> bool:
     """Sum each Gaussian's gradient over the block before the atomics (WARPGS_BLOCK_REDUCE=0 turns it off)."""
     return os.environ.get("WARPGS_BLOCK_REDUCE", "1") != "0"
@@ -182,7 +193,7 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
     tail = _blend_flags(bins, want)
 
     coop = _cooperative(dev)
-    block_dim = s.tile_size**2 if coop else 1
+    block_dim = _block_dims(s)[0] if coop else 1
     kernel = blend_gpu.forward_kernel(block_dim) if coop else blend.blend_forward
 
     def work(_thread, chunks):  # each chunk writes only its own pixels
@@ -209,8 +220,8 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
     per_thread = _tile_launches(s, dev)
     buffers = [targets] + [[wp.zeros_like(t) for t in targets] for _ in per_thread[1:]]
 
-    coop = _cooperative(dev)  # GPU: one block per tile; CPU: one thread per pixel
-    block_dim = s.tile_size**2 if coop else 1
+    coop = _cooperative(dev)  # GPU: blocks of consecutive pixels of a tile; CPU: one thread per pixel
+    block_dim = _block_dims(s)[1] if coop else 1
     kernel = blend_gpu.backward_kernel(block_dim, _block_reduce()) if coop else blend.blend_backward
 
     def work(thread, chunks):
