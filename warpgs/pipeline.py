@@ -87,10 +87,10 @@ def project_gaussians(means, quats, scales, opacities, coeffs, viewmat, intrinsi
     out = Projected(
         means2d=wp.zeros(n, dtype=wp.vec2, device=dev, requires_grad=requires_grad),
         conics=wp.zeros(n, dtype=wp.vec3, device=dev, requires_grad=requires_grad),
-        cov2d=wp.zeros(n, dtype=wp.vec3, device=dev),
+        cov2d=wp.empty(n, dtype=wp.vec3, device=dev),  # every output is written for every Gaussian
         depths=wp.zeros(n, dtype=float, device=dev, requires_grad=requires_grad),
         colors=wp.zeros(n, dtype=wp.vec3, device=dev, requires_grad=requires_grad),
-        valid=wp.zeros(n, dtype=wp.int32, device=dev),
+        valid=wp.empty(n, dtype=wp.int32, device=dev),
     )
     color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
     wp.launch(
@@ -108,9 +108,9 @@ def bin_gaussians(p: Projected, opacities, s: Settings) -> Bins:
     """Tiles touched by each projected 3D Gaussian (exact alpha >= 1/255 footprint), then `sort_into_tiles`."""
     n = p.means2d.shape[0]
     dev = p.means2d.device
-    counts = wp.zeros(n, dtype=wp.int32, device=dev)
-    rects = wp.zeros(n, dtype=wp.vec4i, device=dev)
-    q_cut = wp.zeros(n, dtype=float, device=dev)
+    counts = wp.empty(n, dtype=wp.int32, device=dev)  # written for every Gaussian
+    rects = wp.empty(n, dtype=wp.vec4i, device=dev)
+    q_cut = wp.empty(n, dtype=float, device=dev)
     wp.launch(binning.tile_footprints, dim=n,
               inputs=[p.means2d, p.cov2d, opacities, p.valid, s.width, s.height, s.tile_size, s.max_sigmas],
               outputs=[rects, counts, q_cut], device=dev)
@@ -123,12 +123,12 @@ def sort_into_tiles(rects, counts, depths, q_cut, s: Settings) -> Bins:
     n = counts.shape[0]
     dev = counts.device
     total = 0
-    offsets = wp.zeros(n, dtype=wp.int32, device=dev)
+    offsets = wp.empty(n, dtype=wp.int32, device=dev)
     if n > 0:
         wp.utils.array_scan(counts, offsets, inclusive=True)
         total = int(offsets[n - 1 : n].numpy()[0])  # the one host sync: sizes the key buffer
-    keys = wp.zeros(2 * max(total, 1), dtype=wp.int64, device=dev)
-    values = wp.zeros(2 * max(total, 1), dtype=wp.int32, device=dev)
+    keys = wp.empty(2 * max(total, 1), dtype=wp.int64, device=dev)  # the sort needs 2x room
+    values = wp.empty(2 * max(total, 1), dtype=wp.int32, device=dev)
     tile_start = wp.zeros(s.num_tiles, dtype=wp.int32, device=dev)
     tile_end = wp.zeros(s.num_tiles, dtype=wp.int32, device=dev)
     if total > 0:
@@ -152,8 +152,9 @@ def _blend_flags(bins: Bins, want: Wanted):
 
 def _tile_launches(s: Settings, device) -> List[List[Tuple[int, int]]]:
     """(first_tile, count) chunks per worker: one launch on a GPU, several threads on the CPU."""
-    threads = 1 if _cooperative(device) else cpu_threads()
-    return tile_ranges_per_thread(s.num_tiles, threads)
+    if _cooperative(device):
+        return [[(0, s.num_tiles)]]
+    return tile_ranges_per_thread(s.num_tiles, cpu_threads())
 
 
 def _cooperative(device) -> bool:
@@ -181,13 +182,14 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
     dev = p.means2d.device
     npix = s.width * s.height
     out = Blended(
-        color=wp.zeros(npix if want.color else 1, dtype=wp.vec3, device=dev),
-        transmittance=wp.zeros(npix, dtype=float, device=dev),
-        alpha=wp.zeros(npix, dtype=float, device=dev),
-        depth=wp.zeros(npix if want.depth else 1, dtype=float, device=dev),
-        inv_depth=wp.zeros(npix if want.inv_depth else 1, dtype=float, device=dev),
+        # every pixel is written (empty), except the features, which are accumulated (zeros)
+        color=wp.empty(npix if want.color else 1, dtype=wp.vec3, device=dev),
+        transmittance=wp.empty(npix, dtype=float, device=dev),
+        alpha=wp.empty(npix, dtype=float, device=dev),
+        depth=wp.empty(npix if want.depth else 1, dtype=float, device=dev),
+        inv_depth=wp.empty(npix if want.inv_depth else 1, dtype=float, device=dev),
         features=wp.zeros((npix, want.num_features) if want.num_features else (1, 1), dtype=float, device=dev),
-        last=wp.zeros(npix, dtype=wp.int32, device=dev),
+        last=wp.empty(npix, dtype=wp.int32, device=dev),
     )
     head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want)
     tail = _blend_flags(bins, want)
