@@ -111,3 +111,18 @@ def test_thousands_of_gaussians_on_one_pixel_stop_early():
     out = render_ours(scene, ALL_OUTPUTS[:4])
     assert torch.isfinite(out.rgb).all() and out.alpha.max() <= 1.0
     assert out.alpha.max() >= 1 - 1e-3  # fully opaque where they pile up, within the 1e-4 stop rule
+
+
+def test_empty_scene_backward():
+    """Regression (found by tests/stress): backward through a render of N=0 Gaussians used to fail."""
+    from warpgs import rasterize
+
+    leaves = [torch.zeros(0, 3, requires_grad=True), torch.zeros(0, 4, requires_grad=True),
+              torch.zeros(0, 3, requires_grad=True), torch.zeros(0, requires_grad=True),
+              torch.zeros(0, 3, requires_grad=True)]
+    K = torch.tensor([[10.0, 0, 4], [0, 10.0, 4], [0, 0, 1]])
+    out = rasterize(*leaves, torch.eye(4), K, 8, 8, outputs=("rgb", "alpha", "depth"), track_means2d=True,
+                    background=torch.ones(3))
+    (out.rgb.sum() + out.alpha.sum() + out.depth.sum()).backward()
+    assert all(t.grad is not None and t.grad.shape == t.shape for t in leaves)
+    assert out.means2d.grad.shape == (0, 2)

@@ -94,6 +94,10 @@ class _RasterizeFunction(torch.autograd.Function):
         tape, proj, bins, fwd, w_opac, w_feat, settings, wanted, grads = ctx.state
         npix = settings.width * settings.height
         device = ctx.device
+        if proj.means2d.shape[0] == 0:  # empty scene: nothing to differentiate (Warp has no grads for size 0)
+            ctx.state = None
+            probe_grad = torch.zeros(0, 2, device=device) if ctx.needs_input_grad[10] else None
+            return (None, None) + tuple(grads) + (probe_grad,)
 
         def upstream(g, shape):
             return (torch.zeros(shape, device=device) if g is None else g).contiguous().view(shape)
