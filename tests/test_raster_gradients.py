@@ -105,3 +105,19 @@ def test_means2d_gradient_in_a_batch_has_one_row_per_camera():
     out.rgb[1].sum().backward()
     assert out.means2d.shape == (2, 20, 2)
     assert out.means2d.grad[0].abs().sum() == 0 and out.means2d.grad[1].abs().sum() > 0
+
+
+def test_frozen_geometry_still_gives_opacity_and_feature_gradients():
+    """Only opacities and features learnt: the projection adjoint is skipped, the blend adjoint still runs."""
+    scene = random_scene(n=30, seed=8, num_features=3)
+    g = torch.Generator().manual_seed(3)
+    weights = {n: torch.randn(scene["height"], scene["width"], c, generator=g, dtype=torch.float64)
+               for n, c in (("rgb", 3), ("features", 3))}
+    frozen = dict(scene)
+    leaves = {k: scene[k].detach().float().requires_grad_(True) for k in ("opacities", "features")}
+    out = render_ours(dict(frozen, **leaves), ("rgb", "features"))
+    sum((getattr(out, n).double() * w).sum() for n, w in weights.items()).backward()
+    ref_leaves = {k: scene[k].detach().clone().requires_grad_(True) for k in ("opacities", "features")}
+    ref = render_ref(dict(frozen, **ref_leaves))
+    sum((ref[n] * w).sum() for n, w in weights.items()).backward()
+    compare({k: v.grad.double() for k, v in leaves.items()}, {k: v.grad for k, v in ref_leaves.items()})

@@ -66,7 +66,10 @@ class _RasterizeFunction(torch.autograd.Function):
         w_intr = _to_wp(intrinsics.reshape(1, 4), wp.vec4, None if grads[7] is None else grads[7].view(1, 4))
 
         tape = wp.Tape()
-        with tape:
+        # With geometry and colour frozen (e.g. training only opacities or features) the projection's
+        # adjoint has nothing to deliver: leave it off the tape.
+        project_grad = any(needs[i] for i in (0, 1, 2, 4, 6, 7))
+        with tape if project_grad else nullcontext():
             proj = pipeline.project_gaussians(w_means, w_quats, w_scales, w_opac, w_coeffs, w_view, w_intr,
                                               settings, requires_grad=any_grad)
         bins = pipeline.bin_gaussians(proj, w_opac, settings)
