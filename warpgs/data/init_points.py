@@ -1,0 +1,102 @@
+"""Initial points for 3D Gaussians when a scene has no SfM points (e.g. transforms.json datasets).
+
+Order of preference in `initial_points`: the scene's SfM points; points lifted from depth priors (or reference
+depth) of the training views, coloured by their pixels; uniform random points inside the training frusta.
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import numpy as np
+
+from warpgs.data.points import PointCloud
+from warpgs.data.scene import Scene
+
+
+def _backproject(cam, rows: np.ndarray, cols: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    x = (cols + 0.5 - cam.cx) / cam.fx * depth
+    y = (rows + 0.5 - cam.cy) / cam.fy * depth
+    cam_pts = np.stack([x, y, depth], -1)
+    return (cam_pts - cam.viewmat[:3, 3]) @ cam.viewmat[:3, :3]
+
+
+def points_from_depth(scene: Scene, n: int = 100_000, views: Optional[Sequence[int]] = None,
+                      source: str = "prior", seed: int = 0) -> PointCloud:
+    """Lift `n` random valid pixels of the views' depth priors (source="prior") or reference depth
+    (source="depth") into world points with their image colours."""
+    rng = np.random.default_rng(seed)
+    views = list(scene.train if views is None else views)
+    per_view = -(-n // max(len(views), 1))
+    xyz, rgb = [], []
+    for v in views:
+        if source == "prior":
+            got = scene.inv_depth_prior_np(v)
+            if got is None:
+                continue
+            inv, valid = got
+            valid = valid & (inv > 0)
+            depth = np.where(valid, 1.0 / np.where(valid, inv, 1.0), 0.0)
+        elif source == "depth":
+            got = scene.depth_np(v)
+            if got is None:
+                continue
+            depth, valid = got
+            valid = valid & np.isfinite(depth)
+        else:
+            raise ValueError(f"source must be 'prior' or 'depth', got {source!r}")
+        rows, cols = np.nonzero(valid)
+        if len(rows) == 0:
+            continue
+        pick = rng.choice(len(rows), size=min(per_view, len(rows)), replace=False)
+        r, c = rows[pick], cols[pick]
+        xyz.append(_backproject(scene.cameras[v], r, c, depth[r, c].astype(np.float64)))
+        rgb.append(scene.image_np(v)[0][r, c])
+    if not xyz:
+        raise ValueError(f"points_from_depth: no view has a valid {source} map")
+    return PointCloud(np.concatenate(xyz)[:n], np.concatenate(rgb)[:n])
+
+
+def random_points(scene: Scene, n: int = 100_000, near: Optional[float] = None, far: Optional[float] = None,
+                  seed: int = 0) -> PointCloud:
+    """Points spread through the training views' frusta, uniform in inverse depth between near and far
+    (default: 0.25x and 2x the distance from the cameras to the point their optical axes pass closest to).
+    Colours are random."""
+    rng = np.random.default_rng(seed)
+    cams = [scene.cameras[v] for v in (scene.train or range(len(scene)))]
+    if near is None or far is None:
+        dist = _distance_to_focus(cams)
+        near, far = near or 0.25 * dist, far or 2.0 * dist
+    if not 0 < near < far:
+        raise ValueError(f"random_points: need 0 < near < far, got {near}, {far}")
+    which = rng.integers(0, len(cams), n)
+    xyz = np.empty((n, 3))
+    for k, cam in enumerate(cams):
+        sel = np.nonzero(which == k)[0]
+        rows = rng.uniform(0, cam.height, len(sel)) - 0.5
+        cols = rng.uniform(0, cam.width, len(sel)) - 0.5
+        depth = 1.0 / rng.uniform(1.0 / far, 1.0 / near, len(sel))
+        xyz[sel] = _backproject(cam, rows, cols, depth)
+    return PointCloud(xyz, rng.uniform(0, 1, (n, 3)))
+
+
+def _distance_to_focus(cams) -> float:
+    """Median camera distance to the least-squares closest point of all optical axes."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for cam in cams:
+        d = cam.forward
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ cam.center
+    if np.linalg.cond(A) > 1e6:  # parallel axes (a planar camera array): no focus point
+        raise ValueError("random_points: the cameras' axes are parallel; pass near= and far=")
+    focus = np.linalg.solve(A, b)
+    return float(np.median([np.linalg.norm(c.center - focus) for c in cams]))
+
+
+def initial_points(scene: Scene, n: int = 100_000, seed: int = 0) -> tuple[PointCloud, str]:
+    """(points, where they came from): "sfm", "depth_prior" or "random"."""
+    if scene.points is not None and len(scene.points) > 0:
+        return scene.points, "sfm"
+    if any(scene.files[v].depth_prior is not None for v in scene.train):
+        return points_from_depth(scene, n, source="prior", seed=seed), "depth_prior"
+    return random_points(scene, n, seed=seed), "random"

@@ -1,0 +1,52 @@
+"""Resizing per-pixel maps for downscale factors: area averaging for colours and depth, centre sampling for ids."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+DOWNSCALE_FACTORS = (1, 2, 4, 8)
+
+
+def downscaled_size(width: int, height: int, factor: int) -> tuple[int, int]:
+    if factor not in DOWNSCALE_FACTORS:
+        raise ValueError(f"downscale factor must be one of {DOWNSCALE_FACTORS}, got {factor}")
+    return max(1, round(width / factor)), max(1, round(height / factor))
+
+
+def resize_area(arr: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[H, W] or [H, W, C] float -> same rank at (height, width), each output pixel the mean of its footprint."""
+    if arr.shape[1] == width and arr.shape[0] == height:
+        return arr
+    t = torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32))
+    t = t[None, None] if t.ndim == 2 else t.permute(2, 0, 1)[None]
+    out = F.interpolate(t, size=(height, width), mode="area")[0]
+    return (out[0] if arr.ndim == 2 else out.permute(1, 2, 0)).numpy()
+
+
+def resize_bilinear(arr: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Upsampling of smooth maps (a prior computed at a coarser scale)."""
+    t = torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32))
+    t = t[None, None] if t.ndim == 2 else t.permute(2, 0, 1)[None]
+    out = F.interpolate(t, size=(height, width), mode="bilinear", align_corners=False)[0]
+    return (out[0] if arr.ndim == 2 else out.permute(1, 2, 0)).numpy()
+
+
+def resize_nearest(arr: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Label maps and other ids: take the source pixel under each output pixel's centre (never blends ids)."""
+    h, w = arr.shape[:2]
+    rows = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
+    return arr[rows[:, None], cols[None, :]]
+
+
+def resize_masked(values: np.ndarray, valid: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Area-average only the valid pixels; an output pixel is valid when at least half its footprint was."""
+    if values.shape[1] == width and values.shape[0] == height:
+        return values, valid
+    weight = valid.astype(np.float32)
+    total = resize_area(np.where(valid, values, 0.0).astype(np.float32), width, height)
+    coverage = resize_area(weight, width, height)
+    out_valid = coverage >= 0.5
+    out = np.where(out_valid, total / np.maximum(coverage, 1e-12), 0.0).astype(np.float32)
+    return out, out_valid

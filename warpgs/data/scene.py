@@ -1,0 +1,435 @@
+"""The one scene type every loader returns: cameras, lazily loaded per-view maps, split and optional SfM points.
+
+Per-pixel files (images, depth, depth priors, masks, labels) are stored at the cameras' native resolution and
+possibly with lens distortion. Each read goes: check size -> undistort (if the camera has distortion and the
+scene undistorts) -> downscale -> return. Images that needed undistorting or resizing are cached on disk as
+PNG, so a factor-8 view of a 4K dataset is decoded from a small file after the first epoch.
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from warpgs.data import depth_io, image_io
+from warpgs.data.cache import cache_dir, file_key
+from warpgs.data.camera import Camera
+from warpgs.data.errors import MissingSceneFile, SceneError
+from warpgs.data.points import PointCloud
+from warpgs.data.resize import (DOWNSCALE_FACTORS, downscaled_size, resize_area, resize_bilinear, resize_masked,
+                                resize_nearest)
+from warpgs.data.undistort import UndistortMap
+
+_MEMORY_BUDGET_BYTES = 1 << 30
+
+
+@dataclass
+class ViewFiles:
+    """Files that belong to one view; everything but the image is optional."""
+
+    image: Path
+    depth: Optional[Path] = None  # measured or exact depth (camera z), for evaluation
+    depth_prior: Optional[Path] = None  # monocular/stereo prior, used for supervision after alignment
+    mask: Optional[Path] = None
+    labels: Optional[Path] = None  # integer object ids, 0 = unlabelled
+    features: Optional[Path] = None  # .npy [h, w, C] feature map (e.g. language features)
+
+
+@dataclass
+class View:
+    """What the trainer consumes for one view (torch tensors, float32 unless stated)."""
+
+    index: int
+    name: str
+    viewmat: torch.Tensor  # [4, 4] world -> camera
+    K: torch.Tensor  # [3, 3]
+    width: int
+    height: int
+    image: torch.Tensor  # [H, W, 3] in [0, 1]
+    mask: Optional[torch.Tensor] = None  # [H, W, 1] bool, pixels to use
+    inv_depth_prior: Optional[torch.Tensor] = None  # [H, W, 1]
+    inv_depth_valid: Optional[torch.Tensor] = None  # [H, W, 1] bool
+    depth: Optional[torch.Tensor] = None  # [H, W, 1] reference depth; inf = sky, 0 = unknown
+    labels: Optional[torch.Tensor] = None  # [H, W] int64
+    features: Optional[torch.Tensor] = None  # [h, w, C]
+
+    def to(self, device) -> "View":
+        out = copy.copy(self)
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, torch.Tensor):
+                setattr(out, f.name, value.to(device))
+        return out
+
+
+@dataclass
+class MapFormat:
+    """How to read a family of depth files: what they store and a unit scale (e.g. 0.001 for millimetres)."""
+
+    kind: Optional[str] = None  # "depth" | "inverse_depth" | None (the file declares it)
+    scale: float = 1.0
+
+
+class Scene:
+    """Views of one scene. Public state:
+
+    cameras         served cameras (undistorted, downscaled): what renders and the trainer use
+    native_cameras  cameras as stored on disk
+    files           ViewFiles per view;  train / test: view indices
+    points          PointCloud (SfM points with the views observing them) or None
+    label_names     {id: name} for label maps;  metadata: loader extras (e.g. "grid_positions")
+    Per-view data: image(i), view(i) (all tensors for training), *_np(i) accessors returning numpy arrays.
+    """
+
+    def __init__(self, cameras: Sequence[Camera], files: Sequence[ViewFiles], *, root: Path,
+                 train: Optional[Sequence[int]] = None, test: Optional[Sequence[int]] = None,
+                 points: Optional[PointCloud] = None, label_names: Optional[dict] = None,
+                 depth_format: MapFormat = MapFormat("depth"), prior_format: MapFormat = MapFormat(),
+                 background: Optional[Sequence[float]] = None, undistort: bool = True, downscale: int = 1,
+                 source: str = "", metadata: Optional[dict] = None):
+        if len(cameras) != len(files):
+            raise ValueError(f"{len(cameras)} cameras but {len(files)} view file sets")
+        if not cameras:
+            raise SceneError(root, "scene has no views")
+        names = [c.name for c in cameras]
+        if len(set(names)) != len(names):
+            dup = sorted({n for n in names if names.count(n) > 1})
+            raise SceneError(root, f"duplicate view names {dup[:5]}")
+        self.root = Path(root)
+        self.native_cameras = list(cameras)  # as stored: full resolution, possibly distorted
+        self.files = list(files)
+        self.points = points
+        self.label_names = dict(label_names or {})
+        self.depth_format = depth_format
+        self.prior_format = prior_format
+        self.background = None if background is None else np.asarray(background, np.float32)
+        self.undistort = undistort
+        self.source = source
+        self.metadata = dict(metadata or {})
+        self.train = list(range(len(cameras))) if train is None else [int(i) for i in train]
+        self.test = [] if test is None else [int(i) for i in test]
+        self._check_split()
+        if points is not None and points.observed_by is not None and len(points.observed_by) != len(cameras):
+            raise SceneError(root, "point observations do not match the number of views")
+        self._maps: dict[tuple, UndistortMap] = {}
+        self._memory: dict = {}
+        self._memory_bytes = 0
+        self.downscale = 1
+        self.cameras = list(cameras)
+        self._set_downscale(downscale)
+
+    # --- construction helpers ---------------------------------------------------------------------------------
+    def _check_split(self):
+        n = len(self.native_cameras)
+        for name, idx in (("train", self.train), ("test", self.test)):
+            bad = [i for i in idx if not 0 <= i < n]
+            if bad:
+                raise SceneError(self.root, f"{name} split refers to views {bad[:5]} but the scene has {n}")
+        overlap = sorted(set(self.train) & set(self.test))
+        if overlap:
+            raise SceneError(self.root, f"views {[self.native_cameras[i].name for i in overlap[:5]]} are in both "
+                                        f"train and test")
+
+    def _set_downscale(self, factor: int):
+        self.downscale = factor
+        self.cameras = []
+        for i, cam in enumerate(self.native_cameras):
+            base = self._undistorted_camera(i) if self._needs_undistort(cam) else cam
+            w, h = downscaled_size(base.width, base.height, factor)
+            self.cameras.append(base.scaled(w, h) if factor != 1 else base)
+        self._memory, self._memory_bytes = {}, 0
+
+    def _needs_undistort(self, cam: Camera) -> bool:
+        return self.undistort and cam.has_distortion
+
+    def _undistort_map(self, i: int) -> UndistortMap:
+        """Views sharing intrinsics share one map: it depends on the lens, not on the pose."""
+        cam = self.native_cameras[i]
+        key = (cam.model, cam.width, cam.height, tuple(cam.K.ravel()), cam.distortion)
+        if key not in self._maps:
+            self._maps[key] = UndistortMap.for_camera(cam)
+        return self._maps[key]
+
+    def _undistorted_camera(self, i: int) -> Camera:
+        cam, target = self.native_cameras[i], self._undistort_map(i).target
+        return replace(cam, K=target.K, width=target.width, height=target.height, model="PINHOLE", distortion=())
+
+    def _copy(self) -> "Scene":
+        out = copy.copy(self)
+        out._memory, out._memory_bytes = {}, 0
+        out._maps = dict(self._maps)
+        out.metadata = dict(self.metadata)
+        return out
+
+    def downscaled(self, factor: int) -> "Scene":
+        """The same scene served at 1/factor resolution (factor in 1, 2, 4, 8); intrinsics scale accordingly."""
+        out = self._copy()
+        out._set_downscale(factor)
+        return out
+
+    def with_split(self, train: Sequence[int], test: Sequence[int]) -> "Scene":
+        out = self._copy()
+        out.train, out.test = [int(i) for i in train], [int(i) for i in test]
+        out._check_split()
+        return out
+
+    def with_depth_priors(self, folder: Path, fmt: MapFormat = MapFormat()) -> "Scene":
+        """Attach per-view depth priors found in `folder` (by image stem); views without a file get none."""
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise MissingSceneFile(folder, "depth prior folder")
+        out = self._copy()
+        out.files = [copy.copy(f) for f in self.files]
+        for cam, f in zip(self.native_cameras, out.files):
+            f.depth_prior = image_io.find_sibling(folder, cam.name, depth_io.DEPTH_EXTENSIONS)
+        out.prior_format = fmt
+        return out
+
+    # --- basic facts ------------------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+    def index(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(f"no view named {name!r} in {self.root}") from None
+
+    def camera(self, i: int) -> Camera:
+        return self.cameras[i]
+
+    def has(self, what: str) -> bool:
+        """Whether any view has a file of this kind: depth, depth_prior, mask, labels, features."""
+        return any(getattr(f, what) is not None for f in self.files)
+
+    def camera_extent(self) -> float:
+        """Radius of the camera centres around their mean, times 1.1 (the usual 3DGS scene scale)."""
+        centres = np.stack([c.center for c in self.cameras])
+        radius = float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
+        return 1.1 * radius if radius > 0 else 1.0
+
+    def summary(self) -> str:
+        cam = self.cameras[0]
+        extras = [k for k in ("depth", "depth_prior", "mask", "labels", "features") if self.has(k)]
+        counts = ", ".join(f"{k} {sum(getattr(f, k) is not None for f in self.files)}/{len(self)}" for k in extras)
+        pts = f"{len(self.points)} points" if self.points is not None else "no points"
+        return (f"{self.source or 'scene'} at {self.root}: {len(self)} views ({len(self.train)} train, "
+                f"{len(self.test)} test), {cam.width}x{cam.height} (1/{self.downscale}), {pts}"
+                + (f"; {counts}" if counts else ""))
+
+    # --- per-pixel maps ---------------------------------------------------------------------------------------
+    def _check_size(self, i: int, path: Path, shape: tuple, what: str) -> str:
+        """'native' if the map matches the stored camera (may need undistorting), 'undistorted' if it matches the
+        undistorted camera at any downscale factor (only needs resizing); otherwise an error naming the file."""
+        native = self.native_cameras[i]
+        h, w = shape[:2]
+        if (w, h) == (native.width, native.height):
+            return "native"
+        base = self._undistorted_camera(i) if self._needs_undistort(native) else native
+        sizes = [downscaled_size(base.width, base.height, f) for f in DOWNSCALE_FACTORS]
+        if (w, h) in sizes:
+            return "undistorted"
+        raise SceneError(path, f"{what} is {w}x{h} but view {native.name!r} is {native.width}x{native.height}"
+                               f" (or a 1/2, 1/4, 1/8 downscale of {base.width}x{base.height})")
+
+    def _to_final(self, i: int, arr: np.ndarray, stage: str, kind: str,
+                  valid: Optional[np.ndarray] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """Undistort (native stage only) and resize a map; kind is 'colour', 'ids' or 'masked'."""
+        cam = self.cameras[i]
+        if stage == "native" and self._needs_undistort(self.native_cameras[i]):
+            umap = self._undistort_map(i)
+            if kind == "masked":
+                # Nearest neighbour keeps invalid pixels from bleeding into valid ones.
+                arr, valid = umap.apply(np.where(valid, arr, 0), nearest=True), umap.apply(valid, nearest=True)
+                valid = valid & umap.coverage()
+            else:
+                arr = umap.apply(arr, nearest=(kind == "ids"))
+        if arr.shape[:2] == (cam.height, cam.width):
+            return arr, valid
+        upsampling = arr.shape[0] < cam.height
+        if kind == "ids" or (upsampling and kind == "masked"):
+            return resize_nearest(arr, cam.width, cam.height), (
+                None if valid is None else resize_nearest(valid, cam.width, cam.height))
+        if kind == "colour":
+            return (resize_bilinear(arr, cam.width, cam.height) if upsampling
+                    else resize_area(arr, cam.width, cam.height)), None
+        return resize_masked(arr, valid, cam.width, cam.height)
+
+    def _remember(self, key, value):
+        size = sum(v.nbytes for v in value if isinstance(v, np.ndarray)) if isinstance(value, tuple) else value.nbytes
+        if self._memory_bytes + size <= _MEMORY_BUDGET_BYTES:
+            self._memory[key] = value
+            self._memory_bytes += size
+        return value
+
+    def image_np(self, i: int) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """(rgb [H, W, 3] float32, alpha [H, W] or None) at the served resolution."""
+        if ("image", i) in self._memory:
+            return self._memory[("image", i)]
+        path = self.files[i].image
+        native, cam = self.native_cameras[i], self.cameras[i]
+        needs_undistort = self._needs_undistort(native)
+        if self.downscale != 1 and not needs_undistort:
+            # LLFF / Mip-NeRF 360 ship images_2, images_4, images_8: use them when their size is exactly right.
+            shipped = self.root / f"images_{self.downscale}" / native.name
+            if shipped.is_file() and image_io.image_size(shipped) == (cam.width, cam.height):
+                return self._remember(("image", i), image_io.read_image(shipped, self.background))
+        cached = self._disk_cache_path(i) if (self.downscale != 1 or needs_undistort) else None
+        if cached is not None and cached.is_file():
+            rgb, _ = image_io.read_image(cached)
+            alpha_path = cached.with_suffix(".alpha.png")
+            alpha = image_io.read_mask_values(alpha_path) if alpha_path.is_file() else None
+            if rgb.shape[:2] == (cam.height, cam.width):
+                return self._remember(("image", i), (rgb, alpha))
+        rgb, alpha = image_io.read_image(path, self.background)
+        if rgb.shape[:2] != (native.height, native.width):
+            raise SceneError(path, f"image is {rgb.shape[1]}x{rgb.shape[0]} but its camera says "
+                                   f"{native.width}x{native.height}")
+        rgb, _ = self._to_final(i, rgb, "native", "colour")
+        if alpha is not None:
+            alpha, _ = self._to_final(i, alpha, "native", "colour")
+        if cached is not None:
+            if alpha is not None:
+                image_io.write_png(cached.with_suffix(".alpha.png"), alpha)
+            image_io.write_png(cached, rgb)  # written last: its presence means the entry is complete
+        return self._remember(("image", i), (rgb, alpha))
+
+    def _disk_cache_path(self, i: int) -> Path:
+        path = self.files[i].image
+        native = self.native_cameras[i]
+        key = file_key(path, self.downscale, self._needs_undistort(native), native.model, native.distortion,
+                       tuple(native.K.ravel()), None if self.background is None else tuple(self.background))
+        return cache_dir() / "images" / key[:2] / f"{key}.png"
+
+    def image(self, i: int, device=None) -> torch.Tensor:
+        """[H, W, 3] float32 in [0, 1]."""
+        return torch.from_numpy(self.image_np(i)[0]).to(device)
+
+    def mask_np(self, i: int) -> Optional[np.ndarray]:
+        """[H, W] bool from masks/, else from the image's alpha, else None."""
+        f = self.files[i]
+        if f.mask is not None:
+            raw = image_io.read_mask(f.mask)
+            stage = self._check_size(i, f.mask, raw.shape, "mask")
+            return self._to_final(i, raw.astype(np.float32), stage, "colour")[0] >= 0.5
+        alpha = self.image_np(i)[1]
+        return None if alpha is None else alpha >= 0.5
+
+    def depth_np(self, i: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """Reference depth (camera z): ([H, W] float32 with +inf for sky, valid [H, W] bool) or None."""
+        f = self.files[i]
+        if f.depth is None:
+            return None
+        inv, valid = self._inverse_depth(i, f.depth, self.depth_format, "depth map")
+        with np.errstate(divide="ignore"):
+            return np.where(valid, 1.0 / inv, 0.0).astype(np.float32), valid
+
+    def inv_depth_prior_np(self, i: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """Inverse-depth prior ([H, W] float32, valid [H, W] bool) or None."""
+        f = self.files[i]
+        if f.depth_prior is None:
+            return None
+        return self._inverse_depth(i, f.depth_prior, self.prior_format, "depth prior")
+
+    def _inverse_depth(self, i: int, path: Path, fmt: MapFormat, what: str) -> tuple[np.ndarray, np.ndarray]:
+        key = (what, i)
+        if key in self._memory:
+            return self._memory[key]
+        inv, valid = depth_io.read_inverse_depth(path, fmt.kind, fmt.scale)
+        stage = self._check_size(i, path, inv.shape, what)
+        return self._remember(key, self._to_final(i, inv, stage, "masked", valid))
+
+    def labels_np(self, i: int) -> Optional[np.ndarray]:
+        f = self.files[i]
+        if f.labels is None:
+            return None
+        raw = image_io.read_label_map(f.labels)
+        stage = self._check_size(i, f.labels, raw.shape, "label map")
+        labels = self._to_final(i, raw, stage, "ids")[0]
+        unknown = sorted(set(np.unique(labels).tolist()) - set(self.label_names) - {0}) if self.label_names else []
+        if unknown:
+            raise SceneError(f.labels, f"label ids {unknown[:10]} have no name in the scene's label list")
+        return labels
+
+    def features_np(self, i: int) -> Optional[np.ndarray]:
+        """Feature map [h, w, C] float32 as stored (its resolution is the feature extractor's)."""
+        f = self.files[i]
+        if f.features is None:
+            return None
+        try:
+            arr = np.load(f.features, allow_pickle=False)
+        except FileNotFoundError:
+            raise MissingSceneFile(f.features, "feature map") from None
+        except (ValueError, OSError, EOFError) as exc:
+            raise SceneError(f.features, f"unreadable or truncated feature map ({exc})") from exc
+        if arr.ndim != 3:
+            raise SceneError(f.features, f"feature map must be [h, w, C], got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise SceneError(f.features, "feature map contains NaN or Inf")
+        return arr.astype(np.float32)
+
+    # --- torch views --------------------------------------------------------------------------------------------
+    def view(self, i: int, device=None) -> View:
+        cam = self.cameras[i]
+        t = lambda a: None if a is None else torch.from_numpy(np.ascontiguousarray(a)).to(device)  # noqa: E731
+        prior = self.inv_depth_prior_np(i)
+        depth = self.depth_np(i)
+        mask = self.mask_np(i)
+        return View(index=i, name=cam.name, viewmat=cam.viewmat_tensor(device), K=cam.K_tensor(device),
+                    width=cam.width, height=cam.height, image=self.image(i, device),
+                    mask=None if mask is None else t(mask[..., None]),
+                    inv_depth_prior=None if prior is None else t(prior[0][..., None]),
+                    inv_depth_valid=None if prior is None else t(prior[1][..., None]),
+                    depth=None if depth is None else t(depth[0][..., None]),
+                    labels=t(self.labels_np(i)), features=t(self.features_np(i)))
+
+    def train_views(self, device=None) -> list[View]:
+        return [self.view(i, device) for i in self.train]
+
+    def test_views(self, device=None) -> list[View]:
+        return [self.view(i, device) for i in self.test]
+
+    # --- points -------------------------------------------------------------------------------------------------
+    def visible_points(self, i: int) -> np.ndarray:
+        """Indices of the scene points seen by view i: its SfM track observations when it has any; otherwise
+        (no tracks, or a view SfM never used, such as a held-out view) the points in front of the camera that
+        project inside the image, without an occlusion test."""
+        if self.points is None:
+            return np.zeros(0, dtype=np.int64)
+        if self.points.observed_by is not None and len(self.points.observed_by[i]):
+            return self.points.observed_by[i]
+        cam = self.cameras[i]
+        pix, z = cam.project(self.points.xyz)
+        inside = (z > 0) & (pix[:, 0] >= 0) & (pix[:, 0] < cam.width) & (pix[:, 1] >= 0) & (pix[:, 1] < cam.height)
+        return np.nonzero(inside)[0]
+
+    # --- checks -------------------------------------------------------------------------------------------------
+    def validate(self, decode: bool = False) -> "Scene":
+        """Check that every referenced file exists and has the right size (header only unless `decode`).
+
+        decode=True reads every map fully, so truncated files and NaN depths surface now rather than mid-training.
+        """
+        for i, (cam, f) in enumerate(zip(self.native_cameras, self.files)):
+            w, h = image_io.image_size(f.image, "image")
+            if (w, h) != (cam.width, cam.height):
+                raise SceneError(f.image, f"image is {w}x{h} but its camera says {cam.width}x{cam.height}")
+            for what in ("depth", "depth_prior", "mask", "labels", "features"):
+                path = getattr(f, what)
+                if path is not None and not Path(path).is_file():
+                    raise MissingSceneFile(path, what.replace("_", " "))
+            if decode:
+                self.image_np(i)
+                self.mask_np(i)
+                self.depth_np(i)
+                self.inv_depth_prior_np(i)
+                self.labels_np(i)
+                self.features_np(i)
+        return self
