@@ -220,7 +220,7 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
     tail = _blend_flags(bins, want) + [fwd.transmittance, fwd.last, grad_color, grad_alpha, grad_depth,
                                        grad_inv_depth, grad_features]
     per_thread = _tile_launches(s, dev)
-    buffers = [targets] + [[wp.zeros_like(t) for t in targets] for _ in per_thread[1:]]
+    buffers = _gradient_buffers(targets, len(per_thread))
 
     coop = _cooperative(dev)  # GPU: blocks of consecutive pixels of a tile; CPU: one thread per pixel
     block_dim = _block_dims(s)[1] if coop else 1
@@ -232,12 +232,23 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
                       device=dev, block_dim=block_dim)
 
     run_threads(work, per_thread)
+    _merge_gradient_buffers(buffers)
+
+
+def _gradient_buffers(targets, threads: int):
+    """Per thread, where its blend adjoint accumulates: the targets for the first, private zeros for the rest."""
+    return [targets] + [[wp.zeros_like(t) for t in targets] for _ in range(threads - 1)]
+
+
+def _merge_gradient_buffers(buffers) -> None:
+    """Adds the private buffers of `_gradient_buffers` into the targets (buffers[0])."""
     for private in buffers[1:]:
-        for dst, src in zip(targets, private):
+        for dst, src in zip(buffers[0], private):
             if dst.size == 0:
                 continue
             flat_dst, flat_src = _as_flat_floats(dst), _as_flat_floats(src)
-            wp.launch(blend.accumulate, dim=flat_dst.shape[0], inputs=[flat_src], outputs=[flat_dst], device=dev)
+            wp.launch(blend.accumulate, dim=flat_dst.shape[0], inputs=[flat_src], outputs=[flat_dst],
+                      device=dst.device)
 
 
 def _as_flat_floats(a):

@@ -1,13 +1,28 @@
 """The surfel (2DGS) pipeline on Warp arrays: project -> footprint -> shared tile sort -> blend, and the blend
-adjoint. Torch-free; `warpgs.render_surfels` drives it. Tiles and sorting are `pipeline.sort_into_tiles`."""
+adjoint. Torch-free; `warpgs.render_surfels` drives it. Tiles and sorting are `pipeline.sort_into_tiles`.
+
+Blending runs as the 3D pipeline's does: block-cooperative kernels (`surfel_blend_gpu.py`) in one launch on
+GPUs, per-thread kernels (`surfel_blend.py`) split into tile ranges over a few Python threads on the CPU, each
+thread's adjoint accumulating into private gradient buffers that are merged afterwards."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import warp as wp
 
-from warpgs.pipeline import Bins, Settings, sort_into_tiles
-from warpgs.kernels import surfel_blend, surfel_project
+from warpgs.cpu_threads import run_threads
+from warpgs.pipeline import (
+    Bins,
+    Settings,
+    _block_dims,
+    _block_reduce,
+    _cooperative,
+    _gradient_buffers,
+    _merge_gradient_buffers,
+    _tile_launches,
+    sort_into_tiles,
+)
+from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
 
 
 @dataclass
@@ -77,10 +92,16 @@ def bin_surfels(p: SurfelProjected, opacities, s: Settings) -> Bins:
     return sort_into_tiles(rects, counts, p.depths, q_cut, s)
 
 
-def _blend_inputs(p: SurfelProjected, bins: Bins, opacities, features, s: Settings, want: SurfelWanted):
+def _blend_inputs(p: SurfelProjected, opacities, features, s: Settings):
+    """Kernel arguments up to tile_size (first_tile follows them)."""
     return [p.transforms, p.means2d, p.depths, opacities, p.colors, p.normals, features, s.width, s.height,
-            s.tiles_x, s.tile_size, bins.q_cut, s.near, want.distortion_scale, int(want.color), int(want.depth),
-            int(want.inv_depth), int(want.normal), int(want.median), int(want.distortion), want.num_features]
+            s.tiles_x, s.tile_size]
+
+
+def _blend_flags(bins: Bins, s: Settings, want: SurfelWanted):
+    """Kernel arguments after first_tile."""
+    return [bins.q_cut, s.near, want.distortion_scale, int(want.color), int(want.depth), int(want.inv_depth),
+            int(want.normal), int(want.median), int(want.distortion), want.num_features]
 
 
 def blend_forward(p: SurfelProjected, bins: Bins, opacities, features, s: Settings,
@@ -88,35 +109,59 @@ def blend_forward(p: SurfelProjected, bins: Bins, opacities, features, s: Settin
     dev = p.means2d.device
     npix = s.width * s.height
 
-    def image(on, dtype):  # outputs not asked for get a 1-element dummy the kernel never touches
-        return wp.zeros(npix if on else 1, dtype=dtype, device=dev)
+    def image(on, dtype):  # every pixel is written; outputs not asked for get a 1-element dummy never touched
+        return wp.empty(npix if on else 1, dtype=dtype, device=dev)
 
     out = SurfelBlended(
         color=image(want.color, wp.vec3), transmittance=image(True, float), alpha=image(True, float),
         depth=image(want.depth, float), inv_depth=image(want.inv_depth, float), normal=image(want.normal, wp.vec3),
         median=image(want.median, float), median_index=image(want.median, wp.int32),
         distortion=image(want.distortion, float), dist_stats=image(want.distortion, wp.vec3),
+        # accumulated in place
         features=wp.zeros((npix, want.num_features) if want.num_features else (1, 1), dtype=float, device=dev),
         last=image(True, wp.int32),
     )
-    wp.launch(surfel_blend.blend_forward, dim=s.num_tiles * s.tile_size**2,
-              inputs=[bins.tile_start, bins.tile_end, bins.sorted_ids]
-              + _blend_inputs(p, bins, opacities, features, s, want),
-              outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.normal, out.median,
-                       out.median_index, out.distortion, out.dist_stats, out.features, out.last],
-              device=dev)
+    head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, opacities, features, s)
+    tail = _blend_flags(bins, s, want)
+    outputs = [out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.normal, out.median,
+               out.median_index, out.distortion, out.dist_stats, out.features, out.last]
+
+    coop = _cooperative(dev)
+    block_dim = _block_dims(s)[0] if coop else 1
+    kernel = surfel_blend_gpu.forward_kernel(block_dim) if coop else surfel_blend.blend_forward
+
+    def work(_thread, chunks):  # each chunk writes only its own pixels
+        for first, count in chunks:
+            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [first] + tail, outputs=outputs, device=dev,
+                      block_dim=block_dim)
+
+    run_threads(work, _tile_launches(s, dev))
     return out
 
 
 def blend_backward(p: SurfelProjected, bins: Bins, opacities, features, s: Settings, want: SurfelWanted,
                    fwd: SurfelBlended, grads: dict):
     """`grads`: upstream Warp arrays keyed color, alpha, depth, inv_depth, normal, median, distortion, features.
-    Accumulates into the .grad of the projected arrays, opacities and features."""
-    wp.launch(surfel_blend.blend_backward, dim=s.num_tiles * s.tile_size**2,
-              inputs=[bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want)
-              + [fwd.transmittance, fwd.last, fwd.median_index, fwd.dist_stats]
-              + [grads[k] for k in ("color", "alpha", "depth", "inv_depth", "normal", "median", "distortion",
-                                    "features")]
-              + [p.transforms.grad, p.means2d.grad, p.depths.grad, opacities.grad, p.colors.grad, p.normals.grad,
-                 features.grad],
-              device=p.means2d.device)
+    Accumulates into the .grad of the projected arrays, opacities and features (on the CPU, threads other than
+    the first accumulate privately and are added in afterwards: Warp's CPU atomics are plain adds)."""
+    dev = p.means2d.device
+    targets = [p.transforms.grad, p.means2d.grad, p.depths.grad, opacities.grad, p.colors.grad, p.normals.grad,
+               features.grad]
+    head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, opacities, features, s)
+    tail = (_blend_flags(bins, s, want) + [fwd.transmittance, fwd.last, fwd.median_index, fwd.dist_stats]
+            + [grads[k] for k in ("color", "alpha", "depth", "inv_depth", "normal", "median", "distortion",
+                                  "features")])
+    per_thread = _tile_launches(s, dev)
+    buffers = _gradient_buffers(targets, len(per_thread))
+
+    coop = _cooperative(dev)  # GPU: blocks of consecutive pixels of a tile; CPU: one thread per pixel
+    block_dim = _block_dims(s)[1] if coop else 1
+    kernel = surfel_blend_gpu.backward_kernel(block_dim, _block_reduce()) if coop else surfel_blend.blend_backward
+
+    def work(thread, chunks):
+        for first, count in chunks:
+            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [first] + tail + buffers[thread],
+                      device=dev, block_dim=block_dim)
+
+    run_threads(work, per_thread)
+    _merge_gradient_buffers(buffers)

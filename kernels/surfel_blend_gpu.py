@@ -1,0 +1,267 @@
+"""Block-cooperative surfel blending for GPUs, as `blend_gpu.py` does it for 3D Gaussians.
+
+The block fetches its tile's list in batches of block_dim surfels into shared memory (each thread gathers
+one surfel's transform, centre, depth, opacity, cut-off, colour and normal), then every thread walks the batch
+from shared memory. The forward stops a tile once all its pixels are saturated; the backward walks back to
+front in lockstep from the block's largest stopping point and, optionally, sums each surfel's gradient over
+the block before one thread adds it to global memory. The per-pixel maths are surfel_blend.py's @wp.func's.
+Kernels are compiled per block size, since tile shapes are fixed at compile time.
+"""
+import warp as wp
+
+from .blend import ALPHA_MIN, pixel_of
+from .surfel_blend import (
+    ROW_HIT,
+    ROW_SCREEN,
+    ROW_SUFFIX,
+    ROW_T,
+    ROW_WEIGHT,
+    SurfelGradRow,
+    add_surfel_gradient_row,
+    blend_alpha,
+    blend_surfel,
+    load_pixel_grads,
+    new_surfel_state,
+    saturates,
+    splat_point,
+    surfel_pixel_gradient,
+    write_surfel_pixel,
+)
+
+_kernels = {}
+
+# What the block sums per surfel: the gradient entries of a SurfelGradRow and its hit / screen flags, which
+# then count the pixels that took each path (add_surfel_gradient_row reads them the same way).
+GRAD_SUM_LENGTH = 21
+SurfelGradSum = wp.types.vector(length=GRAD_SUM_LENGTH, dtype=float)
+
+
+@wp.func
+def gradient_sum_part(row: SurfelGradRow) -> SurfelGradSum:
+    part = SurfelGradSum()
+    for i in range(wp.static(GRAD_SUM_LENGTH)):
+        part[i] = row[i]
+    return part
+
+
+@wp.func
+def gradient_sum_row(total: SurfelGradSum) -> SurfelGradRow:
+    row = SurfelGradRow()
+    for i in range(wp.static(GRAD_SUM_LENGTH)):
+        row[i] = total[i]
+    return row
+
+
+def forward_kernel(block_dim: int):
+    key = ("forward", block_dim)
+    if key not in _kernels:
+        _kernels[key] = _make_forward(block_dim)
+    return _kernels[key]
+
+
+def backward_kernel(block_dim: int, block_reduce: bool):
+    key = ("backward", block_dim, block_reduce)
+    if key not in _kernels:
+        _kernels[key] = _make_backward(block_dim, block_reduce)
+    return _kernels[key]
+
+
+def _make_forward(block_dim: int):
+    @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False})
+    def surfel_blend_forward_blocks(
+        tile_start: wp.array(dtype=wp.int32),
+        tile_end: wp.array(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        transforms: wp.array(dtype=wp.mat33),
+        means2d: wp.array(dtype=wp.vec2),
+        depths: wp.array(dtype=float),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=wp.vec3),
+        normals: wp.array(dtype=wp.vec3),
+        features: wp.array2d(dtype=float),
+        width: int,
+        height: int,
+        tiles_x: int,
+        tile_size: int,
+        first_tile: int,
+        q_cut: wp.array(dtype=float),
+        near: float,
+        dist_scale: float,
+        want_color: int,
+        want_depth: int,
+        want_inv_depth: int,
+        want_normal: int,
+        want_median: int,
+        want_distortion: int,
+        num_features: int,
+        out_color: wp.array(dtype=wp.vec3),
+        out_transmittance: wp.array(dtype=float),
+        out_alpha: wp.array(dtype=float),
+        out_depth: wp.array(dtype=float),
+        out_inv_depth: wp.array(dtype=float),
+        out_normal: wp.array(dtype=wp.vec3),
+        out_median: wp.array(dtype=float),
+        out_median_index: wp.array(dtype=wp.int32),
+        out_distortion: wp.array(dtype=float),
+        out_dist_stats: wp.array(dtype=wp.vec3),
+        out_features: wp.array2d(dtype=float),
+        out_last: wp.array(dtype=wp.int32),
+    ):
+        tid = wp.tid() + first_tile * tile_size * tile_size
+        pxy = pixel_of(tid, tiles_x, tile_size)
+        inside = pxy[0] < width and pxy[1] < height  # outside threads still help fetch
+        pix = wp.where(inside, pxy[1] * width + pxy[0], 0)
+        tile = tid / (tile_size * tile_size)
+        start = tile_start[tile]
+        end = tile_end[tile]
+        fx = float(pxy[0]) + 0.5
+        fy = float(pxy[1]) + 0.5
+        st = new_surfel_state(start)
+        done = wp.where(inside, 0, 1)  # 1 once the pixel is saturated
+        for b in range((end - start + wp.static(block_dim) - 1) / wp.static(block_dim)):
+            if wp.tile_sum(wp.tile(1 - done))[0] == 0:  # every pixel of the tile is saturated
+                break
+            lo = start + b * wp.static(block_dim)
+            ids = wp.tile_load(sorted_ids, shape=wp.static(block_dim), offset=lo, storage="shared")
+            M_t = wp.tile_load_indexed(transforms, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            m_t = wp.tile_load_indexed(means2d, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            z_t = wp.tile_load_indexed(depths, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            o_t = wp.tile_load_indexed(opacities, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            q_t = wp.tile_load_indexed(q_cut, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            rgb_t = wp.tile_load_indexed(colors, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            n_t = wp.tile_load_indexed(normals, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            # Saturated pixels walk nothing; the others stop when they saturate (the steps as in surfel_blend's
+            # per-thread kernel: skip decisions first, then the straight-line blend).
+            for j in range(wp.where(done == 0, wp.min(wp.static(block_dim), end - lo), 0)):
+                sp = splat_point(wp.tile_extract(M_t, j), wp.tile_extract(m_t, j), wp.tile_extract(z_t, j), fx, fy,
+                                 near)
+                if sp[0] > wp.tile_extract(q_t, j):
+                    continue
+                alpha = blend_alpha(wp.tile_extract(o_t, j), wp.exp(-0.5 * sp[0]))
+                if alpha < ALPHA_MIN:
+                    continue
+                if saturates(st.T, alpha):
+                    done = 1
+                    break
+                st = blend_surfel(st, lo + j, wp.tile_extract(ids, j), alpha, sp[1], wp.tile_extract(rgb_t, j),
+                                  wp.tile_extract(n_t, j), dist_scale, pix, features, out_features, want_color,
+                                  want_depth, want_inv_depth, want_normal, want_median, want_distortion, num_features)
+        if inside:
+            write_surfel_pixel(st, pix, want_color, want_depth, want_inv_depth, want_normal, want_median,
+                               want_distortion, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth,
+                               out_normal, out_median, out_median_index, out_distortion, out_dist_stats, out_last)
+
+    return surfel_blend_forward_blocks
+
+
+def _make_backward(block_dim: int, block_reduce: bool):
+    @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False})
+    def surfel_blend_backward_blocks(
+        tile_start: wp.array(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        transforms: wp.array(dtype=wp.mat33),
+        means2d: wp.array(dtype=wp.vec2),
+        depths: wp.array(dtype=float),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=wp.vec3),
+        normals: wp.array(dtype=wp.vec3),
+        features: wp.array2d(dtype=float),
+        width: int,
+        height: int,
+        tiles_x: int,
+        tile_size: int,
+        first_tile: int,
+        q_cut: wp.array(dtype=float),
+        near: float,
+        dist_scale: float,
+        want_color: int,
+        want_depth: int,
+        want_inv_depth: int,
+        want_normal: int,
+        want_median: int,
+        want_distortion: int,
+        num_features: int,
+        transmittance: wp.array(dtype=float),
+        last_index: wp.array(dtype=wp.int32),
+        median_index: wp.array(dtype=wp.int32),
+        dist_stats: wp.array(dtype=wp.vec3),
+        grad_color: wp.array(dtype=wp.vec3),
+        grad_alpha: wp.array(dtype=float),
+        grad_depth: wp.array(dtype=float),
+        grad_inv_depth: wp.array(dtype=float),
+        grad_normal: wp.array(dtype=wp.vec3),
+        grad_median: wp.array(dtype=float),
+        grad_distortion: wp.array(dtype=float),
+        grad_features: wp.array2d(dtype=float),
+        adj_transforms: wp.array(dtype=wp.mat33),
+        adj_means2d: wp.array(dtype=wp.vec2),
+        adj_depths: wp.array(dtype=float),
+        adj_opacities: wp.array(dtype=float),
+        adj_colors: wp.array(dtype=wp.vec3),
+        adj_normals: wp.array(dtype=wp.vec3),
+        adj_features: wp.array2d(dtype=float),
+    ):
+        tid = wp.tid() + first_tile * tile_size * tile_size
+        lane = tid % wp.static(block_dim)
+        pxy = pixel_of(tid, tiles_x, tile_size)
+        inside = pxy[0] < width and pxy[1] < height  # outside threads still help fetch and sum
+        pix = wp.where(inside, pxy[1] * width + pxy[0], 0)
+        start = tile_start[tid / (tile_size * tile_size)]
+        fx = float(pxy[0]) + 0.5
+        fy = float(pxy[1]) + 0.5
+        pg = load_pixel_grads(pix, want_color, want_depth, want_inv_depth, want_normal, want_median,
+                              want_distortion, transmittance, median_index, dist_stats, grad_color, grad_alpha,
+                              grad_depth, grad_inv_depth, grad_normal, grad_median, grad_distortion)
+        T = transmittance[pix]
+        suffix = float(0.0)
+        last = wp.where(inside, last_index[pix], start)
+        block_last = wp.tile_max(wp.tile(last))[0]
+        for b in range((block_last - start + wp.static(block_dim) - 1) / wp.static(block_dim)):
+            hi = block_last - b * wp.static(block_dim)
+            lo = wp.max(start, hi - wp.static(block_dim))
+            ids = wp.tile_load(sorted_ids, shape=wp.static(block_dim), offset=lo, storage="shared")
+            M_t = wp.tile_load_indexed(transforms, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            m_t = wp.tile_load_indexed(means2d, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            z_t = wp.tile_load_indexed(depths, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            o_t = wp.tile_load_indexed(opacities, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            q_t = wp.tile_load_indexed(q_cut, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            rgb_t = wp.tile_load_indexed(colors, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            n_t = wp.tile_load_indexed(normals, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            for step in range(hi - lo):
+                j = hi - lo - 1 - step
+                g = wp.tile_extract(ids, j)
+                row = SurfelGradRow()
+                if lo + j < last:
+                    M = wp.tile_extract(M_t, j)
+                    mean = wp.tile_extract(m_t, j)
+                    sp = splat_point(M, mean, wp.tile_extract(z_t, j), fx, fy, near)
+                    if sp[0] <= wp.tile_extract(q_t, j):
+                        G = wp.exp(-0.5 * sp[0])
+                        o = wp.tile_extract(o_t, j)
+                        if blend_alpha(o, G) >= ALPHA_MIN:
+                            row = surfel_pixel_gradient(lo + j, g, sp, M, mean, o, G, wp.tile_extract(rgb_t, j),
+                                                        wp.tile_extract(n_t, j), fx, fy, dist_scale, T, suffix, pg,
+                                                        pix, features, grad_features, want_color, want_depth,
+                                                        want_inv_depth, want_normal, want_median, want_distortion,
+                                                        num_features)
+                            T = row[ROW_T]
+                            suffix = row[ROW_SUFFIX]
+                if wp.static(block_reduce):
+                    total = wp.tile_sum(wp.tile(gradient_sum_part(row), preserve_type=True))[0]
+                    used = total[ROW_HIT] + total[ROW_SCREEN] > 0.0
+                    if lane == 0 and used:
+                        add_surfel_gradient_row(g, gradient_sum_row(total), want_color, want_normal,
+                                                adj_transforms, adj_means2d, adj_depths, adj_opacities, adj_colors,
+                                                adj_normals)
+                    for c in range(num_features):
+                        f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * grad_features[pix, c]))[0]
+                        if lane == 0 and used:
+                            wp.atomic_add(adj_features, g, c, f_total)
+                else:
+                    if row[ROW_HIT] + row[ROW_SCREEN] > 0.0:
+                        add_surfel_gradient_row(g, row, want_color, want_normal, adj_transforms, adj_means2d,
+                                                adj_depths, adj_opacities, adj_colors, adj_normals)
+                        for c in range(num_features):
+                            wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])
+
+    return surfel_blend_backward_blocks

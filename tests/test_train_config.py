@@ -1,0 +1,112 @@
+"""Config loading: YAML -> dataclasses, overrides and aliases, and errors that name the key."""
+from pathlib import Path
+
+import pytest
+import yaml
+
+from warpgs.cli import QUICK_RUN, configs_dir
+from warpgs.config import ConfigError, load_config
+
+CONFIGS = configs_dir()
+
+
+def test_defaults_and_aliases():
+    cfg = load_config(None, ["steps=123", "device=cpu", "eval_every=7", "seed=5", "budget=999", "kind=surfels"])
+    assert cfg.train.steps == 123 and cfg.train.device == "cpu" and cfg.eval.every == 7 and cfg.train.seed == 5
+    assert cfg.strategy.max_primitives == 999 and cfg.model.kind == "surfels"
+    assert cfg.losses == {"l1": 0.8, "dssim": 0.2}
+
+
+def test_dotted_overrides_parse_types():
+    cfg = load_config(None, ["optim.means_lr=1e-5", "train.background=[1, 1, 1]", "data.n_train=3",
+                             "losses.dssim=0", "losses.l1.schedule=[exp, 1, 0.01]", "model.features.lang=8",
+                             "train.progress=false", "data.split=none"])
+    assert cfg.optim.means_lr == pytest.approx(1e-5)  # YAML reads 1e-5 as a string; coerced
+    assert cfg.train.background == [1.0, 1.0, 1.0]
+    assert cfg.data.n_train == 3 and cfg.data.split is None and cfg.train.progress is False
+    assert cfg.losses["dssim"] == 0.0 and cfg.losses["l1"]["schedule"] == ["exp", 1, 0.01]
+    assert cfg.model.features == {"lang": 8}
+
+
+@pytest.mark.parametrize("override, key, words", [
+    ("train.stepz=10", "train.stepz", "train.steps"),
+    ("stepz=10", "stepz", "train.steps"),
+    ("optim.means_rl=1", "optim.means_rl", "optim.means_lr"),
+    ("modle.kind=surfels", "modle.kind", "model.kind"),
+])
+def test_unknown_key_names_it_and_suggests(override, key, words):
+    with pytest.raises(ConfigError) as e:
+        load_config(None, [override])
+    assert e.value.key == key
+    assert key in str(e.value) and words in str(e.value)
+
+
+@pytest.mark.parametrize("override, key", [
+    ("steps=abc", "train.steps"),
+    ("steps=0", "train.steps"),
+    ("steps=1.5", "train.steps"),
+    ("device=gpu", "train.device"),
+    ("model.kind=surfel", "model.kind"),
+    ("train.background=purple", "train.background"),
+    ("train.background=[2, 0, 0]", "train.background"),
+    ("optim.means_lr=-1", "optim.means_lr"),
+    ("strategy.split_count=1", "strategy.split_count"),
+    ("losses.l1=-0.5", "losses.l1"),
+    ("losses.l1.schedule=[cubic, 1, 2]", "losses.l1.schedule"),
+    ("losses.l1.wieght=1", "losses.l1.wieght"),
+    ("train.progress=maybe", "train.progress"),
+    ("model.init_opacity=1.5", "model.init_opacity"),
+])
+def test_bad_value_names_the_key(override, key):
+    with pytest.raises(ConfigError) as e:
+        load_config(None, [override])
+    assert e.value.key == key, str(e.value)
+    assert str(e.value).startswith(key + ":")
+
+
+def test_bad_yaml_key_in_file(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("train:\n  steps: 10\n  eval_evry: 3\n")
+    with pytest.raises(ConfigError, match=r"train.eval_evry: unknown config key"):
+        load_config(path)
+
+
+def test_base_inheritance_merges(tmp_path):
+    (tmp_path / "base.yaml").write_text("train: {steps: 10, seed: 3}\nlosses: {l1: 1.0}\n")
+    (tmp_path / "top.yaml").write_text("base: base.yaml\ntrain: {steps: 20}\nlosses: {dssim: 0}\n")
+    cfg = load_config(tmp_path / "top.yaml")
+    assert cfg.train.steps == 20 and cfg.train.seed == 3
+    assert cfg.losses == {"l1": 1.0, "dssim": 0.0}
+
+
+def test_default_yaml_matches_builtin_quick_run():
+    assert load_config(CONFIGS / "default.yaml").to_dict() == load_config(QUICK_RUN).to_dict()
+
+
+@pytest.mark.parametrize("name", ["default", "gaussians", "surfels"])
+def test_presets_load(name):
+    cfg = load_config(CONFIGS / f"{name}.yaml")
+    assert cfg.model.kind == ("surfels" if name == "surfels" else "gaussians")
+
+
+def test_config_round_trips_through_yaml(tmp_path):
+    cfg = load_config(CONFIGS / "surfels.yaml", ["steps=77", "model.features.lang=4"])
+    path = tmp_path / "saved.yaml"
+    path.write_text(cfg.to_yaml())
+    assert load_config(path).to_dict() == cfg.to_dict()
+    assert yaml.safe_load(path.read_text())["train"]["steps"] == 77
+
+
+def test_unknown_loss_is_named_at_trainer_construction():
+    from warpgs.train import Trainer
+
+    with pytest.raises(ValueError, match=r"losses\.l2: unknown loss.*did you mean 'l1'"):
+        Trainer(None, overrides=["losses.l2=1.0", "device=cpu"])
+
+
+def test_cli_reports_bad_key(capsys):
+    from warpgs.cli import train_main
+
+    assert train_main(["steps=10", "train.stepz=4", "--print-config"]) == 2
+    err = capsys.readouterr().err
+    assert "train.stepz" in err and "train.steps" in err

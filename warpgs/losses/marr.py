@@ -1,0 +1,190 @@
+"""The 2.5D-sketch ("Marr") depth terms of the sparse-view method, on inverse depth.
+
+Registered losses (each `(render_out, batch, model, step) -> scalar`, removable by weight 0):
+
+    depth        mean |D̂ - D*|                                     over valid prior pixels
+    depth_grad   mean |∇D̂ - ∇D*|_1   (kornia Sobel, per pixel)     over pixels whose 3x3 window is all valid
+    depth_local  mean |μ_D̂ - μ_D*| + |σ²_D̂ - σ²_D*|   (3x3 box)    over pixels whose 3x3 window is all valid
+
+Default weight 1 with the exponential schedule 1 -> 0.01 over training (`("exp", 1.0, 0.01)`), as the paper.
+
+The rendered inverse depth D̂. The prior D* is inverse depth aligned (scale + shift) to the SfM points, i.e. to
+1/z of *surface* points; it has no notion of coverage. Of the two renders available,
+  - `inv_depth` = Σ w_i / z_i is the inverse depth composited over a background at infinity: it is alpha x
+    (mean inverse depth) and under-reads wherever the splats do not yet cover the pixel;
+  - `inv_depth / alpha` = Σ w_i / z_i / Σ w_i is the weight-averaged inverse depth of what the pixel shows,
+    which is exactly what an aligned prior measures (1/z of the surface point seen through the pixel).
+We use the second (normalised) form, and leave out pixels whose alpha is below `alpha_min` (default 0.1),
+where the normalisation would be dominated by one faint splat: coverage is the photometric terms' business.
+(1/depth, the reciprocal of the expected z, would be a harmonic-type mean and biased to the far side at depth
+edges; the normalised accumulated inverse depth averages in the same space as the prior.) Gradients flow
+through both `inv_depth` and `alpha`.
+
+Batch fields (as the trainer fills them from the scene's View): `inv_depth_prior` [H, W, 1] (or [B, H, W, 1])
+and `inv_depth_valid` (same shape, bool). An optional `mask` (pixels to use) is and-ed in. Pixels with a
+non-finite or non-positive prior are invalid whatever the mask says.
+
+Options that the config's loss entries cannot carry (they take only weight and schedule) live in
+`SETTINGS` (change them with `configure(alpha_min=...)`, e.g. from a module listed under `imports`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Optional
+
+import torch
+import torch.nn.functional as F
+from kornia.filters import box_blur, spatial_gradient
+
+from warpgs.losses.registry import batch_field, register_loss, render_output
+
+PRIOR_KEY = "inv_depth_prior"
+VALID_KEY = "inv_depth_valid"
+MASK_KEY = "mask"
+OUTPUTS = ("alpha", "inv_depth")
+DEPTH_SCHEDULE = ("exp", 1.0, 0.01)  # λ1..λ3: 1 at step 0, 0.01 at the last step, log-linear in between
+
+
+@dataclass
+class MarrSettings:
+    alpha_min: float = 0.1  # pixels whose rendered alpha is below this are left out (0: keep all covered pixels)
+    alpha_eps: float = 1e-6  # guard of the alpha normalisation
+
+
+SETTINGS = MarrSettings()
+
+
+def configure(**kwargs) -> MarrSettings:
+    """Change the module's settings (see MarrSettings); returns them."""
+    names = {f.name for f in fields(MarrSettings)}
+    for key, value in kwargs.items():
+        if key not in names:
+            raise ValueError(f"marr.configure: unknown setting {key!r}; choose from {sorted(names)}")
+        value = float(value)
+        if not (value >= 0.0 and value < float("inf")):
+            raise ValueError(f"marr.configure: {key} must be finite and >= 0, got {value}")
+        setattr(SETTINGS, key, value)
+    return SETTINGS
+
+
+# ----- pure functions on [B, 1, H, W] maps (tests use these directly) ------------------------------------------
+def _bchw(x: torch.Tensor, name: str) -> torch.Tensor:
+    """[H, W], [H, W, 1] or [B, H, W, 1] -> [B, 1, H, W]."""
+    if x.dim() == 2:
+        x = x[..., None]
+    if x.dim() == 3:
+        x = x[None]
+    if x.dim() != 4 or x.shape[-1] != 1:
+        raise ValueError(f"{name}: expected [H, W], [H, W, 1] or [B, H, W, 1], got {list(x.shape)}")
+    return x.permute(0, 3, 1, 2)
+
+
+def window_valid(mask: torch.Tensor) -> torch.Tensor:
+    """[B, 1, H, W] bool -> bool: the pixel's whole 3x3 window lies inside the image and is valid (an erosion
+    with out-of-image pixels counted invalid)."""
+    inv = F.pad((~mask).float(), (1, 1, 1, 1), value=1.0)
+    return F.max_pool2d(inv, 3, stride=1) < 0.5
+
+
+def _masked_mean(value: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of `value` over `mask` (broadcast over channels); 0 (still connected to the graph) when empty."""
+    m = mask.to(value.dtype)
+    count = m.sum() * (value.numel() / m.numel())
+    return (value * m).sum() / count.clamp_min(1.0)
+
+
+def depth_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """mean |pred - prior| over mask; maps [B, 1, H, W]."""
+    diff = torch.where(mask, pred - prior, torch.zeros_like(pred))
+    return _masked_mean(diff.abs(), mask)
+
+
+def depth_gradient_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """mean over pixels with an all-valid 3x3 window of |∂x D̂ - ∂x D*| + |∂y D̂ - ∂y D*|, with kornia's
+    normalised Sobel (a ramp of slope 1 per pixel has gradient 1)."""
+    diff = torch.where(mask, pred - prior, torch.zeros_like(pred))  # ∇ is linear: ∇D̂ - ∇D* = ∇(D̂ - D*)
+    g = spatial_gradient(diff, mode="sobel", order=1, normalized=True)  # [B, 1, 2, H, W]
+    inner = window_valid(mask)
+    return _masked_mean(g.abs().sum(2), inner)
+
+
+def local_stats(x: torch.Tensor) -> tuple:
+    """(mean, variance) over each pixel's 3x3 window via kornia box filters: E[x], E[x²] - E[x]²."""
+    mean = box_blur(x, (3, 3))
+    var = (box_blur(x * x, (3, 3)) - mean * mean).clamp_min(0.0)
+    return mean, var
+
+
+def depth_local_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """mean over pixels with an all-valid 3x3 window of |μ_D̂ - μ_D*| + |σ²_D̂ - σ²_D*| (population variance)."""
+    inner = window_valid(mask)
+    # Both maps are shifted by the same constant (the prior's mean): the statistics' differences do not change,
+    # and E[x²] - E[x]² loses less to float32 cancellation.
+    with torch.no_grad():
+        centre = _masked_mean(prior, mask) if bool(mask.any()) else prior.new_zeros(())
+    zero = torch.zeros_like(pred)
+    mu_p, var_p = local_stats(torch.where(mask, pred - centre, zero))
+    mu_t, var_t = local_stats(torch.where(mask, prior - centre, zero))
+    return _masked_mean((mu_p - mu_t).abs() + (var_p - var_t).abs(), inner)
+
+
+# ----- from the render and the batch ---------------------------------------------------------------------------
+def rendered_inverse_depth(render_out, alpha_eps: Optional[float] = None) -> tuple:
+    """(D̂, alpha) as [B, 1, H, W]: the alpha-normalised accumulated inverse depth (see module doc)."""
+    eps = SETTINGS.alpha_eps if alpha_eps is None else alpha_eps
+    inv = _bchw(render_output(render_out, "inv_depth"), "render_out.inv_depth")
+    alpha = _bchw(render_output(render_out, "alpha"), "render_out.alpha")
+    return inv / alpha.clamp_min(max(eps, 1e-12)), alpha
+
+
+def prior_and_mask(batch, like: torch.Tensor, alpha: Optional[torch.Tensor] = None,
+                   alpha_min: Optional[float] = None) -> tuple:
+    """(D*, mask) as [B, 1, H, W] matching `like`: valid prior, and-ed with batch["mask"] and alpha >= alpha_min."""
+    try:
+        prior = batch_field(batch, PRIOR_KEY)
+    except ValueError:
+        raise ValueError(f"batch: the depth terms need {PRIOR_KEY!r} (an aligned inverse-depth prior): the scene has "
+                         "none for this view; set data.depth_priors, or give depth/depth_grad/depth_local weight 0"
+                         ) from None
+    prior = _bchw(prior, f"batch.{PRIOR_KEY}").to(like)
+    if prior.shape[-2:] != like.shape[-2:]:
+        raise ValueError(f"batch.{PRIOR_KEY}: {list(prior.shape[-2:])} does not match the render "
+                         f"{list(like.shape[-2:])}")
+    prior = prior.expand_as(like)
+    mask = torch.isfinite(prior) & (prior > 0)
+    for key in (VALID_KEY, MASK_KEY):
+        try:
+            m = batch_field(batch, key)
+        except ValueError:
+            continue
+        mask = mask & _bchw(m, f"batch.{key}").to(device=like.device, dtype=torch.bool)
+    if alpha is not None:
+        amin = SETTINGS.alpha_min if alpha_min is None else alpha_min
+        if amin > 0:
+            mask = mask & (alpha.detach() >= amin)
+    prior = torch.where(mask, prior, torch.zeros_like(prior))
+    return prior, mask
+
+
+def _inputs(render_out, batch):
+    pred, alpha = rendered_inverse_depth(render_out)
+    prior, mask = prior_and_mask(batch, pred, alpha)
+    return pred, prior, mask
+
+
+@register_loss("depth", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
+def depth(render_out, batch, model, step) -> torch.Tensor:
+    """L_D = mean |D̂ - D*| over valid prior pixels (paper eq. 4)."""
+    return depth_l1(*_inputs(render_out, batch))
+
+
+@register_loss("depth_grad", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
+def depth_grad(render_out, batch, model, step) -> torch.Tensor:
+    """L_grad = mean |∇D̂ - ∇D*| (paper eq. 5)."""
+    return depth_gradient_l1(*_inputs(render_out, batch))
+
+
+@register_loss("depth_local", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
+def depth_local(render_out, batch, model, step) -> torch.Tensor:
+    """L_local = mean |μ_D̂ - μ_D*| + |σ²_D̂ - σ²_D*| over 3x3 windows (paper eqs. 6-8)."""
+    return depth_local_l1(*_inputs(render_out, batch))
