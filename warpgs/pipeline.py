@@ -168,7 +168,8 @@ def _block_dims(s: Settings) -> Tuple[int, int]:
     Defaults: a whole tile for the forward (one shared fetch per batch), one warp for the backward (its
     per-Gaussian sums then need no block-wide synchronisation). WARPGS_FWD_BLOCK / WARPGS_BWD_BLOCK override."""
     per_tile = s.tile_size**2
-    fwd = int(os.environ.get("WARPGS_FWD_BLOCK", per_tile))
+    # At most 256: a 32x32 tile as one 1024-thread block asks for more registers than a GPU block has.
+    fwd = int(os.environ.get("WARPGS_FWD_BLOCK", min(per_tile, 256)))
     bwd = int(os.environ.get("WARPGS_BWD_BLOCK", 32))
     return math.gcd(per_tile, fwd), math.gcd(per_tile, bwd)
 
