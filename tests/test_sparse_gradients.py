@@ -70,10 +70,10 @@ def test_depth_term_alone_moves_the_geometry_towards_the_prior():
     b = prior_batch(model, factor=1.2)  # the prior says: everything 20% closer
     opt = torch.optim.Adam([model.params["means"]], lr=0.01)
     term = get_loss("depth").fn
-    first = float(term(render(model), b, model, 0))
+    first = float(term(render(model), b, model, 0).detach())
     for _ in range(15):
         opt.zero_grad()
         term(render(model), b, model, 0).backward()
         opt.step()
-    last = float(term(render(model), b, model, 0))
+    last = float(term(render(model), b, model, 0).detach())
     assert math.isfinite(last) and last < 0.7 * first

@@ -6,7 +6,6 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-import warpgs.losses as L
 from warpgs.losses import compute_losses, get_loss, resolve_losses, required_outputs
 from warpgs.losses import gestalt, marr
 

@@ -1,5 +1,4 @@
 """Config loading: YAML -> dataclasses, overrides and aliases, and errors that name the key."""
-from pathlib import Path
 
 import pytest
 import yaml

@@ -87,21 +87,19 @@ def train_main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
     args = ap.parse_args(argv)
     config_name, overrides = _split_args(args.args)
-    if args.data:
-        overrides.append(f"data.path={args.data}")
-    if args.out:
-        overrides.append(f"output.dir={args.out}")
 
     from warpgs.config import ConfigError, load_config
 
     try:
         source = resolve_config_source(config_name)
         config = load_config(source, overrides)
+        _apply_paths(config, args)
         if args.resume and config_name is None:
             # Without a CONFIG, continue with the run's own saved config (plus these overrides).
             saved = _saved_config(config)
             if saved is not None:
                 config = load_config(saved, overrides)
+                _apply_paths(config, args)
     except (ConfigError, FileNotFoundError) as e:
         return _error("warpgs-train", str(e), EXIT_CONFIG)
     if args.print_config:
@@ -137,6 +135,14 @@ def train_main(argv: Optional[List[str]] = None) -> int:
     return 0
 
 
+def _apply_paths(config, args) -> None:
+    """--data / --out as given (not through YAML parsing, which would mangle some paths)."""
+    if args.data:
+        config.data.path = str(args.data)
+    if args.out:
+        config.output.dir = str(args.out)
+
+
 def _saved_config(config) -> Optional[Path]:
     from warpgs.train_setup import scene_label
 
@@ -157,8 +163,8 @@ def load_run(model_dir, device: Optional[str] = None, overrides: Sequence[str] =
     cfg_path = run / "config.yaml"
     if not cfg_path.is_file():
         raise FileNotFoundError(f"{run}: no config.yaml (is this a warpgs-train output folder?)")
-    extra = [f"output.dir={run}"] + ([f"train.device={device}"] if device else []) + list(overrides)
-    config = load_config(cfg_path, extra)
+    config = load_config(cfg_path, ([f"train.device={device}"] if device else []) + list(overrides))
+    config.output.dir = str(run)
     if (run / config.output.checkpoint).is_file():
         return Trainer(config, resume=True, quiet=True)
     ply = run / config.output.ply

@@ -45,7 +45,7 @@ class DataConfig:
     synthetic: str = "orbit"  # built-in scene when path is None: "orbit" (dense ring) or "lightfield" (3x3)
     width: int = 128  # built-in scene resolution
     height: int = 96
-    split: Optional[str] = None  # None: split.json when present else all views train; "llff", "all", "file"
+    split: Optional[str] = None  # None: split.json when present else all train (light fields: "grid"); "llff", "all"
     n_train: Optional[int] = None  # keep this many training views (evenly spread)
     downscale: int = 1  # serve images at 1/downscale (1, 2, 4, 8)
     depth_priors: Optional[str] = "auto"  # "auto": the scene's prior files if any; "none"; or a folder of priors
@@ -119,7 +119,7 @@ class Config:
         return _plain(dataclasses.asdict(self))
 
     def to_yaml(self) -> str:
-        return yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None)
+        return yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=False)
 
     def copy(self) -> "Config":
         return copy.deepcopy(self)
@@ -133,6 +133,7 @@ ALIASES = {
 }
 CHOICES = {
     "data.synthetic": ("orbit", "lightfield"),
+    "data.split": ("file", "llff", "all", "grid"),  # "grid": light-field folders (their default)
     "model.kind": ("gaussians", "surfels"),
     "model.init": ("auto", "sfm", "depth", "random"),
     "eval.split": ("test", "train"),

@@ -63,6 +63,9 @@ def sample_pairs(gt_depth: torch.Tensor, valid: torch.Tensor, num_pairs: int = D
     if len(cand) < 2 or num_pairs <= 0:
         return torch.zeros(0, 2, dtype=torch.long)
     g = gt_depth.reshape(-1).detach().double().cpu()
+    lo, hi = float(g[cand].min()), float(g[cand].max())
+    if hi - lo <= margin * lo:  # no pair of valid pixels can differ by more than the margin
+        return torch.zeros(0, 2, dtype=torch.long)
     gen = generator if generator is not None else torch.Generator().manual_seed(0)
     picked, have = [], 0
     for _ in range(max_rounds):
