@@ -32,7 +32,7 @@ _kernels = {}
 
 # What the block sums per surfel: the gradient entries of a SurfelGradRow and its hit / screen flags, which
 # then count the pixels that took each path (add_surfel_gradient_row reads them the same way).
-GRAD_SUM_LENGTH = 21
+GRAD_SUM_LENGTH = ROW_SCREEN + 1  # entries 0 .. ROW_SCREEN of a row
 SurfelGradSum = wp.types.vector(length=GRAD_SUM_LENGTH, dtype=float)
 
 
@@ -235,10 +235,10 @@ def _make_backward(block_dim: int, block_reduce: bool):
                     M = wp.tile_extract(M_t, j)
                     mean = wp.tile_extract(m_t, j)
                     sp = splat_point(M, mean, wp.tile_extract(z_t, j), fx, fy, near)
-                    if sp[0] <= wp.tile_extract(q_t, j):
+                    if not (sp[0] > wp.tile_extract(q_t, j)):  # the tests of the per-thread kernel, negated
                         G = wp.exp(-0.5 * sp[0])
                         o = wp.tile_extract(o_t, j)
-                        if blend_alpha(o, G) >= ALPHA_MIN:
+                        if not (blend_alpha(o, G) < ALPHA_MIN):
                             row = surfel_pixel_gradient(lo + j, g, sp, M, mean, o, G, wp.tile_extract(rgb_t, j),
                                                         wp.tile_extract(n_t, j), fx, fy, dist_scale, T, suffix, pg,
                                                         pix, features, grad_features, want_color, want_depth,

@@ -10,6 +10,9 @@ c_i is a primitive's view-independent colour (its DC SH coefficient as RGB), f_i
 bidirectional term the first part trains the MLP (and, through it, the centres), the second pulls the
 primitive's own value toward the MLP's prediction. The alternating schedule keeps one branch's MLP part frozen
 (detached) while the other trains, swapping every `alternate_period` steps; the pulls on the primitives stay on.
+Before `bridge_start` only the MLP parts act (with the centres detached). The gradient the MLP parts send into
+the centres is multiplied by `bridge_position_scale` (1 = the literal objective; see docs/language.md for why
+the default is 0.01).
 
 Losses read their options and helpers from batch["language"] (a `LanguageContext`, set by the trainer
 extension); without one, `LanguageConfig()` defaults apply. Modules come from batch["modules"]: "bridge"

@@ -16,7 +16,6 @@ autoencoder only saw unit latents (this also undoes partial coverage: F / alpha 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Dict, Optional, Sequence, Union
 
 import numpy as np

@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Dict, Sequence, Tuple
 
-import numpy as np
 import torch
 
 from warpgs.language.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
@@ -106,14 +105,3 @@ def read_meta(path) -> dict:
     if not path.is_file():
         return {}
     return json.loads(path.read_text())
-
-
-def label_names_from(scene, meta: Optional[dict] = None) -> Dict[int, str]:
-    if scene is not None and scene.label_names:
-        return dict(scene.label_names)
-    labels = (meta or {}).get("labels") or {}
-    return {int(k): v for k, v in labels.items()}
-
-
-def view_label_map(scene, index: int) -> Optional[np.ndarray]:
-    return scene.labels_np(index) if scene is not None else None
