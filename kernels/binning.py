@@ -1,13 +1,12 @@
 """Tile binning: which tiles each projected Gaussian touches, (tile, depth) sort keys, per-tile ranges.
 
-A Gaussian reaches a tile only if some pixel centre in that tile can receive alpha >= 1/255 from it, so
-the footprint is the exact bounding box of the ellipse q <= 2 ln(255 o) (about 3.3 sigma at o = 0.99,
-less for fainter Gaussians): no contribution the blending rule would keep is ever truncated, and the
-result does not depend on the tile size. `max_sigmas` > 0 truncates the footprint further (a speed knob).
+A Gaussian reaches a tile only if some pixel centre in that tile can receive alpha >= alpha_min from it
+(1/255 by default), so the footprint is the exact bounding box of the ellipse q <= 2 ln(o / alpha_min)
+(about 3.3 sigma at o = 0.99 and alpha_min = 1/255, less for fainter Gaussians): no contribution the
+blending rule would keep is ever truncated, and the result does not depend on the tile size.
+`max_sigmas` > 0 truncates the footprint further (a speed knob); so does a larger alpha_min.
 """
 import warp as wp
-
-ALPHA_MIN = wp.constant(1.0 / 255.0)
 
 
 @wp.kernel
@@ -20,6 +19,7 @@ def tile_footprints(
     height: int,
     tile_size: int,
     max_sigmas: float,
+    alpha_min: float,  # the blending's alpha threshold
     rects: wp.array(dtype=wp.vec4i),  # tile x0, y0, x1, y1 (inclusive)
     counts: wp.array(dtype=wp.int32),
     q_cut: wp.array(dtype=float),  # blending skips a pixel beyond this Mahalanobis distance without an exp()
@@ -29,14 +29,15 @@ def tile_footprints(
     q_cut[i] = 0.0
     rects[i] = wp.vec4i(0, 0, -1, -1)
     o = opacities[i]
-    if valid[i] == 0 or o < ALPHA_MIN:
+    if valid[i] == 0 or o < alpha_min:
         return
-    q_max = 2.0 * wp.log(255.0 * o)
+    q_alpha = 2.0 * wp.log(o / alpha_min)  # alpha = o exp(-q/2) >= alpha_min  <=>  q <= q_alpha
+    q_max = q_alpha
     if max_sigmas > 0.0:
         q_max = wp.min(q_max, max_sigmas * max_sigmas)
-    # A hair generous: the exact alpha >= 1/255 test still runs inside, so this only saves work.
+    # A hair generous: the exact alpha >= alpha_min test still runs inside, so this only saves work.
     q_cut[i] = q_max * 1.0001 + 1.0e-4
-    if max_sigmas > 0.0 and q_max < 2.0 * wp.log(255.0 * o):
+    if max_sigmas > 0.0 and q_max < q_alpha:
         q_cut[i] = q_max  # a hard truncation at max_sigmas: pixels beyond it are skipped
     cv = cov2d[i]
     # Slightly generous so that float rounding never drops a pixel the blending would keep.

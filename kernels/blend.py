@@ -3,8 +3,9 @@
 One thread per pixel; a launch covers num_tiles * tile_size² threads so that the threads of one block
 share one tile's list. The kernels here are the per-thread versions the CPU runs; `blend_gpu.py` has the
 block-cooperative versions of the same per-pixel steps (the @wp.func's below) for GPUs.
-Rules as in 3DGS: alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255, stop before transmittance would
-drop under 1e-4. The background is not blended here: the op adds T_final * bg.
+Rules as in 3DGS: alpha = min(0.99, o exp(-q/2)), skip alpha < alpha_min (1/255), stop before transmittance
+would drop under t_min (1e-4); the two thresholds are per-launch settings (`BlendParams`), so they can be
+traded for speed. The background is not blended here: the op adds T_final * bg.
 
 The backward walks each pixel's list back to front from the stored stopping point, recovering T_i from
 T_final by division (alpha <= 0.99 keeps that safe). Every output channel (rgb, alpha, depth, inverse
@@ -13,9 +14,26 @@ c̃_i = Σ_channels c_i·g per Gaussian and one scalar suffix carries dL/dα_i =
 """
 import warp as wp
 
-ALPHA_MIN = wp.constant(1.0 / 255.0)
+ALPHA_MIN = wp.constant(1.0 / 255.0)  # the 3DGS defaults of BlendParams.alpha_min / t_min
 ALPHA_MAX = wp.constant(0.99)
 T_MIN = wp.constant(1.0e-4)
+
+
+@wp.struct
+class BlendParams:
+    """What one blend launch needs besides the arrays: image and tile layout, the outputs asked for, and the
+    blending thresholds. The CPU and GPU kernels (and their adjoints) all take it, so they cannot drift."""
+    width: int
+    height: int
+    tiles_x: int
+    tile_size: int
+    first_tile: int  # launches may cover a sub-range of tiles (the CPU splits them over threads)
+    want_color: int
+    want_depth: int
+    want_inv_depth: int
+    num_features: int
+    alpha_min: float  # contributions below this alpha are skipped
+    t_min: float  # blending stops before transmittance would drop under this
 
 
 @wp.func
@@ -38,7 +56,7 @@ class PixelState:
     depth: float  # Σ w z
     inv_depth: float  # Σ w / z
     last: int  # one past the last blended index of the tile list
-    done: int  # 1 once transmittance would drop under T_MIN
+    done: int  # 1 once transmittance would drop under t_min
 
 
 @wp.func
@@ -52,29 +70,28 @@ def new_pixel_state(start: int) -> PixelState:
 @wp.func
 def blend_one(st: PixelState, k: int, g: int, mean: wp.vec2, conic: wp.vec3, opacity: float, q_cut: float,
               color: wp.vec3, depth: float, fx: float, fy: float, pix: int, features: wp.array2d(dtype=float),
-              out_features: wp.array2d(dtype=float), want_color: int, want_depth: int, want_inv_depth: int,
-              num_features: int) -> PixelState:
+              out_features: wp.array2d(dtype=float), p: BlendParams) -> PixelState:
     """Front-to-back step: blends Gaussian g (entry k of the tile list) into a pixel."""
     dx = fx - mean[0]
     dy = fy - mean[1]
     q = mahalanobis(conic, dx, dy)
-    if q > q_cut:  # outside the footprint: alpha would be < 1/255, skip the exp()
+    if q > q_cut:  # outside the footprint: alpha would be < alpha_min, skip the exp()
         return st
     alpha = wp.min(ALPHA_MAX, opacity * wp.exp(-0.5 * q))
-    if alpha < ALPHA_MIN:
+    if alpha < p.alpha_min:
         return st
     next_T = st.T * (1.0 - alpha)
-    if next_T < T_MIN:
+    if next_T < p.t_min:
         st.done = 1
         return st
     w = alpha * st.T
-    if want_color != 0:
+    if p.want_color != 0:
         st.rgb = st.rgb + w * color
-    if want_depth != 0:
+    if p.want_depth != 0:
         st.depth = st.depth + w * depth
-    if want_inv_depth != 0:
+    if p.want_inv_depth != 0:
         st.inv_depth = st.inv_depth + w / depth
-    for c in range(num_features):
+    for c in range(p.num_features):
         out_features[pix, c] = out_features[pix, c] + w * features[g, c]
     st.T = next_T
     st.last = k + 1
@@ -82,19 +99,52 @@ def blend_one(st: PixelState, k: int, g: int, mean: wp.vec2, conic: wp.vec3, opa
 
 
 @wp.func
-def write_pixel(st: PixelState, pix: int, want_color: int, want_depth: int, want_inv_depth: int,
-                out_color: wp.array(dtype=wp.vec3), out_transmittance: wp.array(dtype=float),
+def write_pixel(st: PixelState, pix: int, p: BlendParams, out_color: wp.array(dtype=wp.vec3), out_transmittance: wp.array(dtype=float),
                 out_alpha: wp.array(dtype=float), out_depth: wp.array(dtype=float),
                 out_inv_depth: wp.array(dtype=float), out_last: wp.array(dtype=wp.int32)):
     out_transmittance[pix] = st.T
     out_alpha[pix] = 1.0 - st.T
     out_last[pix] = st.last
-    if want_color != 0:
+    if p.want_color != 0:
         out_color[pix] = st.rgb
-    if want_depth != 0:
+    if p.want_depth != 0:
         out_depth[pix] = st.depth
-    if want_inv_depth != 0:
+    if p.want_inv_depth != 0:
         out_inv_depth[pix] = st.inv_depth
+
+
+@wp.func
+def tile_pixel(tid: int, p: BlendParams) -> wp.vec2i:
+    """The pixel of launch thread tid (threads of a launch start at tile p.first_tile)."""
+    return pixel_of(tid + p.first_tile * p.tile_size * p.tile_size, p.tiles_x, p.tile_size)
+
+
+@wp.func
+def tile_of(tid: int, p: BlendParams) -> int:
+    return p.first_tile + tid / (p.tile_size * p.tile_size)
+
+
+@wp.struct
+class PixelGrads:
+    """The upstream gradients at one pixel (zero for outputs not rendered)."""
+    rgb: wp.vec3
+    alpha: float
+    depth: float
+    inv_depth: float
+
+
+@wp.func
+def load_pixel_grads(pix: int, p: BlendParams, grad_color: wp.array(dtype=wp.vec3), grad_alpha: wp.array(dtype=float),
+                     grad_depth: wp.array(dtype=float), grad_inv_depth: wp.array(dtype=float)) -> PixelGrads:
+    up = PixelGrads()
+    if p.want_color != 0:
+        up.rgb = grad_color[pix]
+    if p.want_depth != 0:
+        up.depth = grad_depth[pix]
+    if p.want_inv_depth != 0:
+        up.inv_depth = grad_inv_depth[pix]
+    up.alpha = grad_alpha[pix]
+    return up
 
 
 @wp.kernel
@@ -108,16 +158,8 @@ def blend_forward(
     colors: wp.array(dtype=wp.vec3),
     depths: wp.array(dtype=float),
     features: wp.array2d(dtype=float),
-    width: int,
-    height: int,
-    tiles_x: int,
-    tile_size: int,
-    first_tile: int,  # launches may cover a sub-range of tiles (the CPU splits them over threads)
     q_cut: wp.array(dtype=float),
-    want_color: int,
-    want_depth: int,
-    want_inv_depth: int,
-    num_features: int,
+    p: BlendParams,
     out_color: wp.array(dtype=wp.vec3),
     out_transmittance: wp.array(dtype=float),
     out_alpha: wp.array(dtype=float),
@@ -126,12 +168,12 @@ def blend_forward(
     out_features: wp.array2d(dtype=float),
     out_last: wp.array(dtype=wp.int32),
 ):
-    tid = wp.tid() + first_tile * tile_size * tile_size
-    pxy = pixel_of(tid, tiles_x, tile_size)
-    if pxy[0] >= width or pxy[1] >= height:
+    tid = wp.tid()
+    pxy = tile_pixel(tid, p)
+    if pxy[0] >= p.width or pxy[1] >= p.height:
         return
-    pix = pxy[1] * width + pxy[0]
-    tile = tid / (tile_size * tile_size)
+    pix = pxy[1] * p.width + pxy[0]
+    tile = tile_of(tid, p)
     start = tile_start[tile]
     end = tile_end[tile]
     fx = float(pxy[0]) + 0.5
@@ -141,11 +183,10 @@ def blend_forward(
     for k in range(start, end):
         g = sorted_ids[k]
         st = blend_one(st, k, g, means2d[g], conics[g], opacities[g], q_cut[g], colors[g], depths[g], fx, fy, pix,
-                       features, out_features, want_color, want_depth, want_inv_depth, num_features)
+                       features, out_features, p)
         if st.done != 0:
             break
-    write_pixel(st, pix, want_color, want_depth, want_inv_depth, out_color, out_transmittance, out_alpha, out_depth,
-                out_inv_depth, out_last)
+    write_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth, out_last)
 
 
 # One pixel's gradient for one Gaussian: d means2d (2), d conic (3), d opacity, d colour (3), d depth,
@@ -161,9 +202,8 @@ ROW_WEIGHT = wp.constant(13)
 @wp.func
 def pixel_gradient(
     g: int, mean: wp.vec2, conic: wp.vec3, opacity: float, q_cut: float, color: wp.vec3, depth: float,
-    fx: float, fy: float, T: float, suffix: float, g_alpha: float, g_rgb: wp.vec3, g_z: float, g_inv: float,
-    pix: int, features: wp.array2d(dtype=float), grad_features: wp.array2d(dtype=float),
-    want_color: int, want_depth: int, want_inv_depth: int, num_features: int,
+    fx: float, fy: float, T: float, suffix: float, up: PixelGrads,
+    pix: int, features: wp.array2d(dtype=float), grad_features: wp.array2d(dtype=float), p: BlendParams,
 ) -> GradRow:
     """One back-to-front step of the blending adjoint at one pixel. T is the transmittance behind this
     Gaussian; suffix is Σ_channels g·(what is seen behind it), per unit transmittance."""
@@ -179,23 +219,23 @@ def pixel_gradient(
     G = wp.exp(-0.5 * q)
     raw = opacity * G
     alpha = wp.min(ALPHA_MAX, raw)
-    if alpha < ALPHA_MIN:
+    if alpha < p.alpha_min:
         return row
     T = T / (1.0 - alpha)  # transmittance in front of this Gaussian
     w = alpha * T
     z = depth
-    c_tilde = g_alpha
-    if want_color != 0:
-        c_tilde += wp.dot(color, g_rgb)
-        row[6] = w * g_rgb[0]
-        row[7] = w * g_rgb[1]
-        row[8] = w * g_rgb[2]
-    if want_depth != 0:
-        c_tilde += z * g_z
-    if want_inv_depth != 0:
-        c_tilde += g_inv / z
-    row[9] = w * (g_z - g_inv / (z * z))
-    for c in range(num_features):
+    c_tilde = up.alpha
+    if p.want_color != 0:
+        c_tilde += wp.dot(color, up.rgb)
+        row[6] = w * up.rgb[0]
+        row[7] = w * up.rgb[1]
+        row[8] = w * up.rgb[2]
+    if p.want_depth != 0:
+        c_tilde += z * up.depth
+    if p.want_inv_depth != 0:
+        c_tilde += up.inv_depth / z
+    row[9] = w * (up.depth - up.inv_depth / (z * z))
+    for c in range(p.num_features):
         c_tilde += features[g, c] * grad_features[pix, c]
     d_alpha = T * (c_tilde - suffix)
     if raw < ALPHA_MAX:  # the 0.99 clamp has zero derivative
@@ -235,16 +275,8 @@ def blend_backward(
     colors: wp.array(dtype=wp.vec3),
     depths: wp.array(dtype=float),
     features: wp.array2d(dtype=float),
-    width: int,
-    height: int,
-    tiles_x: int,
-    tile_size: int,
-    first_tile: int,
     q_cut: wp.array(dtype=float),
-    want_color: int,
-    want_depth: int,
-    want_inv_depth: int,
-    num_features: int,
+    p: BlendParams,
     transmittance: wp.array(dtype=float),
     last_index: wp.array(dtype=wp.int32),
     grad_color: wp.array(dtype=wp.vec3),
@@ -260,24 +292,15 @@ def blend_backward(
     adj_features: wp.array2d(dtype=float),
 ):
     """The blending adjoint, one thread per pixel, adding each pixel's gradient to global memory (CPU)."""
-    tid = wp.tid() + first_tile * tile_size * tile_size
-    pxy = pixel_of(tid, tiles_x, tile_size)
-    if pxy[0] >= width or pxy[1] >= height:
+    tid = wp.tid()
+    pxy = tile_pixel(tid, p)
+    if pxy[0] >= p.width or pxy[1] >= p.height:
         return
-    pix = pxy[1] * width + pxy[0]
-    start = tile_start[tid / (tile_size * tile_size)]
+    pix = pxy[1] * p.width + pxy[0]
+    start = tile_start[tile_of(tid, p)]
     fx = float(pxy[0]) + 0.5
     fy = float(pxy[1]) + 0.5
-    g_rgb = wp.vec3(0.0)
-    if want_color != 0:
-        g_rgb = grad_color[pix]
-    g_z = float(0.0)
-    if want_depth != 0:
-        g_z = grad_depth[pix]
-    g_inv = float(0.0)
-    if want_inv_depth != 0:
-        g_inv = grad_inv_depth[pix]
-    g_alpha = grad_alpha[pix]
+    up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth)
     T = transmittance[pix]
     suffix = float(0.0)
     k = last_index[pix] - 1
@@ -285,13 +308,12 @@ def blend_backward(
         g = sorted_ids[k]
         k -= 1
         row = pixel_gradient(g, means2d[g], conics[g], opacities[g], q_cut[g], colors[g], depths[g], fx, fy, T,
-                             suffix, g_alpha, g_rgb, g_z, g_inv, pix, features, grad_features, want_color,
-                             want_depth, want_inv_depth, num_features)
+                             suffix, up, pix, features, grad_features, p)
         if row[ROW_USED] > 0.0:
             T = row[ROW_T]
             suffix = row[ROW_SUFFIX]
             add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
-            for c in range(num_features):
+            for c in range(p.num_features):
                 wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])
 
 

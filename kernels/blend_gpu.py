@@ -11,17 +11,19 @@ Kernels are compiled per block size (tile_size²), since tile shapes are fixed a
 import warp as wp
 
 from .blend import (
-    ALPHA_MIN,
     ROW_USED,
     ROW_SUFFIX,
     ROW_T,
     ROW_WEIGHT,
+    BlendParams,
     GradRow,
     add_gradient_row,
     blend_one,
+    load_pixel_grads,
     new_pixel_state,
     pixel_gradient,
-    pixel_of,
+    tile_of,
+    tile_pixel,
     write_pixel,
 )
 
@@ -73,16 +75,8 @@ def _make_forward(block_dim: int):
         colors: wp.array(dtype=wp.vec3),
         depths: wp.array(dtype=float),
         features: wp.array2d(dtype=float),
-        width: int,
-        height: int,
-        tiles_x: int,
-        tile_size: int,
-        first_tile: int,
         q_cut: wp.array(dtype=float),
-        want_color: int,
-        want_depth: int,
-        want_inv_depth: int,
-        num_features: int,
+        p: BlendParams,
         out_color: wp.array(dtype=wp.vec3),
         out_transmittance: wp.array(dtype=float),
         out_alpha: wp.array(dtype=float),
@@ -91,11 +85,11 @@ def _make_forward(block_dim: int):
         out_features: wp.array2d(dtype=float),
         out_last: wp.array(dtype=wp.int32),
     ):
-        tid = wp.tid() + first_tile * tile_size * tile_size
-        pxy = pixel_of(tid, tiles_x, tile_size)
-        inside = pxy[0] < width and pxy[1] < height  # outside threads still help fetch
-        pix = wp.where(inside, pxy[1] * width + pxy[0], 0)
-        tile = tid / (tile_size * tile_size)
+        tid = wp.tid()
+        pxy = tile_pixel(tid, p)
+        inside = pxy[0] < p.width and pxy[1] < p.height  # outside threads still help fetch
+        pix = wp.where(inside, pxy[1] * p.width + pxy[0], 0)
+        tile = tile_of(tid, p)
         start = tile_start[tile]
         end = tile_end[tile]
         fx = float(pxy[0]) + 0.5
@@ -119,10 +113,9 @@ def _make_forward(block_dim: int):
                     st = blend_one(st, lo + j, wp.tile_extract(ids, j), wp.tile_extract(m_t, j),
                                    wp.tile_extract(c_t, j), wp.tile_extract(o_t, j), wp.tile_extract(q_t, j),
                                    wp.tile_extract(rgb_t, j), wp.tile_extract(z_t, j), fx, fy, pix, features,
-                                   out_features, want_color, want_depth, want_inv_depth, num_features)
+                                   out_features, p)
         if inside:
-            write_pixel(st, pix, want_color, want_depth, want_inv_depth, out_color, out_transmittance, out_alpha,
-                        out_depth, out_inv_depth, out_last)
+            write_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth, out_last)
 
     return blend_forward_blocks
 
@@ -138,16 +131,8 @@ def _make_backward(block_dim: int, block_reduce: bool):
         colors: wp.array(dtype=wp.vec3),
         depths: wp.array(dtype=float),
         features: wp.array2d(dtype=float),
-        width: int,
-        height: int,
-        tiles_x: int,
-        tile_size: int,
-        first_tile: int,
         q_cut: wp.array(dtype=float),
-        want_color: int,
-        want_depth: int,
-        want_inv_depth: int,
-        num_features: int,
+        p: BlendParams,
         transmittance: wp.array(dtype=float),
         last_index: wp.array(dtype=wp.int32),
         grad_color: wp.array(dtype=wp.vec3),
@@ -162,24 +147,15 @@ def _make_backward(block_dim: int, block_reduce: bool):
         adj_depths: wp.array(dtype=float),
         adj_features: wp.array2d(dtype=float),
     ):
-        tid = wp.tid() + first_tile * tile_size * tile_size
+        tid = wp.tid()
         lane = tid % wp.static(block_dim)
-        pxy = pixel_of(tid, tiles_x, tile_size)
-        inside = pxy[0] < width and pxy[1] < height  # outside threads still help fetch and sum
-        pix = wp.where(inside, pxy[1] * width + pxy[0], 0)
-        start = tile_start[tid / (tile_size * tile_size)]
+        pxy = tile_pixel(tid, p)
+        inside = pxy[0] < p.width and pxy[1] < p.height  # outside threads still help fetch and sum
+        pix = wp.where(inside, pxy[1] * p.width + pxy[0], 0)
+        start = tile_start[tile_of(tid, p)]
         fx = float(pxy[0]) + 0.5
         fy = float(pxy[1]) + 0.5
-        g_rgb = wp.vec3(0.0)
-        if want_color != 0:
-            g_rgb = grad_color[pix]
-        g_z = float(0.0)
-        if want_depth != 0:
-            g_z = grad_depth[pix]
-        g_inv = float(0.0)
-        if want_inv_depth != 0:
-            g_inv = grad_inv_depth[pix]
-        g_alpha = grad_alpha[pix]
+        up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth)
         T = transmittance[pix]
         suffix = float(0.0)
         last = wp.where(inside, last_index[pix], start)
@@ -202,22 +178,21 @@ def _make_backward(block_dim: int, block_reduce: bool):
                     row = pixel_gradient(g, wp.tile_extract(m_t, j), wp.tile_extract(c_t, j),
                                          wp.tile_extract(o_t, j), wp.tile_extract(q_t, j),
                                          wp.tile_extract(rgb_t, j), wp.tile_extract(z_t, j), fx, fy, T, suffix,
-                                         g_alpha, g_rgb, g_z, g_inv, pix, features, grad_features, want_color,
-                                         want_depth, want_inv_depth, num_features)
+                                         up, pix, features, grad_features, p)
                     T = row[ROW_T]
                     suffix = row[ROW_SUFFIX]
                 if wp.static(block_reduce):
                     total = wp.tile_sum(wp.tile(gradient_sum_part(row), preserve_type=True))[0]
                     if lane == 0 and total[10] > 0.0:
                         add_gradient_sum(g, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
-                    for c in range(num_features):
+                    for c in range(p.num_features):
                         f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * grad_features[pix, c]))[0]
                         if lane == 0 and total[10] > 0.0:
                             wp.atomic_add(adj_features, g, c, f_total)
                 else:
                     if row[ROW_USED] > 0.0:
                         add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
-                        for c in range(num_features):
+                        for c in range(p.num_features):
                             wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])
 
     return blend_backward_blocks

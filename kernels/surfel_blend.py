@@ -4,7 +4,8 @@ Per pixel and surfel: intersect the planes x = px and y = py (through the pixel'
 h_u = px M_z - M_x, h_v = py M_z - M_y, (u, v) from h_u x h_v; s3 = u^2 + v^2 at the hit (a miss, or a hit
 closer than `near`, counts as s3 = inf). The screen-space fallback s2 = 2 |pixel - centre|^2 keeps splats seen
 edge-on visible: G = exp(-min(s3, s2)/2), and the depth is the hit's camera z when s3 wins, the centre's
-otherwise. Then the 3DGS rules: alpha = min(0.99, o G), skip alpha < 1/255, stop before T < 1e-4.
+otherwise. Then the 3DGS rules: alpha = min(0.99, o G), skip alpha < alpha_min (1/255), stop before T < t_min
+(1e-4); the thresholds and the other per-launch settings come in one `SurfelBlendParams`.
 
 Outputs are weighted sums Σ w_i c_i (w_i = alpha_i T_i) plus two that are not:
 - median depth: z of the last surfel blended while T > 0.5 (where accumulated opacity crosses 0.5);
@@ -19,7 +20,7 @@ The per-pixel maths are @wp.func steps shared by the per-thread kernels here (wh
 block-cooperative kernels of `surfel_blend_gpu.py` (GPUs): `splat_point` (which Gaussian a pixel sees and at
 what depth) and `blend_alpha` for both passes, `SurfelPixelState` / `blend_surfel` / `write_surfel_pixel` for
 the forward, `SurfelPixelGrads` / `surfel_pixel_gradient` -> `SurfelGradRow` / `add_surfel_gradient_row` for the
-backward. The kernels' loops make the skip / stop decisions (outside the footprint, alpha < 1/255, saturation)
+backward. The kernels' loops make the skip / stop decisions (outside the footprint, alpha < alpha_min, saturation)
 before calling the steps, which are then straight-line. Steps that made those decisions themselves (returning
 the state or a zero row unchanged on a skip, the loop testing a flag afterwards) measured 1.3x (forward) and
 1.5-2x (backward) slower on the CPU than the monolithic kernels they replaced; this layout matches the forward
@@ -27,7 +28,7 @@ and is within ~10% on the backward.
 """
 import warp as wp
 
-from .blend import ALPHA_MAX, ALPHA_MIN, T_MIN, pixel_of
+from .blend import ALPHA_MAX, BlendParams, tile_of, tile_pixel
 from .surfel_project import FILTER_INV_SQUARE
 
 # The blend adjoint is hand-written (blend_backward): Warp's generated adjoints are never used, so skip them.
@@ -84,14 +85,26 @@ def splat_point(M: wp.mat33, mean: wp.vec2, center_depth: float, px: float, py: 
 
 @wp.func
 def blend_alpha(opacity: float, G: float) -> float:
-    """alpha from G = exp(-s/2); worth the exp() only when s <= q_cut. Skip the surfel if alpha < ALPHA_MIN."""
+    """alpha from G = exp(-s/2); worth the exp() only when s <= q_cut. Skip the surfel if alpha < alpha_min."""
     return wp.min(ALPHA_MAX, opacity * G)
 
 
 @wp.func
-def saturates(T: float, alpha: float) -> bool:
-    """Blending stops before a surfel that would take the transmittance under T_MIN."""
-    return T * (1.0 - alpha) < T_MIN
+def saturates(T: float, alpha: float, t_min: float) -> bool:
+    """Blending stops before a surfel that would take the transmittance under t_min."""
+    return T * (1.0 - alpha) < t_min
+
+
+@wp.struct
+class SurfelBlendParams:
+    """Per-launch settings of the surfel blend kernels: the 3D kernels' (layout, rgb/depth/inverse-depth/feature
+    flags, thresholds) plus the surfel-only ones."""
+    base: BlendParams
+    near: float  # ray hits closer than this are misses
+    dist_scale: float  # k of the distortion's m = -k / z
+    want_normal: int
+    want_median: int
+    want_distortion: int
 
 
 # ---- forward ---------------------------------------------------------------------------------------------------
@@ -124,31 +137,30 @@ def new_surfel_state(start: int) -> SurfelPixelState:
 
 @wp.func
 def blend_surfel(st: SurfelPixelState, k: int, g: int, alpha: float, z: float, color: wp.vec3, normal: wp.vec3,
-                 dist_scale: float, pix: int, features: wp.array2d(dtype=float),
-                 out_features: wp.array2d(dtype=float), want_color: int, want_depth: int, want_inv_depth: int,
-                 want_normal: int, want_median: int, want_distortion: int, num_features: int) -> SurfelPixelState:
+                 pix: int, features: wp.array2d(dtype=float),
+                 out_features: wp.array2d(dtype=float), p: SurfelBlendParams) -> SurfelPixelState:
     """Front-to-back step: blends surfel g (entry k of the tile list), seen with `alpha` at depth z, into a
-    pixel. The caller has checked that alpha >= ALPHA_MIN and that it does not saturate the pixel."""
+    pixel. The caller has checked that alpha >= alpha_min and that it does not saturate the pixel."""
     w = alpha * st.T
-    if want_color != 0:
+    if p.base.want_color != 0:
         st.rgb = st.rgb + w * color
-    if want_depth != 0:
+    if p.base.want_depth != 0:
         st.depth = st.depth + w * z
-    if want_inv_depth != 0:
+    if p.base.want_inv_depth != 0:
         st.inv_depth = st.inv_depth + w / z
-    if want_normal != 0:
+    if p.want_normal != 0:
         st.normal = st.normal + w * normal
-    if want_median != 0 and st.T > 0.5:
+    if p.want_median != 0 and st.T > 0.5:
         st.median = z
         st.median_k = k
-    if want_distortion != 0:
-        m = -dist_scale / z
+    if p.want_distortion != 0:
+        m = -p.dist_scale / z
         if st.first != 0:
             st.m_ref = m
         dm = m - st.m_ref
         st.s1 = st.s1 + w * dm
         st.s2 = st.s2 + w * dm * dm
-    for c in range(num_features):
+    for c in range(p.base.num_features):
         out_features[pix, c] = out_features[pix, c] + w * features[g, c]
     st.first = 0
     st.T = st.T * (1.0 - alpha)
@@ -157,8 +169,7 @@ def blend_surfel(st: SurfelPixelState, k: int, g: int, alpha: float, z: float, c
 
 
 @wp.func
-def write_surfel_pixel(st: SurfelPixelState, pix: int, want_color: int, want_depth: int, want_inv_depth: int,
-                       want_normal: int, want_median: int, want_distortion: int,
+def write_surfel_pixel(st: SurfelPixelState, pix: int, p: SurfelBlendParams,
                        out_color: wp.array(dtype=wp.vec3), out_transmittance: wp.array(dtype=float),
                        out_alpha: wp.array(dtype=float), out_depth: wp.array(dtype=float),
                        out_inv_depth: wp.array(dtype=float), out_normal: wp.array(dtype=wp.vec3),
@@ -168,18 +179,18 @@ def write_surfel_pixel(st: SurfelPixelState, pix: int, want_color: int, want_dep
     out_transmittance[pix] = st.T
     out_alpha[pix] = 1.0 - st.T
     out_last[pix] = st.last
-    if want_color != 0:
+    if p.base.want_color != 0:
         out_color[pix] = st.rgb
-    if want_depth != 0:
+    if p.base.want_depth != 0:
         out_depth[pix] = st.depth
-    if want_inv_depth != 0:
+    if p.base.want_inv_depth != 0:
         out_inv_depth[pix] = st.inv_depth
-    if want_normal != 0:
+    if p.want_normal != 0:
         out_normal[pix] = st.normal
-    if want_median != 0:
+    if p.want_median != 0:
         out_median[pix] = st.median
         out_median_index[pix] = st.median_k
-    if want_distortion != 0:
+    if p.want_distortion != 0:
         out_distortion[pix] = (1.0 - st.T) * st.s2 - st.s1 * st.s1
         out_dist_stats[pix] = wp.vec3(st.m_ref, st.s1, st.s2)
 
@@ -196,21 +207,8 @@ def blend_forward(
     colors: wp.array(dtype=wp.vec3),
     normals: wp.array(dtype=wp.vec3),
     features: wp.array2d(dtype=float),
-    width: int,
-    height: int,
-    tiles_x: int,
-    tile_size: int,
-    first_tile: int,  # launches may cover a sub-range of tiles (the CPU splits them over threads)
     q_cut: wp.array(dtype=float),
-    near: float,
-    dist_scale: float,
-    want_color: int,
-    want_depth: int,
-    want_inv_depth: int,
-    want_normal: int,
-    want_median: int,
-    want_distortion: int,
-    num_features: int,
+    p: SurfelBlendParams,
     out_color: wp.array(dtype=wp.vec3),
     out_transmittance: wp.array(dtype=float),
     out_alpha: wp.array(dtype=float),
@@ -225,12 +223,12 @@ def blend_forward(
     out_last: wp.array(dtype=wp.int32),
 ):
     """One thread per pixel (CPU)."""
-    tid = wp.tid() + first_tile * tile_size * tile_size
-    pxy = pixel_of(tid, tiles_x, tile_size)
-    if pxy[0] >= width or pxy[1] >= height:
+    tid = wp.tid()
+    pxy = tile_pixel(tid, p.base)
+    if pxy[0] >= p.base.width or pxy[1] >= p.base.height:
         return
-    pix = pxy[1] * width + pxy[0]
-    tile = tid / (tile_size * tile_size)
+    pix = pxy[1] * p.base.width + pxy[0]
+    tile = tile_of(tid, p.base)
     start = tile_start[tile]
     end = tile_end[tile]
     fx = float(pxy[0]) + 0.5
@@ -239,20 +237,17 @@ def blend_forward(
     st = new_surfel_state(start)
     for k in range(start, end):
         g = sorted_ids[k]
-        sp = splat_point(transforms[g], means2d[g], depths[g], fx, fy, near)
-        if sp[0] > q_cut[g]:  # outside the footprint: alpha would be < 1/255, skip the exp()
+        sp = splat_point(transforms[g], means2d[g], depths[g], fx, fy, p.near)
+        if sp[0] > q_cut[g]:  # outside the footprint: alpha would be < alpha_min, skip the exp()
             continue
         alpha = blend_alpha(opacities[g], wp.exp(-0.5 * sp[0]))
-        if alpha < ALPHA_MIN:
+        if alpha < p.base.alpha_min:
             continue
-        if saturates(st.T, alpha):
+        if saturates(st.T, alpha, p.base.t_min):
             break
-        st = blend_surfel(st, k, g, alpha, sp[1], colors[g], normals[g], dist_scale, pix, features, out_features,
-                          want_color, want_depth, want_inv_depth, want_normal, want_median, want_distortion,
-                          num_features)
-    write_surfel_pixel(st, pix, want_color, want_depth, want_inv_depth, want_normal, want_median, want_distortion,
-                       out_color, out_transmittance, out_alpha, out_depth, out_inv_depth, out_normal, out_median,
-                       out_median_index, out_distortion, out_dist_stats, out_last)
+        st = blend_surfel(st, k, g, alpha, sp[1], colors[g], normals[g], pix, features, out_features, p)
+    write_surfel_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth, out_normal,
+                       out_median, out_median_index, out_distortion, out_dist_stats, out_last)
 
 
 # ---- backward --------------------------------------------------------------------------------------------------
@@ -275,8 +270,7 @@ class SurfelPixelGrads:
 
 
 @wp.func
-def load_pixel_grads(pix: int, want_color: int, want_depth: int, want_inv_depth: int, want_normal: int,
-                     want_median: int, want_distortion: int, transmittance: wp.array(dtype=float),
+def load_pixel_grads(pix: int, p: SurfelBlendParams, transmittance: wp.array(dtype=float),
                      median_index: wp.array(dtype=wp.int32), dist_stats: wp.array(dtype=wp.vec3),
                      grad_color: wp.array(dtype=wp.vec3), grad_alpha: wp.array(dtype=float),
                      grad_depth: wp.array(dtype=float), grad_inv_depth: wp.array(dtype=float),
@@ -284,19 +278,19 @@ def load_pixel_grads(pix: int, want_color: int, want_depth: int, want_inv_depth:
                      grad_distortion: wp.array(dtype=float)) -> SurfelPixelGrads:
     pg = SurfelPixelGrads()
     pg.alpha = grad_alpha[pix]
-    if want_color != 0:
+    if p.base.want_color != 0:
         pg.rgb = grad_color[pix]
-    if want_depth != 0:
+    if p.base.want_depth != 0:
         pg.depth = grad_depth[pix]
-    if want_inv_depth != 0:
+    if p.base.want_inv_depth != 0:
         pg.inv_depth = grad_inv_depth[pix]
-    if want_normal != 0:
+    if p.want_normal != 0:
         pg.normal = grad_normal[pix]
     pg.median_k = -1
-    if want_median != 0:
+    if p.want_median != 0:
         pg.median = grad_median[pix]
         pg.median_k = median_index[pix]
-    if want_distortion != 0:
+    if p.want_distortion != 0:
         pg.distortion = grad_distortion[pix]
         st = dist_stats[pix]
         pg.m_ref = st[0]
@@ -328,13 +322,11 @@ ROW_WEIGHT = wp.constant(23)
 @wp.func
 def surfel_pixel_gradient(
     k: int, g: int, sp: SplatPoint, M: wp.mat33, mean: wp.vec2, opacity: float, G: float, color: wp.vec3,
-    normal: wp.vec3, fx: float, fy: float, dist_scale: float, T: float, suffix: float, pg: SurfelPixelGrads,
-    pix: int, features: wp.array2d(dtype=float), grad_features: wp.array2d(dtype=float), want_color: int,
-    want_depth: int, want_inv_depth: int, want_normal: int, want_median: int, want_distortion: int,
-    num_features: int,
+    normal: wp.vec3, fx: float, fy: float, T: float, suffix: float, pg: SurfelPixelGrads,
+    pix: int, features: wp.array2d(dtype=float), grad_features: wp.array2d(dtype=float), p: SurfelBlendParams,
 ) -> SurfelGradRow:
     """One back-to-front step of the blending adjoint at one pixel, for surfel g (entry k of the tile list),
-    which the pixel blended: sp = splat_point(...), G = exp(-s/2), blend_alpha(opacity, G) >= ALPHA_MIN.
+    which the pixel blended: sp = splat_point(...), G = exp(-s/2), blend_alpha(opacity, G) >= alpha_min.
     T is the transmittance behind this surfel; suffix is Σ_channels g·(what is seen behind it), per unit
     transmittance."""
     row = SurfelGradRow()
@@ -347,29 +339,29 @@ def surfel_pixel_gradient(
     # c_tilde: d(loss)/d(w) of this surfel; d_z: d(loss)/d(z) at fixed weights.
     c_tilde = pg.alpha
     d_z = float(0.0)
-    if want_color != 0:
+    if p.base.want_color != 0:
         c_tilde += wp.dot(color, pg.rgb)
         row[ROW_COLOR + 0] = w * pg.rgb[0]
         row[ROW_COLOR + 1] = w * pg.rgb[1]
         row[ROW_COLOR + 2] = w * pg.rgb[2]
-    if want_depth != 0:
+    if p.base.want_depth != 0:
         c_tilde += z * pg.depth
         d_z += w * pg.depth
-    if want_inv_depth != 0:
+    if p.base.want_inv_depth != 0:
         c_tilde += pg.inv_depth / z
         d_z -= w * pg.inv_depth / (z * z)
-    if want_normal != 0:
+    if p.want_normal != 0:
         c_tilde += wp.dot(normal, pg.normal)
         row[ROW_NORMAL + 0] = w * pg.normal[0]
         row[ROW_NORMAL + 1] = w * pg.normal[1]
         row[ROW_NORMAL + 2] = w * pg.normal[2]
-    if want_median != 0 and k == pg.median_k:
+    if p.want_median != 0 and k == pg.median_k:
         d_z += pg.median
-    if want_distortion != 0:
-        dm = -dist_scale / z - pg.m_ref
+    if p.want_distortion != 0:
+        dm = -p.dist_scale / z - pg.m_ref
         c_tilde += pg.distortion * (pg.s2 - 2.0 * pg.s1 * dm + pg.W * dm * dm)
-        d_z += pg.distortion * 2.0 * w * (pg.W * dm - pg.s1) * dist_scale / (z * z)
-    for c in range(num_features):
+        d_z += pg.distortion * 2.0 * w * (pg.W * dm - pg.s1) * p.dist_scale / (z * z)
+    for c in range(p.base.num_features):
         c_tilde += features[g, c] * grad_features[pix, c]
 
     d_alpha = T * (c_tilde - suffix)
@@ -411,7 +403,7 @@ def surfel_pixel_gradient(
 
 
 @wp.func
-def add_surfel_gradient_row(g: int, row: SurfelGradRow, want_color: int, want_normal: int,
+def add_surfel_gradient_row(g: int, row: SurfelGradRow, p: SurfelBlendParams,
                             adj_transforms: wp.array(dtype=wp.mat33), adj_means2d: wp.array(dtype=wp.vec2),
                             adj_depths: wp.array(dtype=float), adj_opacities: wp.array(dtype=float),
                             adj_colors: wp.array(dtype=wp.vec3), adj_normals: wp.array(dtype=wp.vec3)):
@@ -427,9 +419,9 @@ def add_surfel_gradient_row(g: int, row: SurfelGradRow, want_color: int, want_no
         wp.atomic_add(adj_means2d, g, wp.vec2(row[ROW_MEAN], row[ROW_MEAN + 1]))
         wp.atomic_add(adj_depths, g, row[ROW_DEPTH])
     wp.atomic_add(adj_opacities, g, row[ROW_OPACITY])
-    if want_color != 0:
+    if p.base.want_color != 0:
         wp.atomic_add(adj_colors, g, wp.vec3(row[ROW_COLOR], row[ROW_COLOR + 1], row[ROW_COLOR + 2]))
-    if want_normal != 0:
+    if p.want_normal != 0:
         wp.atomic_add(adj_normals, g, wp.vec3(row[ROW_NORMAL], row[ROW_NORMAL + 1], row[ROW_NORMAL + 2]))
 
 
@@ -444,21 +436,8 @@ def blend_backward(
     colors: wp.array(dtype=wp.vec3),
     normals: wp.array(dtype=wp.vec3),
     features: wp.array2d(dtype=float),
-    width: int,
-    height: int,
-    tiles_x: int,
-    tile_size: int,
-    first_tile: int,
     q_cut: wp.array(dtype=float),
-    near: float,
-    dist_scale: float,
-    want_color: int,
-    want_depth: int,
-    want_inv_depth: int,
-    want_normal: int,
-    want_median: int,
-    want_distortion: int,
-    num_features: int,
+    p: SurfelBlendParams,
     transmittance: wp.array(dtype=float),
     last_index: wp.array(dtype=wp.int32),
     median_index: wp.array(dtype=wp.int32),
@@ -480,16 +459,15 @@ def blend_backward(
     adj_features: wp.array2d(dtype=float),
 ):
     """The blending adjoint, one thread per pixel, adding each pixel's gradient to global memory (CPU)."""
-    tid = wp.tid() + first_tile * tile_size * tile_size
-    pxy = pixel_of(tid, tiles_x, tile_size)
-    if pxy[0] >= width or pxy[1] >= height:
+    tid = wp.tid()
+    pxy = tile_pixel(tid, p.base)
+    if pxy[0] >= p.base.width or pxy[1] >= p.base.height:
         return
-    pix = pxy[1] * width + pxy[0]
-    start = tile_start[tid / (tile_size * tile_size)]
+    pix = pxy[1] * p.base.width + pxy[0]
+    start = tile_start[tile_of(tid, p.base)]
     fx = float(pxy[0]) + 0.5
     fy = float(pxy[1]) + 0.5
-    pg = load_pixel_grads(pix, want_color, want_depth, want_inv_depth, want_normal, want_median, want_distortion,
-                          transmittance, median_index, dist_stats, grad_color, grad_alpha, grad_depth,
+    pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, grad_color, grad_alpha, grad_depth,
                           grad_inv_depth, grad_normal, grad_median, grad_distortion)
     T = transmittance[pix]  # transmittance behind the current surfel, walking back to front
     suffix = float(0.0)  # Σ_channels g·(what is seen behind the current surfel), per unit transmittance
@@ -499,19 +477,18 @@ def blend_backward(
         g = sorted_ids[k]
         M = transforms[g]
         mean = means2d[g]
-        sp = splat_point(M, mean, depths[g], fx, fy, near)
+        sp = splat_point(M, mean, depths[g], fx, fy, p.near)
         if sp[0] > q_cut[g]:
             continue
         G = wp.exp(-0.5 * sp[0])
         o = opacities[g]
-        if blend_alpha(o, G) < ALPHA_MIN:
+        if blend_alpha(o, G) < p.base.alpha_min:
             continue
-        row = surfel_pixel_gradient(k, g, sp, M, mean, o, G, colors[g], normals[g], fx, fy, dist_scale, T, suffix,
-                                    pg, pix, features, grad_features, want_color, want_depth, want_inv_depth,
-                                    want_normal, want_median, want_distortion, num_features)
+        row = surfel_pixel_gradient(k, g, sp, M, mean, o, G, colors[g], normals[g], fx, fy, T, suffix,
+                                    pg, pix, features, grad_features, p)
         T = row[ROW_T]
         suffix = row[ROW_SUFFIX]
-        add_surfel_gradient_row(g, row, want_color, want_normal, adj_transforms, adj_means2d, adj_depths,
-                                adj_opacities, adj_colors, adj_normals)
-        for c in range(num_features):
+        add_surfel_gradient_row(g, row, p, adj_transforms, adj_means2d, adj_depths, adj_opacities, adj_colors,
+                                adj_normals)
+        for c in range(p.base.num_features):
             wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])

@@ -9,13 +9,14 @@ Kernels are compiled per block size, since tile shapes are fixed at compile time
 """
 import warp as wp
 
-from .blend import ALPHA_MIN, pixel_of
+from .blend import tile_of, tile_pixel
 from .surfel_blend import (
     ROW_HIT,
     ROW_SCREEN,
     ROW_SUFFIX,
     ROW_T,
     ROW_WEIGHT,
+    SurfelBlendParams,
     SurfelGradRow,
     add_surfel_gradient_row,
     blend_alpha,
@@ -79,21 +80,8 @@ def _make_forward(block_dim: int):
         colors: wp.array(dtype=wp.vec3),
         normals: wp.array(dtype=wp.vec3),
         features: wp.array2d(dtype=float),
-        width: int,
-        height: int,
-        tiles_x: int,
-        tile_size: int,
-        first_tile: int,
         q_cut: wp.array(dtype=float),
-        near: float,
-        dist_scale: float,
-        want_color: int,
-        want_depth: int,
-        want_inv_depth: int,
-        want_normal: int,
-        want_median: int,
-        want_distortion: int,
-        num_features: int,
+        p: SurfelBlendParams,
         out_color: wp.array(dtype=wp.vec3),
         out_transmittance: wp.array(dtype=float),
         out_alpha: wp.array(dtype=float),
@@ -107,11 +95,11 @@ def _make_forward(block_dim: int):
         out_features: wp.array2d(dtype=float),
         out_last: wp.array(dtype=wp.int32),
     ):
-        tid = wp.tid() + first_tile * tile_size * tile_size
-        pxy = pixel_of(tid, tiles_x, tile_size)
-        inside = pxy[0] < width and pxy[1] < height  # outside threads still help fetch
-        pix = wp.where(inside, pxy[1] * width + pxy[0], 0)
-        tile = tid / (tile_size * tile_size)
+        tid = wp.tid()
+        pxy = tile_pixel(tid, p.base)
+        inside = pxy[0] < p.base.width and pxy[1] < p.base.height  # outside threads still help fetch
+        pix = wp.where(inside, pxy[1] * p.base.width + pxy[0], 0)
+        tile = tile_of(tid, p.base)
         start = tile_start[tile]
         end = tile_end[tile]
         fx = float(pxy[0]) + 0.5
@@ -134,21 +122,19 @@ def _make_forward(block_dim: int):
             # per-thread kernel: skip decisions first, then the straight-line blend).
             for j in range(wp.where(done == 0, wp.min(wp.static(block_dim), end - lo), 0)):
                 sp = splat_point(wp.tile_extract(M_t, j), wp.tile_extract(m_t, j), wp.tile_extract(z_t, j), fx, fy,
-                                 near)
+                                 p.near)
                 if sp[0] > wp.tile_extract(q_t, j):
                     continue
                 alpha = blend_alpha(wp.tile_extract(o_t, j), wp.exp(-0.5 * sp[0]))
-                if alpha < ALPHA_MIN:
+                if alpha < p.base.alpha_min:
                     continue
-                if saturates(st.T, alpha):
+                if saturates(st.T, alpha, p.base.t_min):
                     done = 1
                     break
                 st = blend_surfel(st, lo + j, wp.tile_extract(ids, j), alpha, sp[1], wp.tile_extract(rgb_t, j),
-                                  wp.tile_extract(n_t, j), dist_scale, pix, features, out_features, want_color,
-                                  want_depth, want_inv_depth, want_normal, want_median, want_distortion, num_features)
+                                  wp.tile_extract(n_t, j), pix, features, out_features, p)
         if inside:
-            write_surfel_pixel(st, pix, want_color, want_depth, want_inv_depth, want_normal, want_median,
-                               want_distortion, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth,
+            write_surfel_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth,
                                out_normal, out_median, out_median_index, out_distortion, out_dist_stats, out_last)
 
     return surfel_blend_forward_blocks
@@ -166,21 +152,8 @@ def _make_backward(block_dim: int, block_reduce: bool):
         colors: wp.array(dtype=wp.vec3),
         normals: wp.array(dtype=wp.vec3),
         features: wp.array2d(dtype=float),
-        width: int,
-        height: int,
-        tiles_x: int,
-        tile_size: int,
-        first_tile: int,
         q_cut: wp.array(dtype=float),
-        near: float,
-        dist_scale: float,
-        want_color: int,
-        want_depth: int,
-        want_inv_depth: int,
-        want_normal: int,
-        want_median: int,
-        want_distortion: int,
-        num_features: int,
+        p: SurfelBlendParams,
         transmittance: wp.array(dtype=float),
         last_index: wp.array(dtype=wp.int32),
         median_index: wp.array(dtype=wp.int32),
@@ -201,16 +174,15 @@ def _make_backward(block_dim: int, block_reduce: bool):
         adj_normals: wp.array(dtype=wp.vec3),
         adj_features: wp.array2d(dtype=float),
     ):
-        tid = wp.tid() + first_tile * tile_size * tile_size
+        tid = wp.tid()
         lane = tid % wp.static(block_dim)
-        pxy = pixel_of(tid, tiles_x, tile_size)
-        inside = pxy[0] < width and pxy[1] < height  # outside threads still help fetch and sum
-        pix = wp.where(inside, pxy[1] * width + pxy[0], 0)
-        start = tile_start[tid / (tile_size * tile_size)]
+        pxy = tile_pixel(tid, p.base)
+        inside = pxy[0] < p.base.width and pxy[1] < p.base.height  # outside threads still help fetch and sum
+        pix = wp.where(inside, pxy[1] * p.base.width + pxy[0], 0)
+        start = tile_start[tile_of(tid, p.base)]
         fx = float(pxy[0]) + 0.5
         fy = float(pxy[1]) + 0.5
-        pg = load_pixel_grads(pix, want_color, want_depth, want_inv_depth, want_normal, want_median,
-                              want_distortion, transmittance, median_index, dist_stats, grad_color, grad_alpha,
+        pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, grad_color, grad_alpha,
                               grad_depth, grad_inv_depth, grad_normal, grad_median, grad_distortion)
         T = transmittance[pix]
         suffix = float(0.0)
@@ -234,34 +206,32 @@ def _make_backward(block_dim: int, block_reduce: bool):
                 if lo + j < last:
                     M = wp.tile_extract(M_t, j)
                     mean = wp.tile_extract(m_t, j)
-                    sp = splat_point(M, mean, wp.tile_extract(z_t, j), fx, fy, near)
+                    sp = splat_point(M, mean, wp.tile_extract(z_t, j), fx, fy, p.near)
                     if not (sp[0] > wp.tile_extract(q_t, j)):  # the tests of the per-thread kernel, negated
                         G = wp.exp(-0.5 * sp[0])
                         o = wp.tile_extract(o_t, j)
-                        if not (blend_alpha(o, G) < ALPHA_MIN):
+                        if not (blend_alpha(o, G) < p.base.alpha_min):
                             row = surfel_pixel_gradient(lo + j, g, sp, M, mean, o, G, wp.tile_extract(rgb_t, j),
-                                                        wp.tile_extract(n_t, j), fx, fy, dist_scale, T, suffix, pg,
-                                                        pix, features, grad_features, want_color, want_depth,
-                                                        want_inv_depth, want_normal, want_median, want_distortion,
-                                                        num_features)
+                                                        wp.tile_extract(n_t, j), fx, fy, T, suffix, pg,
+                                                        pix, features, grad_features, p)
                             T = row[ROW_T]
                             suffix = row[ROW_SUFFIX]
                 if wp.static(block_reduce):
                     total = wp.tile_sum(wp.tile(gradient_sum_part(row), preserve_type=True))[0]
                     used = total[ROW_HIT] + total[ROW_SCREEN] > 0.0
                     if lane == 0 and used:
-                        add_surfel_gradient_row(g, gradient_sum_row(total), want_color, want_normal,
+                        add_surfel_gradient_row(g, gradient_sum_row(total), p,
                                                 adj_transforms, adj_means2d, adj_depths, adj_opacities, adj_colors,
                                                 adj_normals)
-                    for c in range(num_features):
+                    for c in range(p.base.num_features):
                         f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * grad_features[pix, c]))[0]
                         if lane == 0 and used:
                             wp.atomic_add(adj_features, g, c, f_total)
                 else:
                     if row[ROW_HIT] + row[ROW_SCREEN] > 0.0:
-                        add_surfel_gradient_row(g, row, want_color, want_normal, adj_transforms, adj_means2d,
+                        add_surfel_gradient_row(g, row, p, adj_transforms, adj_means2d,
                                                 adj_depths, adj_opacities, adj_colors, adj_normals)
-                        for c in range(num_features):
+                        for c in range(p.base.num_features):
                             wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])
 
     return surfel_blend_backward_blocks

@@ -16,7 +16,6 @@ from .sh import eval_sh
 
 COLOR_DIRECT = wp.constant(0)
 COLOR_SH = wp.constant(1)
-ALPHA_MIN = wp.constant(1.0 / 255.0)
 # The screen-space fallback G = exp(-|d|^2) is a Gaussian of standard deviation 1/sqrt(2) px: in the
 # exponent -s/2 it reads s = FILTER_INV_SQUARE |d|^2.
 FILTER_INV_SQUARE = wp.constant(2.0)
@@ -132,26 +131,29 @@ def surfel_footprints(
     height: int,
     tile_size: int,
     max_sigmas: float,
+    alpha_min: float,  # the blending's alpha threshold
     rects: wp.array(dtype=wp.vec4i),  # tile x0, y0, x1, y1 (inclusive)
     counts: wp.array(dtype=wp.int32),
     q_cut: wp.array(dtype=float),  # blending skips a pixel with min(s3, s2) beyond this without an exp()
 ):
-    """Tiles holding a pixel that can receive alpha >= 1/255: G = exp(-min(s3, s2)/2) with s3 = u^2 + v^2
+    """Tiles holding a pixel that can receive alpha >= alpha_min: G = exp(-min(s3, s2)/2) with s3 = u^2 + v^2
     on the disk and s2 the screen-space fallback, so the footprint is the union of the disk's image with
-    u^2 + v^2 <= q_max and the circle s2 <= q_max, q_max = 2 ln(255 o). Tile size does not change the image."""
+    u^2 + v^2 <= q_max and the circle s2 <= q_max, q_max = 2 ln(o / alpha_min). Tile size does not change the
+    image."""
     i = wp.tid()
     counts[i] = 0
     q_cut[i] = 0.0
     rects[i] = wp.vec4i(0, 0, -1, -1)
     o = opacities[i]
-    if valid[i] == 0 or o < ALPHA_MIN:
+    if valid[i] == 0 or o < alpha_min:
         return
-    q_max = 2.0 * wp.log(255.0 * o)
+    q_alpha = 2.0 * wp.log(o / alpha_min)
+    q_max = q_alpha
     if max_sigmas > 0.0:
         q_max = wp.min(q_max, max_sigmas * max_sigmas)
     # As for 3D Gaussians: a hair generous (the exact alpha test still runs), exact under a max_sigmas cut.
     q_cut[i] = q_max * 1.0001 + 1.0e-4
-    if max_sigmas > 0.0 and q_max < 2.0 * wp.log(255.0 * o):
+    if max_sigmas > 0.0 and q_max < q_alpha:
         q_cut[i] = q_max
 
     M = transforms[i]

@@ -22,10 +22,10 @@ def render_ours(scene, outputs, background=None, **kw):
     return out
 
 
-def render_ref(scene, background=None):
+def render_ref(scene, background=None, **kw):
     return render_reference(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
                             scene["viewmat"], scene["K"], scene["width"], scene["height"],
-                            sh_degree=scene["sh_degree"], features=scene["features"], background=background)
+                            sh_degree=scene["sh_degree"], features=scene["features"], background=background, **kw)
 
 
 def requested(scene):

@@ -46,7 +46,8 @@ def sh_to_rgb(sh, degree, d):
 
 
 def render_reference(means, quats, scales, opacities, colors, viewmat, K, width, height, *, sh_degree=None,
-                     features=None, background=None, near=0.01, far=1e10, pixels=None):
+                     features=None, background=None, near=0.01, far=1e10, pixels=None, alpha_min=1.0 / 255.0,
+                     transmittance_min=1e-4):
     """Returns a dict of [H,W,C] float64 images: rgb, alpha, depth, inv_depth and (if given) features.
 
     pixels: optional [P,2] integer (x, y) pixel indices; then only those are rendered and values are [P,C]
@@ -90,14 +91,14 @@ def render_reference(means, quats, scales, opacities, colors, viewmat, K, width,
     delta = pix[:, None, :] - mean2d[None, :, :]  # [P,N,2]
     q = torch.einsum("pni,nij,pnj->pn", delta, conic, delta)
     alpha = torch.clamp(opacities[None, :] * torch.exp(-0.5 * q), max=0.99)
-    keep = valid[None, :] & (alpha >= 1.0 / 255.0)
+    keep = valid[None, :] & (alpha >= alpha_min)
     alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
 
     order = torch.argsort(torch.where(valid, z, torch.full_like(z, math.inf)).detach(), stable=True)
     alpha = alpha[:, order]
-    # A Gaussian is blended only while the transmittance after it stays >= 1e-4 (then blending stops).
+    # A Gaussian is blended only while the transmittance after it stays >= transmittance_min (then blending stops).
     T_after = torch.cumprod(1.0 - alpha, dim=1)
-    alpha = torch.where(T_after.detach() >= 1e-4, alpha, torch.zeros_like(alpha))
+    alpha = torch.where(T_after.detach() >= transmittance_min, alpha, torch.zeros_like(alpha))
     T_after = torch.cumprod(1.0 - alpha, dim=1)
     T_before = torch.cat([torch.ones_like(T_after[:, :1]), T_after[:, :-1]], 1)
     w = alpha * T_before  # [P,N]

@@ -38,7 +38,8 @@ def surfel_transforms(means, quats, scales, viewmat, K):
 
 
 def render_surfels_reference(means, quats, scales, opacities, colors, viewmat, K, width, height, *,
-                             sh_degree=None, features=None, background=None, near=0.01, far=1e10, pixels=None):
+                             sh_degree=None, features=None, background=None, near=0.01, far=1e10, pixels=None,
+                             alpha_min=1.0 / 255.0, transmittance_min=1e-4):
     """Returns a dict of [H,W,C] float64 images: rgb, alpha, depth, inv_depth, normal, median_depth,
     distortion and (if given) features. pixels: optional [P,2] (x, y) indices; then values are [P,C]."""
     dtype, device = means.dtype, means.device
@@ -88,7 +89,7 @@ def render_surfels_reference(means, quats, scales, opacities, colors, viewmat, K
     s = torch.where(use_hit, s3, s2)
     z = torch.where(use_hit, z_hit, zs[None, :].expand_as(s2))
     alpha = torch.clamp(opacities[None, :] * torch.exp(-0.5 * s), max=0.99)
-    blends = (valid[None, :] & (alpha >= 1.0 / 255.0)).detach()
+    blends = (valid[None, :] & (alpha >= alpha_min)).detach()
 
     order = torch.argsort(torch.where(valid, zc, torch.full_like(zc, math.inf)).detach(), stable=True)
     P = pix.shape[0]
@@ -100,7 +101,7 @@ def render_surfels_reference(means, quats, scales, opacities, colors, viewmat, K
         a = alpha[:, i]
         candidate = blends[:, i] & ~stopped
         next_T = T * (1.0 - a)
-        stop = candidate & (next_T < 1e-4).detach()
+        stop = candidate & (next_T < transmittance_min).detach()
         stopped = stopped | stop
         take = candidate & ~stop
         weights.append(torch.where(take, a * T, torch.zeros_like(a)))

@@ -55,6 +55,9 @@ def test_unknown_key_names_it_and_suggests(override, key, words):
     ("losses.l1.wieght=1", "losses.l1.wieght"),
     ("train.progress=maybe", "train.progress"),
     ("model.init_opacity=1.5", "model.init_opacity"),
+    ("train.alpha_min=0", "train.alpha_min"),
+    ("train.transmittance_min=1", "train.transmittance_min"),
+    ("train.max_sigmas=-2", "train.max_sigmas"),
 ])
 def test_bad_value_names_the_key(override, key):
     with pytest.raises(ConfigError) as e:

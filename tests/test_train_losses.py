@@ -59,6 +59,20 @@ def test_custom_loss_changes_result_and_adds_only_its_outputs(tmp_path, spy):
     assert not torch.equal(_final_params(base), _final_params(custom))
 
 
+def test_renderer_knobs_reach_every_render(tmp_path, monkeypatch):
+    seen = []
+    real = model_render.rasterize
+
+    def wrapped(*args, **kwargs):
+        seen.append((kwargs["alpha_min"], kwargs["transmittance_min"], kwargs["max_sigmas"], kwargs["tile_size"]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(model_render, "rasterize", wrapped)
+    knobs = {"train.alpha_min": 0.02, "train.transmittance_min": 0.001, "train.max_sigmas": 2.5, "train.tile_size": 8}
+    Trainer(None, overrides=quick_overrides(tmp_path, 5, **knobs), quiet=True).fit()
+    assert seen and set(seen) == {(0.02, 0.001, 2.5, 8)}
+
+
 def test_weight_zero_removes_term_and_its_outputs(tmp_path, spy):
     @warpgs.register_loss("_test_alpha", outputs=("alpha", "inv_depth"))
     def alpha_term(render_out, batch, model, step):

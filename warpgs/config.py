@@ -75,6 +75,11 @@ class TrainConfig:
     near: float = 0.01
     far: float = 1e10
     tile_size: int = 16
+    # Accuracy knobs of the renderer (defaults: the 3DGS rules, exact within them); raising them trades
+    # accuracy for speed, see benchmarks/speed_vs_error.py.
+    max_sigmas: float = 0.0  # > 0: truncate each footprint at this many sigmas
+    alpha_min: float = 1.0 / 255.0  # skip contributions below this alpha
+    transmittance_min: float = 1.0e-4  # stop blending a pixel before its transmittance drops under this
     scene_extent: Optional[float] = None  # None: from the cameras (3DGS); scales means_lr and densify sizes
     checkpoint_every: int = 1000  # 0: only at the end (and on Ctrl-C)
     log_every: int = 100  # progress line period when the output is not a terminal
@@ -82,6 +87,11 @@ class TrainConfig:
     nan_guard: bool = True  # stop at the first non-finite loss, gradient or parameter
     threads: int = 0  # torch CPU threads during fit (0: 1 on CPU, where Warp's own thread pool uses the cores;
     #                   torch's default on CUDA)
+
+    def render_options(self) -> dict:
+        """The renderer settings every render of the model uses (training, evaluation, queries)."""
+        return dict(near=self.near, far=self.far, tile_size=self.tile_size, max_sigmas=self.max_sigmas,
+                    alpha_min=self.alpha_min, transmittance_min=self.transmittance_min)
 
 
 @dataclass
@@ -491,6 +501,12 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError("train.near", f"need 0 < near < far, got near={cfg.train.near}, far={cfg.train.far}")
     if cfg.train.tile_size > 32:
         raise ConfigError("train.tile_size", f"at most 32, got {cfg.train.tile_size}")
+    if cfg.train.max_sigmas < 0:
+        raise ConfigError("train.max_sigmas", f"expected >= 0 (0: exact footprint), got {cfg.train.max_sigmas}")
+    if not 0.0 < cfg.train.alpha_min < 0.99:
+        raise ConfigError("train.alpha_min", f"expected a value in (0, 0.99), got {cfg.train.alpha_min}")
+    if not 0.0 <= cfg.train.transmittance_min < 1.0:
+        raise ConfigError("train.transmittance_min", f"expected a value in [0, 1), got {cfg.train.transmittance_min}")
     if cfg.data.downscale not in (1, 2, 4, 8):
         raise ConfigError("data.downscale", f"expected 1, 2, 4 or 8, got {cfg.data.downscale}")
     for name, dim in cfg.model.features.items():

@@ -32,6 +32,7 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
                  outputs: Sequence[str] = ("rgb",), background: Optional[torch.Tensor] = None,
                  features: Optional[torch.Tensor] = None, inputs: Optional[dict] = None,
                  track_means2d: bool = False, near: float = 0.01, far: float = 1e10, tile_size: int = 16,
+                 max_sigmas: float = 0.0, alpha_min: float = 1.0 / 255.0, transmittance_min: float = 1.0e-4,
                  check_inputs: bool = True) -> RenderOutput:
     """One camera. `inputs` (default: model.render_inputs()) may be edited by the caller, e.g. colours from
     an MLP; `features` [N, C] is rendered when "features" is in outputs. track_means2d is honoured for 3D
@@ -43,7 +44,8 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
     if features is not None:
         inputs["features"] = features
     kwargs = dict(viewmat=viewmat, K=K, width=width, height=height, outputs=tuple(outputs), background=background,
-                  near=near, far=far, tile_size=tile_size, check_inputs=check_inputs, **inputs)
+                  near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
+                  transmittance_min=transmittance_min, check_inputs=check_inputs, **inputs)
     if kind == "gaussians":
         return rasterize(track_means2d=track_means2d, **kwargs)
     return rasterize_surfels(**kwargs)

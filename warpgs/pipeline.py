@@ -26,8 +26,10 @@ class Settings:
     near: float = 0.01
     far: float = 1e10
     tile_size: int = 16
-    max_sigmas: float = 0.0  # 0: exact footprint (everything with alpha >= 1/255)
+    max_sigmas: float = 0.0  # 0: exact footprint (everything with alpha >= alpha_min)
     sh_degree: int = -1  # -1: plain colours
+    alpha_min: float = 1.0 / 255.0  # blending skips contributions below this alpha (3DGS: 1/255)
+    transmittance_min: float = 1.0e-4  # blending stops before transmittance would drop under this (3DGS: 1e-4)
 
     @property
     def tiles_x(self) -> int:
@@ -105,14 +107,15 @@ def project_gaussians(means, quats, scales, opacities, coeffs, viewmat, intrinsi
 
 
 def bin_gaussians(p: Projected, opacities, s: Settings) -> Bins:
-    """Tiles touched by each projected 3D Gaussian (exact alpha >= 1/255 footprint), then `sort_into_tiles`."""
+    """Tiles touched by each projected 3D Gaussian (exact alpha >= alpha_min footprint), then `sort_into_tiles`."""
     n = p.means2d.shape[0]
     dev = p.means2d.device
     counts = wp.empty(n, dtype=wp.int32, device=dev)  # written for every Gaussian
     rects = wp.empty(n, dtype=wp.vec4i, device=dev)
     q_cut = wp.empty(n, dtype=float, device=dev)
     wp.launch(binning.tile_footprints, dim=n,
-              inputs=[p.means2d, p.cov2d, opacities, p.valid, s.width, s.height, s.tile_size, s.max_sigmas],
+              inputs=[p.means2d, p.cov2d, opacities, p.valid, s.width, s.height, s.tile_size, s.max_sigmas,
+                      s.alpha_min],
               outputs=[rects, counts, q_cut], device=dev)
     return sort_into_tiles(rects, counts, p.depths, q_cut, s)
 
@@ -141,13 +144,18 @@ def sort_into_tiles(rects, counts, depths, q_cut, s: Settings) -> Bins:
     return Bins(tile_start, tile_end, values[: max(total, 1)], total, counts, q_cut)
 
 
-def _blend_inputs(p: Projected, bins: Bins, opacities, features, s: Settings, want: Wanted):
-    return [p.means2d, p.conics, opacities, p.colors, p.depths, features, s.width, s.height, s.tiles_x,
-            s.tile_size]
+def _blend_inputs(p: Projected, bins: Bins, opacities, features):
+    return [p.means2d, p.conics, opacities, p.colors, p.depths, features, bins.q_cut]
 
 
-def _blend_flags(bins: Bins, want: Wanted):
-    return [bins.q_cut, int(want.color), int(want.depth), int(want.inv_depth), want.num_features]
+def blend_params(s: Settings, want: Wanted, first_tile: int = 0) -> blend.BlendParams:
+    """The per-launch settings every blend kernel takes (3D and surfel, CPU and GPU, forward and backward)."""
+    bp = blend.BlendParams()
+    bp.width, bp.height, bp.tiles_x, bp.tile_size, bp.first_tile = s.width, s.height, s.tiles_x, s.tile_size, first_tile
+    bp.want_color, bp.want_depth, bp.want_inv_depth = int(want.color), int(want.depth), int(want.inv_depth)
+    bp.num_features = want.num_features
+    bp.alpha_min, bp.t_min = s.alpha_min, s.transmittance_min
+    return bp
 
 
 def _tile_launches(s: Settings, device) -> List[List[Tuple[int, int]]]:
@@ -192,8 +200,7 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
         features=wp.zeros((npix, want.num_features) if want.num_features else (1, 1), dtype=float, device=dev),
         last=wp.empty(npix, dtype=wp.int32, device=dev),
     )
-    head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want)
-    tail = _blend_flags(bins, want)
+    head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
 
     coop = _cooperative(dev)
     block_dim = _block_dims(s)[0] if coop else 1
@@ -201,7 +208,7 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
 
     def work(_thread, chunks):  # each chunk writes only its own pixels
         for first, count in chunks:
-            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [first] + tail,
+            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [blend_params(s, want, first)],
                       outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.features,
                                out.last], device=dev, block_dim=block_dim)
 
@@ -217,9 +224,8 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
     accumulates into private buffers that are added in afterwards."""
     dev = p.means2d.device
     targets = [p.means2d.grad, p.conics.grad, opacities.grad, p.colors.grad, p.depths.grad, features.grad]
-    head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features, s, want)
-    tail = _blend_flags(bins, want) + [fwd.transmittance, fwd.last, grad_color, grad_alpha, grad_depth,
-                                       grad_inv_depth, grad_features]
+    head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
+    tail = [fwd.transmittance, fwd.last, grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features]
     per_thread = _tile_launches(s, dev)
     buffers = _gradient_buffers(targets, len(per_thread))
 
@@ -229,7 +235,7 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
 
     def work(thread, chunks):
         for first, count in chunks:
-            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [first] + tail + buffers[thread],
+            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [blend_params(s, want, first)] + tail + buffers[thread],
                       device=dev, block_dim=block_dim)
 
     run_threads(work, per_thread)

@@ -151,6 +151,8 @@ def rasterize(
     far: float = 1e10,
     tile_size: int = 16,
     max_sigmas: float = 0.0,
+    alpha_min: float = 1.0 / 255.0,
+    transmittance_min: float = 1.0e-4,
     check_inputs: bool = True,
     track_means2d: bool = False,
     _means2d_probe: Optional[torch.Tensor] = None,
@@ -162,6 +164,10 @@ def rasterize(
     "features" is in `outputs`. Only the requested outputs are computed.
     track_means2d: also return `out.means2d` [N,2] (or [B,N,2]), the projected centres in pixels, a leaf
     whose `.grad` after backward is dL/dmeans2d (what 3DGS-style densification thresholds).
+    Accuracy knobs (defaults: the 3DGS rules, exact within them): `max_sigmas` > 0 truncates each footprint at
+    that many sigmas; `alpha_min` skips contributions below that alpha; blending stops before transmittance
+    would drop under `transmittance_min`. Raising any of them trades accuracy for speed
+    (benchmarks/speed_vs_error.py measures how much).
     """
     outputs = tuple(outputs)
     unknown = [o for o in outputs if o not in OUTPUTS]
@@ -171,11 +177,13 @@ def rasterize(
         raise ValueError("outputs: 'features' requested but features=None")
     _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
                      background, near, far, tile_size, check_inputs)
+    check_blend_knobs(max_sigmas, alpha_min, transmittance_min)
     if viewmat.dim() == 3:
         probe = means.new_zeros(viewmat.shape[0], means.shape[0], 2, requires_grad=True) if track_means2d else None
         per_camera = [rasterize(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
                                 sh_degree=sh_degree, features=features, background=background, outputs=outputs,
-                                near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, check_inputs=False,
+                                near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
+                                transmittance_min=transmittance_min, check_inputs=False,
                                 _means2d_probe=None if probe is None else probe[b])
                       for b in range(viewmat.shape[0])]
         out = _stack(per_camera)
@@ -190,7 +198,8 @@ def rasterize(
     feats = features if (features is not None and "features" in outputs) else means.new_zeros(n, 0)
     settings = pipeline.Settings(width=int(width), height=int(height), near=float(near), far=float(far),
                                  tile_size=int(tile_size), max_sigmas=float(max_sigmas),
-                                 sh_degree=-1 if sh_degree is None else int(sh_degree))
+                                 sh_degree=-1 if sh_degree is None else int(sh_degree), alpha_min=float(alpha_min),
+                                 transmittance_min=float(transmittance_min))
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1])
     device = means.device
@@ -221,6 +230,16 @@ def _stack(per_camera: list) -> RenderOutput:
                           if f.name not in ("num_intersections", "means2d")})
     out.num_intersections = sum(o.num_intersections for o in per_camera)
     return out
+
+
+def check_blend_knobs(max_sigmas, alpha_min, transmittance_min) -> None:
+    """The accuracy knobs shared by every primitive kind."""
+    if not max_sigmas >= 0.0:
+        raise ValueError(f"max_sigmas: expected >= 0 (0: exact footprint), got {max_sigmas}")
+    if not 0.0 < alpha_min < 0.99:  # alpha is clamped at 0.99, so a larger threshold would drop everything
+        raise ValueError(f"alpha_min: expected a value in (0, 0.99), got {alpha_min}")
+    if not 0.0 <= transmittance_min < 1.0:
+        raise ValueError(f"transmittance_min: expected a value in [0, 1), got {transmittance_min}")
 
 
 def _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,

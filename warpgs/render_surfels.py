@@ -14,7 +14,8 @@ import warp as wp
 
 from warpgs import surfel_pipeline
 from warpgs.pipeline import Settings
-from warpgs.render import DEPTH_EPS, RenderOutput, _check_arguments, _intrinsics_vector, _stack, _to_wp, _wp_device
+from warpgs.render import (DEPTH_EPS, RenderOutput, _check_arguments, _intrinsics_vector, _stack, _to_wp, _wp_device,
+                           check_blend_knobs)
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "normal", "median_depth", "distortion", "features")
 # 2DGS measures distortion on NDC depth m = f/(f-n) (1 - n/z) with these fixed planes; the constant part
@@ -121,6 +122,8 @@ def rasterize_surfels(
     far: float = 1e10,
     tile_size: int = 16,
     max_sigmas: float = 0.0,
+    alpha_min: float = 1.0 / 255.0,
+    transmittance_min: float = 1.0e-4,
     check_inputs: bool = True,
 ) -> RenderOutput:
     """Render N 2D Gaussian surfels from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
@@ -129,7 +132,7 @@ def rasterize_surfels(
     and the normal as its third. colors/sh_degree/features/background as in `rasterize`.
     outputs: any of rgb, alpha, depth (Σ w z / alpha, z the ray-surfel hit depth), inv_depth (Σ w / z),
     normal (Σ w n, world space, each normal facing the camera), median_depth, distortion, features.
-    Only the requested outputs are computed.
+    Only the requested outputs are computed. max_sigmas / alpha_min / transmittance_min: as in `rasterize`.
     """
     outputs = tuple(outputs)
     unknown = [o for o in outputs if o not in OUTPUTS]
@@ -139,11 +142,13 @@ def rasterize_surfels(
         raise ValueError("outputs: 'features' requested but features=None")
     _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
                      background, near, far, tile_size, check_inputs, scale_dims=2)
+    check_blend_knobs(max_sigmas, alpha_min, transmittance_min)
     if viewmat.dim() == 3:
         per_camera = [rasterize_surfels(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
                                         sh_degree=sh_degree, features=features, background=background,
                                         outputs=outputs, near=near, far=far, tile_size=tile_size,
-                                        max_sigmas=max_sigmas, check_inputs=False)
+                                        max_sigmas=max_sigmas, alpha_min=alpha_min,
+                                        transmittance_min=transmittance_min, check_inputs=False)
                       for b in range(viewmat.shape[0])]
         return _stack(per_camera)
 
@@ -152,7 +157,8 @@ def rasterize_surfels(
     feats = features if (features is not None and "features" in outputs) else means.new_zeros(n, 0)
     settings = Settings(width=int(width), height=int(height), near=float(near), far=float(far),
                         tile_size=int(tile_size), max_sigmas=float(max_sigmas),
-                        sh_degree=-1 if sh_degree is None else int(sh_degree))
+                        sh_degree=-1 if sh_degree is None else int(sh_degree), alpha_min=float(alpha_min),
+                        transmittance_min=float(transmittance_min))
     wanted = surfel_pipeline.SurfelWanted(
         color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
         normal="normal" in outputs, median="median_depth" in outputs, distortion="distortion" in outputs,

@@ -14,12 +14,14 @@ from warpgs.cpu_threads import run_threads
 from warpgs.pipeline import (
     Bins,
     Settings,
+    Wanted,
     _block_dims,
     _block_reduce,
     _cooperative,
     _gradient_buffers,
     _merge_gradient_buffers,
     _tile_launches,
+    blend_params,
     sort_into_tiles,
 )
 from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
@@ -87,21 +89,23 @@ def bin_surfels(p: SurfelProjected, opacities, s: Settings) -> Bins:
     rects = wp.zeros(n, dtype=wp.vec4i, device=dev)
     q_cut = wp.zeros(n, dtype=float, device=dev)
     wp.launch(surfel_project.surfel_footprints, dim=n,
-              inputs=[p.transforms, p.means2d, opacities, p.valid, s.width, s.height, s.tile_size, s.max_sigmas],
+              inputs=[p.transforms, p.means2d, opacities, p.valid, s.width, s.height, s.tile_size, s.max_sigmas,
+                      s.alpha_min],
               outputs=[rects, counts, q_cut], device=dev)
     return sort_into_tiles(rects, counts, p.depths, q_cut, s)
 
 
-def _blend_inputs(p: SurfelProjected, opacities, features, s: Settings):
-    """Kernel arguments up to tile_size (first_tile follows them)."""
-    return [p.transforms, p.means2d, p.depths, opacities, p.colors, p.normals, features, s.width, s.height,
-            s.tiles_x, s.tile_size]
+def _blend_inputs(p: SurfelProjected, bins: Bins, opacities, features):
+    return [p.transforms, p.means2d, p.depths, opacities, p.colors, p.normals, features, bins.q_cut]
 
 
-def _blend_flags(bins: Bins, s: Settings, want: SurfelWanted):
-    """Kernel arguments after first_tile."""
-    return [bins.q_cut, s.near, want.distortion_scale, int(want.color), int(want.depth), int(want.inv_depth),
-            int(want.normal), int(want.median), int(want.distortion), want.num_features]
+def surfel_blend_params(s: Settings, want: SurfelWanted, first_tile: int) -> surfel_blend.SurfelBlendParams:
+    sp = surfel_blend.SurfelBlendParams()
+    sp.base = blend_params(s, Wanted(color=want.color, depth=want.depth, inv_depth=want.inv_depth,
+                                     num_features=want.num_features), first_tile)
+    sp.near, sp.dist_scale = s.near, want.distortion_scale
+    sp.want_normal, sp.want_median, sp.want_distortion = int(want.normal), int(want.median), int(want.distortion)
+    return sp
 
 
 def blend_forward(p: SurfelProjected, bins: Bins, opacities, features, s: Settings,
@@ -121,8 +125,7 @@ def blend_forward(p: SurfelProjected, bins: Bins, opacities, features, s: Settin
         features=wp.zeros((npix, want.num_features) if want.num_features else (1, 1), dtype=float, device=dev),
         last=image(True, wp.int32),
     )
-    head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, opacities, features, s)
-    tail = _blend_flags(bins, s, want)
+    head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
     outputs = [out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.normal, out.median,
                out.median_index, out.distortion, out.dist_stats, out.features, out.last]
 
@@ -132,8 +135,8 @@ def blend_forward(p: SurfelProjected, bins: Bins, opacities, features, s: Settin
 
     def work(_thread, chunks):  # each chunk writes only its own pixels
         for first, count in chunks:
-            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [first] + tail, outputs=outputs, device=dev,
-                      block_dim=block_dim)
+            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [surfel_blend_params(s, want, first)],
+                      outputs=outputs, device=dev, block_dim=block_dim)
 
     run_threads(work, _tile_launches(s, dev))
     return out
@@ -147,8 +150,8 @@ def blend_backward(p: SurfelProjected, bins: Bins, opacities, features, s: Setti
     dev = p.means2d.device
     targets = [p.transforms.grad, p.means2d.grad, p.depths.grad, opacities.grad, p.colors.grad, p.normals.grad,
                features.grad]
-    head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, opacities, features, s)
-    tail = (_blend_flags(bins, s, want) + [fwd.transmittance, fwd.last, fwd.median_index, fwd.dist_stats]
+    head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
+    tail = ([fwd.transmittance, fwd.last, fwd.median_index, fwd.dist_stats]
             + [grads[k] for k in ("color", "alpha", "depth", "inv_depth", "normal", "median", "distortion",
                                   "features")])
     per_thread = _tile_launches(s, dev)
@@ -160,7 +163,8 @@ def blend_backward(p: SurfelProjected, bins: Bins, opacities, features, s: Setti
 
     def work(thread, chunks):
         for first, count in chunks:
-            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [first] + tail + buffers[thread],
+            wp.launch(kernel, dim=count * s.tile_size**2,
+                      inputs=head + [surfel_blend_params(s, want, first)] + tail + buffers[thread],
                       device=dev, block_dim=block_dim)
 
     run_threads(work, per_thread)

@@ -230,8 +230,7 @@ class Trainer:
         outputs = tuple(outputs) + tuple(dict.fromkeys(extra))
         out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,
                            background=self.background, inputs=self.render_inputs(batch, step, outputs),
-                           track_means2d=track_means2d, near=t.near, far=t.far, tile_size=t.tile_size,
-                           check_inputs=not t.nan_guard)
+                           track_means2d=track_means2d, check_inputs=not t.nan_guard, **t.render_options())
         for ext in self.extensions:
             out = ext.after_render(self, out, batch, step)
         return out

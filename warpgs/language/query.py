@@ -105,7 +105,7 @@ class LanguageField:
         kwargs.setdefault("threshold", cfg.threshold)
         field = cls(trainer.model, ext.autoencoder, encoder, latent_name=cfg.latent_name,
                     background=trainer.background, label_names=names,
-                    render_kwargs={"near": t.near, "far": t.far, "tile_size": t.tile_size}, **kwargs)
+                    render_kwargs=t.render_options(), **kwargs)
         field.trainer = trainer
         return field
 
