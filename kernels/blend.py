@@ -57,6 +57,7 @@ class PixelState:
     inv_depth: float  # Σ w / z
     last: int  # one past the last blended index of the tile list
     done: int  # 1 once transmittance would drop under t_min
+    w: float  # blend weight alpha*T of the last Gaussian blended (the kernels add its features)
 
 
 @wp.func
@@ -68,10 +69,10 @@ def new_pixel_state(start: int) -> PixelState:
 
 
 @wp.func
-def blend_one(st: PixelState, k: int, g: int, mean: wp.vec2, conic: wp.vec3, opacity: float, q_cut: float,
-              color: wp.vec3, depth: float, fx: float, fy: float, pix: int, features: wp.array2d(dtype=float),
-              out_features: wp.array2d(dtype=float), p: BlendParams) -> PixelState:
-    """Front-to-back step: blends Gaussian g (entry k of the tile list) into a pixel."""
+def blend_one(st: PixelState, k: int, mean: wp.vec2, conic: wp.vec3, opacity: float, q_cut: float,
+              color: wp.vec3, depth: float, fx: float, fy: float, p: BlendParams) -> PixelState:
+    """Front-to-back step: blends entry k of the tile list into a pixel's fixed channels. When it was blended
+    (st.last == k + 1), the caller adds st.w times its features (scalar loop on the CPU, vectors on GPUs)."""
     dx = fx - mean[0]
     dy = fy - mean[1]
     q = mahalanobis(conic, dx, dy)
@@ -91,8 +92,7 @@ def blend_one(st: PixelState, k: int, g: int, mean: wp.vec2, conic: wp.vec3, opa
         st.depth = st.depth + w * depth
     if p.want_inv_depth != 0:
         st.inv_depth = st.inv_depth + w / depth
-    for c in range(p.num_features):
-        out_features[pix, c] = out_features[pix, c] + w * features[g, c]
+    st.w = w
     st.T = next_T
     st.last = k + 1
     return st
@@ -182,10 +182,12 @@ def blend_forward(
     st = new_pixel_state(start)
     for k in range(start, end):
         g = sorted_ids[k]
-        st = blend_one(st, k, g, means2d[g], conics[g], opacities[g], q_cut[g], colors[g], depths[g], fx, fy, pix,
-                       features, out_features, p)
+        st = blend_one(st, k, means2d[g], conics[g], opacities[g], q_cut[g], colors[g], depths[g], fx, fy, p)
         if st.done != 0:
             break
+        if st.last == k + 1:
+            for c in range(p.num_features):
+                out_features[pix, c] = out_features[pix, c] + st.w * features[g, c]
     write_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth, out_last)
 
 
@@ -200,27 +202,38 @@ ROW_WEIGHT = wp.constant(13)
 
 
 @wp.func
-def pixel_gradient(
-    g: int, mean: wp.vec2, conic: wp.vec3, opacity: float, q_cut: float, color: wp.vec3, depth: float,
-    fx: float, fy: float, T: float, suffix: float, up: PixelGrads,
-    pix: int, features: wp.array2d(dtype=float), grad_features: wp.array2d(dtype=float), p: BlendParams,
-) -> GradRow:
-    """One back-to-front step of the blending adjoint at one pixel. T is the transmittance behind this
-    Gaussian; suffix is Σ_channels g·(what is seen behind it), per unit transmittance."""
-    row = GradRow()
-    row[ROW_T] = T
-    row[ROW_SUFFIX] = suffix
+def seen_alpha(mean: wp.vec2, conic: wp.vec3, opacity: float, q_cut: float, fx: float, fy: float,
+               p: BlendParams) -> wp.vec3:
+    """(alpha, o G, G) of a Gaussian at a pixel, alpha = 0 when the blending skips it (outside the footprint or
+    alpha < alpha_min). The adjoint's loops test it first, so `pixel_gradient` only runs for blended ones."""
     dx = fx - mean[0]
     dy = fy - mean[1]
-    cn = conic
-    q = mahalanobis(cn, dx, dy)
+    q = mahalanobis(conic, dx, dy)
     if q > q_cut:
-        return row
+        return wp.vec3(0.0)
     G = wp.exp(-0.5 * q)
     raw = opacity * G
     alpha = wp.min(ALPHA_MAX, raw)
     if alpha < p.alpha_min:
-        return row
+        return wp.vec3(0.0)
+    return wp.vec3(alpha, raw, G)
+
+
+@wp.func
+def pixel_gradient(
+    mean: wp.vec2, conic: wp.vec3, seen: wp.vec3, color: wp.vec3, depth: float, fx: float, fy: float, T: float,
+    suffix: float, up: PixelGrads, feature_dot: float, p: BlendParams,
+) -> GradRow:
+    """One back-to-front step of the blending adjoint at one pixel, for a Gaussian the pixel blended
+    (seen = seen_alpha(...), seen[0] > 0). T is the transmittance behind it; suffix is Σ_channels g·(what is
+    seen behind it), per unit transmittance; feature_dot is Σ_c features[g, c]·grad_features[pix, c]."""
+    row = GradRow()
+    dx = fx - mean[0]
+    dy = fy - mean[1]
+    cn = conic
+    alpha = seen[0]
+    raw = seen[1]
+    G = seen[2]
     T = T / (1.0 - alpha)  # transmittance in front of this Gaussian
     w = alpha * T
     z = depth
@@ -235,8 +248,7 @@ def pixel_gradient(
     if p.want_inv_depth != 0:
         c_tilde += up.inv_depth / z
     row[9] = w * (up.depth - up.inv_depth / (z * z))
-    for c in range(p.num_features):
-        c_tilde += features[g, c] * grad_features[pix, c]
+    c_tilde += feature_dot
     d_alpha = T * (c_tilde - suffix)
     if raw < ALPHA_MAX:  # the 0.99 clamp has zero derivative
         row[5] = d_alpha * G
@@ -307,9 +319,13 @@ def blend_backward(
     while k >= start:
         g = sorted_ids[k]
         k -= 1
-        row = pixel_gradient(g, means2d[g], conics[g], opacities[g], q_cut[g], colors[g], depths[g], fx, fy, T,
-                             suffix, up, pix, features, grad_features, p)
-        if row[ROW_USED] > 0.0:
+        mean = means2d[g]
+        seen = seen_alpha(mean, conics[g], opacities[g], q_cut[g], fx, fy, p)
+        if seen[0] > 0.0:
+            feature_dot = float(0.0)
+            for c in range(p.num_features):
+                feature_dot += features[g, c] * grad_features[pix, c]
+            row = pixel_gradient(mean, conics[g], seen, colors[g], depths[g], fx, fy, T, suffix, up, feature_dot, p)
             T = row[ROW_T]
             suffix = row[ROW_SUFFIX]
             add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)

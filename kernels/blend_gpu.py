@@ -6,7 +6,11 @@ shared memory (each thread gathers one), then every thread walks the batch from 
 forward stops a tile once all its pixels are saturated; the backward walks back to front in lockstep
 from the block's largest stopping point and, optionally, sums each Gaussian's gradient over the block
 before one thread adds it to global memory. The per-pixel maths are blend.py's @wp.func's.
-Kernels are compiled per block size (tile_size²), since tile shapes are fixed at compile time.
+
+Kernels are compiled per block size (tile shapes are fixed at compile time) and per feature-channel count C:
+features travel as length-C vectors (`feature_vector_type`), so a pixel accumulates them in registers and the
+backward sums a Gaussian's feature gradient over the block in one vector reduction, instead of C global
+read-modify-writes and C block reductions per blended Gaussian.
 """
 import warp as wp
 
@@ -22,15 +26,25 @@ from .blend import (
     load_pixel_grads,
     new_pixel_state,
     pixel_gradient,
+    seen_alpha,
     tile_of,
     tile_pixel,
     write_pixel,
 )
 
 _kernels = {}
+_feature_types = {}
 
 # What the block sums per Gaussian: the ten gradient entries of a GradRow and its "used" flag.
 GradSum = wp.types.vector(length=11, dtype=float)
+
+
+def feature_vector_type(num_features: int):
+    """The vector type features are passed as for C channels (length 1, unused, when there are none)."""
+    n = max(int(num_features), 1)
+    if n not in _feature_types:
+        _feature_types[n] = wp.types.vector(length=n, dtype=float)
+    return _feature_types[n]
 
 
 @wp.func
@@ -49,21 +63,24 @@ def add_gradient_sum(g: int, total: GradSum, adj_means2d: wp.array(dtype=wp.vec2
     wp.atomic_add(adj_depths, g, total[9])
 
 
-def forward_kernel(block_dim: int):
-    key = ("forward", block_dim)
+def forward_kernel(block_dim: int, num_features: int):
+    key = ("forward", block_dim, num_features)
     if key not in _kernels:
-        _kernels[key] = _make_forward(block_dim)
+        _kernels[key] = _make_forward(block_dim, num_features)
     return _kernels[key]
 
 
-def backward_kernel(block_dim: int, block_reduce: bool):
-    key = ("backward", block_dim, block_reduce)
+def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
+    key = ("backward", block_dim, block_reduce, num_features)
     if key not in _kernels:
-        _kernels[key] = _make_backward(block_dim, block_reduce)
+        _kernels[key] = _make_backward(block_dim, block_reduce, num_features)
     return _kernels[key]
 
 
-def _make_forward(block_dim: int):
+def _make_forward(block_dim: int, num_features: int):
+    FeatureVec = feature_vector_type(num_features)
+    has_features = num_features > 0
+
     @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False})
     def blend_forward_blocks(
         tile_start: wp.array(dtype=wp.int32),
@@ -74,7 +91,7 @@ def _make_forward(block_dim: int):
         opacities: wp.array(dtype=float),
         colors: wp.array(dtype=wp.vec3),
         depths: wp.array(dtype=float),
-        features: wp.array2d(dtype=float),
+        features: wp.array(dtype=FeatureVec),
         q_cut: wp.array(dtype=float),
         p: BlendParams,
         out_color: wp.array(dtype=wp.vec3),
@@ -82,7 +99,7 @@ def _make_forward(block_dim: int):
         out_alpha: wp.array(dtype=float),
         out_depth: wp.array(dtype=float),
         out_inv_depth: wp.array(dtype=float),
-        out_features: wp.array2d(dtype=float),
+        out_features: wp.array(dtype=FeatureVec),
         out_last: wp.array(dtype=wp.int32),
     ):
         tid = wp.tid()
@@ -95,6 +112,7 @@ def _make_forward(block_dim: int):
         fx = float(pxy[0]) + 0.5
         fy = float(pxy[1]) + 0.5
         st = new_pixel_state(start)
+        acc = FeatureVec()
         if not inside:
             st.done = 1
         for b in range((end - start + wp.static(block_dim) - 1) / wp.static(block_dim)):
@@ -110,17 +128,24 @@ def _make_forward(block_dim: int):
             z_t = wp.tile_load_indexed(depths, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
             for j in range(wp.min(wp.static(block_dim), end - lo)):
                 if st.done == 0:
-                    st = blend_one(st, lo + j, wp.tile_extract(ids, j), wp.tile_extract(m_t, j),
-                                   wp.tile_extract(c_t, j), wp.tile_extract(o_t, j), wp.tile_extract(q_t, j),
-                                   wp.tile_extract(rgb_t, j), wp.tile_extract(z_t, j), fx, fy, pix, features,
-                                   out_features, p)
+                    st = blend_one(st, lo + j, wp.tile_extract(m_t, j), wp.tile_extract(c_t, j),
+                                   wp.tile_extract(o_t, j), wp.tile_extract(q_t, j), wp.tile_extract(rgb_t, j),
+                                   wp.tile_extract(z_t, j), fx, fy, p)
+                    if wp.static(has_features):
+                        if st.done == 0 and st.last == lo + j + 1:
+                            acc += st.w * features[wp.tile_extract(ids, j)]
         if inside:
             write_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth, out_last)
+            if wp.static(has_features):
+                out_features[pix] = acc
 
     return blend_forward_blocks
 
 
-def _make_backward(block_dim: int, block_reduce: bool):
+def _make_backward(block_dim: int, block_reduce: bool, num_features: int):
+    FeatureVec = feature_vector_type(num_features)
+    has_features = num_features > 0
+
     @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False})
     def blend_backward_blocks(
         tile_start: wp.array(dtype=wp.int32),
@@ -130,7 +155,7 @@ def _make_backward(block_dim: int, block_reduce: bool):
         opacities: wp.array(dtype=float),
         colors: wp.array(dtype=wp.vec3),
         depths: wp.array(dtype=float),
-        features: wp.array2d(dtype=float),
+        features: wp.array(dtype=FeatureVec),
         q_cut: wp.array(dtype=float),
         p: BlendParams,
         transmittance: wp.array(dtype=float),
@@ -139,13 +164,13 @@ def _make_backward(block_dim: int, block_reduce: bool):
         grad_alpha: wp.array(dtype=float),
         grad_depth: wp.array(dtype=float),
         grad_inv_depth: wp.array(dtype=float),
-        grad_features: wp.array2d(dtype=float),
+        grad_features: wp.array(dtype=FeatureVec),
         adj_means2d: wp.array(dtype=wp.vec2),
         adj_conics: wp.array(dtype=wp.vec3),
         adj_opacities: wp.array(dtype=float),
         adj_colors: wp.array(dtype=wp.vec3),
         adj_depths: wp.array(dtype=float),
-        adj_features: wp.array2d(dtype=float),
+        adj_features: wp.array(dtype=FeatureVec),
     ):
         tid = wp.tid()
         lane = tid % wp.static(block_dim)
@@ -156,6 +181,9 @@ def _make_backward(block_dim: int, block_reduce: bool):
         fx = float(pxy[0]) + 0.5
         fy = float(pxy[1]) + 0.5
         up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth)
+        up_features = FeatureVec()
+        if wp.static(has_features):
+            up_features = grad_features[pix]
         T = transmittance[pix]
         suffix = float(0.0)
         last = wp.where(inside, last_index[pix], start)
@@ -175,24 +203,29 @@ def _make_backward(block_dim: int, block_reduce: bool):
                 g = wp.tile_extract(ids, j)
                 row = GradRow()
                 if lo + j < last:
-                    row = pixel_gradient(g, wp.tile_extract(m_t, j), wp.tile_extract(c_t, j),
-                                         wp.tile_extract(o_t, j), wp.tile_extract(q_t, j),
-                                         wp.tile_extract(rgb_t, j), wp.tile_extract(z_t, j), fx, fy, T, suffix,
-                                         up, pix, features, grad_features, p)
-                    T = row[ROW_T]
-                    suffix = row[ROW_SUFFIX]
+                    mean = wp.tile_extract(m_t, j)
+                    conic = wp.tile_extract(c_t, j)
+                    seen = seen_alpha(mean, conic, wp.tile_extract(o_t, j), wp.tile_extract(q_t, j), fx, fy, p)
+                    if seen[0] > 0.0:
+                        feature_dot = float(0.0)
+                        if wp.static(has_features):
+                            feature_dot = wp.dot(features[g], up_features)
+                        row = pixel_gradient(mean, conic, seen, wp.tile_extract(rgb_t, j), wp.tile_extract(z_t, j),
+                                             fx, fy, T, suffix, up, feature_dot, p)
+                        T = row[ROW_T]
+                        suffix = row[ROW_SUFFIX]
                 if wp.static(block_reduce):
                     total = wp.tile_sum(wp.tile(gradient_sum_part(row), preserve_type=True))[0]
                     if lane == 0 and total[10] > 0.0:
                         add_gradient_sum(g, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
-                    for c in range(p.num_features):
-                        f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * grad_features[pix, c]))[0]
+                    if wp.static(has_features):
+                        f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * up_features, preserve_type=True))[0]
                         if lane == 0 and total[10] > 0.0:
-                            wp.atomic_add(adj_features, g, c, f_total)
+                            wp.atomic_add(adj_features, g, f_total)
                 else:
                     if row[ROW_USED] > 0.0:
                         add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
-                        for c in range(p.num_features):
-                            wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])
+                        if wp.static(has_features):
+                            wp.atomic_add(adj_features, g, row[ROW_WEIGHT] * up_features)
 
     return blend_backward_blocks

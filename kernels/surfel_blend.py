@@ -136,11 +136,11 @@ def new_surfel_state(start: int) -> SurfelPixelState:
 
 
 @wp.func
-def blend_surfel(st: SurfelPixelState, k: int, g: int, alpha: float, z: float, color: wp.vec3, normal: wp.vec3,
-                 pix: int, features: wp.array2d(dtype=float),
-                 out_features: wp.array2d(dtype=float), p: SurfelBlendParams) -> SurfelPixelState:
-    """Front-to-back step: blends surfel g (entry k of the tile list), seen with `alpha` at depth z, into a
-    pixel. The caller has checked that alpha >= alpha_min and that it does not saturate the pixel."""
+def blend_surfel(st: SurfelPixelState, k: int, alpha: float, z: float, color: wp.vec3, normal: wp.vec3,
+                 p: SurfelBlendParams) -> SurfelPixelState:
+    """Front-to-back step: blends entry k of the tile list, seen with `alpha` at depth z, into a pixel's fixed
+    channels. The caller has checked that alpha >= alpha_min and that it does not saturate the pixel, and adds
+    the features with weight alpha * T (scalar loop on the CPU, vectors on GPUs)."""
     w = alpha * st.T
     if p.base.want_color != 0:
         st.rgb = st.rgb + w * color
@@ -160,8 +160,6 @@ def blend_surfel(st: SurfelPixelState, k: int, g: int, alpha: float, z: float, c
         dm = m - st.m_ref
         st.s1 = st.s1 + w * dm
         st.s2 = st.s2 + w * dm * dm
-    for c in range(p.base.num_features):
-        out_features[pix, c] = out_features[pix, c] + w * features[g, c]
     st.first = 0
     st.T = st.T * (1.0 - alpha)
     st.last = k + 1
@@ -245,7 +243,9 @@ def blend_forward(
             continue
         if saturates(st.T, alpha, p.base.t_min):
             break
-        st = blend_surfel(st, k, g, alpha, sp[1], colors[g], normals[g], pix, features, out_features, p)
+        for c in range(p.base.num_features):
+            out_features[pix, c] = out_features[pix, c] + alpha * st.T * features[g, c]
+        st = blend_surfel(st, k, alpha, sp[1], colors[g], normals[g], p)
     write_surfel_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth, out_normal,
                        out_median, out_median_index, out_distortion, out_dist_stats, out_last)
 
@@ -321,14 +321,14 @@ ROW_WEIGHT = wp.constant(23)
 
 @wp.func
 def surfel_pixel_gradient(
-    k: int, g: int, sp: SplatPoint, M: wp.mat33, mean: wp.vec2, opacity: float, G: float, color: wp.vec3,
+    k: int, sp: SplatPoint, M: wp.mat33, mean: wp.vec2, opacity: float, G: float, color: wp.vec3,
     normal: wp.vec3, fx: float, fy: float, T: float, suffix: float, pg: SurfelPixelGrads,
-    pix: int, features: wp.array2d(dtype=float), grad_features: wp.array2d(dtype=float), p: SurfelBlendParams,
+    feature_dot: float, p: SurfelBlendParams,
 ) -> SurfelGradRow:
-    """One back-to-front step of the blending adjoint at one pixel, for surfel g (entry k of the tile list),
-    which the pixel blended: sp = splat_point(...), G = exp(-s/2), blend_alpha(opacity, G) >= alpha_min.
+    """One back-to-front step of the blending adjoint at one pixel, for entry k of the tile list, which the
+    pixel blended: sp = splat_point(...), G = exp(-s/2), blend_alpha(opacity, G) >= alpha_min.
     T is the transmittance behind this surfel; suffix is Σ_channels g·(what is seen behind it), per unit
-    transmittance."""
+    transmittance; feature_dot is Σ_c features[g, c]·grad_features[pix, c]."""
     row = SurfelGradRow()
     z = sp[1]
     raw = opacity * G
@@ -361,8 +361,7 @@ def surfel_pixel_gradient(
         dm = -p.dist_scale / z - pg.m_ref
         c_tilde += pg.distortion * (pg.s2 - 2.0 * pg.s1 * dm + pg.W * dm * dm)
         d_z += pg.distortion * 2.0 * w * (pg.W * dm - pg.s1) * p.dist_scale / (z * z)
-    for c in range(p.base.num_features):
-        c_tilde += features[g, c] * grad_features[pix, c]
+    c_tilde += feature_dot  # Σ_c features[g, c] grad_features[pix, c]
 
     d_alpha = T * (c_tilde - suffix)
     d_s = float(0.0)
@@ -484,8 +483,11 @@ def blend_backward(
         o = opacities[g]
         if blend_alpha(o, G) < p.base.alpha_min:
             continue
-        row = surfel_pixel_gradient(k, g, sp, M, mean, o, G, colors[g], normals[g], fx, fy, T, suffix,
-                                    pg, pix, features, grad_features, p)
+        feature_dot = float(0.0)
+        for c in range(p.base.num_features):
+            feature_dot += features[g, c] * grad_features[pix, c]
+        row = surfel_pixel_gradient(k, sp, M, mean, o, G, colors[g], normals[g], fx, fy, T, suffix, pg, feature_dot,
+                                    p)
         T = row[ROW_T]
         suffix = row[ROW_SUFFIX]
         add_surfel_gradient_row(g, row, p, adj_transforms, adj_means2d, adj_depths, adj_opacities, adj_colors,

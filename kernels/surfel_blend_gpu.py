@@ -5,11 +5,13 @@ one surfel's transform, centre, depth, opacity, cut-off, colour and normal), the
 from shared memory. The forward stops a tile once all its pixels are saturated; the backward walks back to
 front in lockstep from the block's largest stopping point and, optionally, sums each surfel's gradient over
 the block before one thread adds it to global memory. The per-pixel maths are surfel_blend.py's @wp.func's.
-Kernels are compiled per block size, since tile shapes are fixed at compile time.
+Kernels are compiled per block size (tile shapes are fixed at compile time) and per feature-channel count:
+features travel as length-C vectors, as in blend_gpu.
 """
 import warp as wp
 
 from .blend import tile_of, tile_pixel
+from .blend_gpu import feature_vector_type
 from .surfel_blend import (
     ROW_HIT,
     ROW_SCREEN,
@@ -53,21 +55,24 @@ def gradient_sum_row(total: SurfelGradSum) -> SurfelGradRow:
     return row
 
 
-def forward_kernel(block_dim: int):
-    key = ("forward", block_dim)
+def forward_kernel(block_dim: int, num_features: int):
+    key = ("forward", block_dim, num_features)
     if key not in _kernels:
-        _kernels[key] = _make_forward(block_dim)
+        _kernels[key] = _make_forward(block_dim, num_features)
     return _kernels[key]
 
 
-def backward_kernel(block_dim: int, block_reduce: bool):
-    key = ("backward", block_dim, block_reduce)
+def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
+    key = ("backward", block_dim, block_reduce, num_features)
     if key not in _kernels:
-        _kernels[key] = _make_backward(block_dim, block_reduce)
+        _kernels[key] = _make_backward(block_dim, block_reduce, num_features)
     return _kernels[key]
 
 
-def _make_forward(block_dim: int):
+def _make_forward(block_dim: int, num_features: int):
+    FeatureVec = feature_vector_type(num_features)
+    has_features = num_features > 0
+
     @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False})
     def surfel_blend_forward_blocks(
         tile_start: wp.array(dtype=wp.int32),
@@ -79,7 +84,7 @@ def _make_forward(block_dim: int):
         opacities: wp.array(dtype=float),
         colors: wp.array(dtype=wp.vec3),
         normals: wp.array(dtype=wp.vec3),
-        features: wp.array2d(dtype=float),
+        features: wp.array(dtype=FeatureVec),
         q_cut: wp.array(dtype=float),
         p: SurfelBlendParams,
         out_color: wp.array(dtype=wp.vec3),
@@ -92,7 +97,7 @@ def _make_forward(block_dim: int):
         out_median_index: wp.array(dtype=wp.int32),
         out_distortion: wp.array(dtype=float),
         out_dist_stats: wp.array(dtype=wp.vec3),
-        out_features: wp.array2d(dtype=float),
+        out_features: wp.array(dtype=FeatureVec),
         out_last: wp.array(dtype=wp.int32),
     ):
         tid = wp.tid()
@@ -105,6 +110,7 @@ def _make_forward(block_dim: int):
         fx = float(pxy[0]) + 0.5
         fy = float(pxy[1]) + 0.5
         st = new_surfel_state(start)
+        acc = FeatureVec()
         done = wp.where(inside, 0, 1)  # 1 once the pixel is saturated
         for b in range((end - start + wp.static(block_dim) - 1) / wp.static(block_dim)):
             if wp.tile_sum(wp.tile(1 - done))[0] == 0:  # every pixel of the tile is saturated
@@ -131,16 +137,22 @@ def _make_forward(block_dim: int):
                 if saturates(st.T, alpha, p.base.t_min):
                     done = 1
                     break
-                st = blend_surfel(st, lo + j, wp.tile_extract(ids, j), alpha, sp[1], wp.tile_extract(rgb_t, j),
-                                  wp.tile_extract(n_t, j), pix, features, out_features, p)
+                if wp.static(has_features):
+                    acc += alpha * st.T * features[wp.tile_extract(ids, j)]
+                st = blend_surfel(st, lo + j, alpha, sp[1], wp.tile_extract(rgb_t, j), wp.tile_extract(n_t, j), p)
         if inside:
             write_surfel_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth,
                                out_normal, out_median, out_median_index, out_distortion, out_dist_stats, out_last)
+            if wp.static(has_features):
+                out_features[pix] = acc
 
     return surfel_blend_forward_blocks
 
 
-def _make_backward(block_dim: int, block_reduce: bool):
+def _make_backward(block_dim: int, block_reduce: bool, num_features: int):
+    FeatureVec = feature_vector_type(num_features)
+    has_features = num_features > 0
+
     @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False})
     def surfel_blend_backward_blocks(
         tile_start: wp.array(dtype=wp.int32),
@@ -151,7 +163,7 @@ def _make_backward(block_dim: int, block_reduce: bool):
         opacities: wp.array(dtype=float),
         colors: wp.array(dtype=wp.vec3),
         normals: wp.array(dtype=wp.vec3),
-        features: wp.array2d(dtype=float),
+        features: wp.array(dtype=FeatureVec),
         q_cut: wp.array(dtype=float),
         p: SurfelBlendParams,
         transmittance: wp.array(dtype=float),
@@ -165,14 +177,14 @@ def _make_backward(block_dim: int, block_reduce: bool):
         grad_normal: wp.array(dtype=wp.vec3),
         grad_median: wp.array(dtype=float),
         grad_distortion: wp.array(dtype=float),
-        grad_features: wp.array2d(dtype=float),
+        grad_features: wp.array(dtype=FeatureVec),
         adj_transforms: wp.array(dtype=wp.mat33),
         adj_means2d: wp.array(dtype=wp.vec2),
         adj_depths: wp.array(dtype=float),
         adj_opacities: wp.array(dtype=float),
         adj_colors: wp.array(dtype=wp.vec3),
         adj_normals: wp.array(dtype=wp.vec3),
-        adj_features: wp.array2d(dtype=float),
+        adj_features: wp.array(dtype=FeatureVec),
     ):
         tid = wp.tid()
         lane = tid % wp.static(block_dim)
@@ -184,6 +196,9 @@ def _make_backward(block_dim: int, block_reduce: bool):
         fy = float(pxy[1]) + 0.5
         pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, grad_color, grad_alpha,
                               grad_depth, grad_inv_depth, grad_normal, grad_median, grad_distortion)
+        up_features = FeatureVec()
+        if wp.static(has_features):
+            up_features = grad_features[pix]
         T = transmittance[pix]
         suffix = float(0.0)
         last = wp.where(inside, last_index[pix], start)
@@ -211,9 +226,12 @@ def _make_backward(block_dim: int, block_reduce: bool):
                         G = wp.exp(-0.5 * sp[0])
                         o = wp.tile_extract(o_t, j)
                         if not (blend_alpha(o, G) < p.base.alpha_min):
-                            row = surfel_pixel_gradient(lo + j, g, sp, M, mean, o, G, wp.tile_extract(rgb_t, j),
-                                                        wp.tile_extract(n_t, j), fx, fy, T, suffix, pg,
-                                                        pix, features, grad_features, p)
+                            feature_dot = float(0.0)
+                            if wp.static(has_features):
+                                feature_dot = wp.dot(features[g], up_features)
+                            row = surfel_pixel_gradient(lo + j, sp, M, mean, o, G, wp.tile_extract(rgb_t, j),
+                                                        wp.tile_extract(n_t, j), fx, fy, T, suffix, pg, feature_dot,
+                                                        p)
                             T = row[ROW_T]
                             suffix = row[ROW_SUFFIX]
                 if wp.static(block_reduce):
@@ -223,15 +241,15 @@ def _make_backward(block_dim: int, block_reduce: bool):
                         add_surfel_gradient_row(g, gradient_sum_row(total), p,
                                                 adj_transforms, adj_means2d, adj_depths, adj_opacities, adj_colors,
                                                 adj_normals)
-                    for c in range(p.base.num_features):
-                        f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * grad_features[pix, c]))[0]
+                    if wp.static(has_features):
+                        f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * up_features, preserve_type=True))[0]
                         if lane == 0 and used:
-                            wp.atomic_add(adj_features, g, c, f_total)
+                            wp.atomic_add(adj_features, g, f_total)
                 else:
                     if row[ROW_HIT] + row[ROW_SCREEN] > 0.0:
                         add_surfel_gradient_row(g, row, p, adj_transforms, adj_means2d,
                                                 adj_depths, adj_opacities, adj_colors, adj_normals)
-                        for c in range(p.base.num_features):
-                            wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])
+                        if wp.static(has_features):
+                            wp.atomic_add(adj_features, g, row[ROW_WEIGHT] * up_features)
 
     return surfel_blend_backward_blocks

@@ -200,16 +200,19 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
         features=wp.zeros((npix, want.num_features) if want.num_features else (1, 1), dtype=float, device=dev),
         last=wp.empty(npix, dtype=wp.int32, device=dev),
     )
-    head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
-
     coop = _cooperative(dev)
     block_dim = _block_dims(s)[0] if coop else 1
-    kernel = blend_gpu.forward_kernel(block_dim) if coop else blend.blend_forward
+    if coop:  # features as length-C vectors (see blend_gpu)
+        kernel = blend_gpu.forward_kernel(block_dim, want.num_features)
+        features, out_features = (feature_vectors(a, want.num_features) for a in (features, out.features))
+    else:
+        kernel, out_features = blend.blend_forward, out.features
+    head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
 
     def work(_thread, chunks):  # each chunk writes only its own pixels
         for first, count in chunks:
             wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [blend_params(s, want, first)],
-                      outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.features,
+                      outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out_features,
                                out.last], device=dev, block_dim=block_dim)
 
     run_threads(work, _tile_launches(s, dev))
@@ -223,15 +226,20 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
     CPU threads would race on those sums (Warp's CPU atomics are plain adds), so every thread but the first
     accumulates into private buffers that are added in afterwards."""
     dev = p.means2d.device
-    targets = [p.means2d.grad, p.conics.grad, opacities.grad, p.colors.grad, p.depths.grad, features.grad]
+    adj_features = features.grad
+    coop = _cooperative(dev)  # GPU: blocks of consecutive pixels of a tile; CPU: one thread per pixel
+    block_dim = _block_dims(s)[1] if coop else 1
+    if coop:  # features as length-C vectors (see blend_gpu)
+        kernel = blend_gpu.backward_kernel(block_dim, _block_reduce(), want.num_features)
+        features, grad_features, adj_features = (feature_vectors(a, want.num_features)
+                                                 for a in (features, grad_features, adj_features))
+    else:
+        kernel = blend.blend_backward
+    targets = [p.means2d.grad, p.conics.grad, opacities.grad, p.colors.grad, p.depths.grad, adj_features]
     head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
     tail = [fwd.transmittance, fwd.last, grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features]
     per_thread = _tile_launches(s, dev)
     buffers = _gradient_buffers(targets, len(per_thread))
-
-    coop = _cooperative(dev)  # GPU: blocks of consecutive pixels of a tile; CPU: one thread per pixel
-    block_dim = _block_dims(s)[1] if coop else 1
-    kernel = blend_gpu.backward_kernel(block_dim, _block_reduce()) if coop else blend.blend_backward
 
     def work(thread, chunks):
         for first, count in chunks:
@@ -240,6 +248,16 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
 
     run_threads(work, per_thread)
     _merge_gradient_buffers(buffers)
+
+
+def feature_vectors(a, num_features: int):
+    """A contiguous [rows, C] float array seen, without a copy, as `rows` length-C vectors: the layout of the
+    cooperative kernels' features (a 1-element dummy when there are no features)."""
+    vec = blend_gpu.feature_vector_type(num_features)
+    if num_features == 0 or a.shape[0] == 0:
+        return wp.zeros(1, dtype=vec, device=a.device)
+    assert a.ndim == 2 and a.shape[1] == num_features and a.is_contiguous, (a.shape, num_features)
+    return wp.array(ptr=a.ptr, dtype=vec, shape=(a.shape[0],), device=a.device)
 
 
 def _gradient_buffers(targets, threads: int):
