@@ -183,6 +183,21 @@ def test_surfel_split_stays_in_plane():
     assert (offsets.norm(dim=1) > 1e-4).all()
 
 
+def test_split_of_a_flat_primitive_keeps_finite_log_scales():
+    """Regression (found while writing tests/stress): a split primitive whose thinnest axis has a log-scale
+    below ~-104 (exp() underflows to 0 in float32) used to get children with log-scale -inf."""
+    m = make([0.1, 0.1], [0.5, 0.5])
+    with torch.no_grad():
+        m.params["log_scales"][0, 2] = -120.0
+    opt = build_optimizer(m)
+    s = DensifyStrategy()
+    s.initialize(m)
+    assert feed(s, m, opt, 600, [HIGH, HIGH])["split"] == 2
+    assert torch.isfinite(m.log_scales).all()
+    expected = torch.tensor([math.log(0.1), math.log(0.1), -120.0]) - math.log(1.6)  # parent / split_shrink
+    torch.testing.assert_close(m.log_scales.detach()[:2], expected.expand(2, 3))  # both rows: primitive 0's children
+
+
 def project(means, viewmat, K):
     p = means @ viewmat[:3, :3].T + viewmat[:3, 3]
     return torch.stack([K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]], 1)

@@ -296,5 +296,6 @@ class DensifyStrategy:
         noise = torch.randn(std.shape, generator=self.generator).to(std.device) * std
         rot = quat_to_rotmat(rows["quats"])
         rows["means"] = rows["means"] + (rot @ noise[:, :, None])[:, :, 0]
-        rows["log_scales"] = (scales / self.config.split_shrink).log()
+        # In log space: exp() of a very negative log-scale (a flat axis) underflows to 0, and log(0) = -inf.
+        rows["log_scales"] = rows["log_scales"] - math.log(self.config.split_shrink)
         return rows
