@@ -4,6 +4,7 @@
     python benchmarks/raster.py                       # CPU table: N in {1k,10k,100k} at 256x256 and 800x600
     python benchmarks/raster.py --device cuda --gsplat --sizes 100000,1000000 --resolutions 1920x1080
     python benchmarks/raster.py --primitive surfels ...   # 2D surfels (gsplat: rasterization_2dgs)
+    python benchmarks/raster.py --tile-sizes 8,16 ...     # one row per tile size (the image does not change)
 
 Prints a table and writes benchmarks/results/raster_<device>.json (or $OUT/raster_<device>.json).
 """
@@ -25,7 +26,7 @@ from reference_surfels import render_surfels_reference  # noqa: E402
 
 from warpgs import pipeline, rasterize, rasterize_surfels  # noqa: E402
 from warpgs.render_surfels import surfel_work  # noqa: E402
-from warpgs.render import _intrinsics_vector  # noqa: E402
+from warpgs.render import DEFAULT_TILE_SIZE, _intrinsics_vector  # noqa: E402
 
 OUTPUTS = ("rgb", "alpha", "depth")
 FLOPS_PER_EVALUATION = 20  # q (8), exp (~8 with range reduction), clamp/compare (2), blend 3 colours + depth (8) ~ 20-26
@@ -55,12 +56,12 @@ def max_error_vs_reference(scene, width, height, surfels, num_pixels=128, chunk=
     return err
 
 
-def evaluations(scene, width, height):
+def evaluations(scene, width, height, tile_size):
     """Gaussian–pixel evaluations the blending loop performs (each pixel walks its tile list up to its stop)."""
     means, quats, scales, opacities, colors, viewmat, K = scene
     dev = "cpu" if means.device.type == "cpu" else "cuda:0"
     with wp.ScopedDevice(dev):
-        s = pipeline.Settings(width=width, height=height)
+        s = pipeline.Settings(width=width, height=height, tile_size=tile_size)
         w = lambda t, dt: wp.from_torch(t.contiguous(), dtype=dt)  # noqa: E731
         proj = pipeline.project_gaussians(w(means, wp.vec3), w(quats, wp.vec4), w(scales, wp.vec3),
                                           w(opacities, wp.float32), w(colors.reshape(-1, 1, 3), wp.vec3),
@@ -114,17 +115,17 @@ def gsplat_times(scene, width, height, device, surfels):
     return time_call(fwd, device, warmup=3, repeats=20), time_call(fwd_bwd, device, warmup=3, repeats=20)
 
 
-def warpgs_times(scene, width, height, device, repeats, surfels):
+def warpgs_times(scene, width, height, device, repeats, surfels, tile_size):
     render = rasterize_surfels if surfels else rasterize
     means, quats, scales, opacities, colors, viewmat, K = scene
 
     def fwd():
         return render(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs=OUTPUTS,
-                      check_inputs=False)
+                      tile_size=tile_size, check_inputs=False)
 
     def fwd_bwd():
         leaves = [t.detach().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
-        out = render(*leaves, viewmat, K, width, height, outputs=OUTPUTS, check_inputs=False)
+        out = render(*leaves, viewmat, K, width, height, outputs=OUTPUTS, tile_size=tile_size, check_inputs=False)
         (out.rgb.sum() + out.depth.sum()).backward()
 
     warm = 3 if device.startswith("cuda") else 1
@@ -140,6 +141,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=None)
     ap.add_argument("--error-pixels", type=int, default=128)
     ap.add_argument("--primitive", choices=["gaussians", "surfels"], default="gaussians")
+    ap.add_argument("--tile-sizes", default=str(DEFAULT_TILE_SIZE), help="comma-separated tile sizes to time")
     args = ap.parse_args()
     scenes = standard_scenes_module()
     device = args.device
@@ -156,25 +158,29 @@ def main():
             if surfels:
                 scales = scales[:, :2].contiguous()
             scene = (means, quats, scales, opacities, colors, viewmat, K)
-            fwd_ms, fb_ms = warpgs_times(scene, W, H, device, repeats, surfels)
-            if surfels:
-                work = surfel_work(means, quats, scales, opacities, viewmat, K, W, H)
-                evals, pairs = work["evaluations"], work["tile_pairs"]
-            else:
-                evals, pairs = evaluations(scene, W, H)
-            row = dict(primitive=args.primitive, device=device, n=n, resolution=f"{W}x{H}", fwd_ms=fwd_ms,
-                       fwd_bwd_ms=fb_ms, max_err=max_error_vs_reference(scene, W, H, surfels, args.error_pixels),
-                       tile_pairs=pairs, evals_per_s=evals / (fwd_ms / 1e3))
-            if peak:
-                row["frac_of_core_peak"] = row["evals_per_s"] * FLOPS_PER_EVALUATION / (peak * 1e9)
-            if args.gsplat:
-                g_fwd, g_fb = gsplat_times(scene, W, H, device, surfels)
-                row.update(gsplat_fwd_ms=g_fwd, gsplat_fwd_bwd_ms=g_fb, ratio_fwd=fwd_ms / g_fwd, ratio_fwd_bwd=fb_ms / g_fb)
-            rows.append(row)
-            print_table([row], list(row))  # progress, one row at a time
-            sync(device)
+            g_times = gsplat_times(scene, W, H, device, surfels) if args.gsplat else None
+            max_err = max_error_vs_reference(scene, W, H, surfels, args.error_pixels)
+            for tile in (int(v) for v in args.tile_sizes.split(",")):
+                fwd_ms, fb_ms = warpgs_times(scene, W, H, device, repeats, surfels, tile)
+                if surfels:
+                    work = surfel_work(means, quats, scales, opacities, viewmat, K, W, H, tile_size=tile)
+                    evals, pairs = work["evaluations"], work["tile_pairs"]
+                else:
+                    evals, pairs = evaluations(scene, W, H, tile)
+                row = dict(primitive=args.primitive, device=device, n=n, resolution=f"{W}x{H}", tile_size=tile,
+                           fwd_ms=fwd_ms, fwd_bwd_ms=fb_ms, max_err=max_err, tile_pairs=pairs,
+                           evals_per_s=evals / (fwd_ms / 1e3))
+                if peak:
+                    row["frac_of_core_peak"] = row["evals_per_s"] * FLOPS_PER_EVALUATION / (peak * 1e9)
+                if g_times:
+                    g_fwd, g_fb = g_times
+                    row.update(gsplat_fwd_ms=g_fwd, gsplat_fwd_bwd_ms=g_fb, ratio_fwd=fwd_ms / g_fwd,
+                               ratio_fwd_bwd=fb_ms / g_fb)
+                rows.append(row)
+                print_table([row], list(row))  # progress, one row at a time
+                sync(device)
     print()
-    columns = ["n", "resolution", "fwd_ms", "fwd_bwd_ms", "max_err", "evals_per_s"]
+    columns = ["n", "resolution", "tile_size", "fwd_ms", "fwd_bwd_ms", "max_err", "evals_per_s"]
     columns += ["frac_of_core_peak"] if peak else []
     columns += ["gsplat_fwd_ms", "gsplat_fwd_bwd_ms", "ratio_fwd", "ratio_fwd_bwd"] if args.gsplat else []
     print_table(rows, columns)

@@ -37,9 +37,11 @@ sys.path.insert(0, str(ROOT / "tests"))
 from reference import render_reference  # noqa: E402
 
 from warpgs import rasterize  # noqa: E402
+from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN  # noqa: E402
 
 SH_C0 = 0.28209479177387814
-DEFAULTS = dict(tile_size=16, max_sigmas=0.0, alpha_min=1.0 / 255.0, transmittance_min=1.0e-4, sh_degree=3)
+DEFAULTS = dict(tile_size=DEFAULT_TILE_SIZE, max_sigmas=0.0, alpha_min=DEFAULT_ALPHA_MIN,
+                transmittance_min=DEFAULT_TRANSMITTANCE_MIN, sh_degree=3)
 SWEEPS = {
     "tile_size": (8, 16, 32),
     "max_sigmas": (1.5, 2.0, 2.5, 3.0, 0.0),

@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 import torch
 
-import warpgs.gaussians as gs
 from warpgs.gaussians import GaussianModel, SurfelModel, load_ply, read_ply
 
 THREEDGS_PROPS = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
@@ -77,7 +76,7 @@ def test_overwrite_is_atomic(tmp_path, monkeypatch):
     def boom(src, dst):
         raise OSError("disk full")
 
-    monkeypatch.setattr(gs.os, "replace", boom)
+    monkeypatch.setattr(os, "replace", boom)
     with pytest.raises(OSError):
         random_model(n=9, seed=1).save_ply(path)
     assert path.read_bytes() == before  # the old file is intact

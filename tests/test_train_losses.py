@@ -68,9 +68,9 @@ def test_renderer_knobs_reach_every_render(tmp_path, monkeypatch):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(model_render, "rasterize", wrapped)
-    knobs = {"train.alpha_min": 0.02, "train.transmittance_min": 0.001, "train.max_sigmas": 2.5, "train.tile_size": 8}
+    knobs = {"train.alpha_min": 0.02, "train.transmittance_min": 0.001, "train.max_sigmas": 2.5, "train.tile_size": 4}
     Trainer(None, overrides=quick_overrides(tmp_path, 5, **knobs), quiet=True).fit()
-    assert seen and set(seen) == {(0.02, 0.001, 2.5, 8)}
+    assert seen and set(seen) == {(0.02, 0.001, 2.5, 4)}
 
 
 def test_weight_zero_removes_term_and_its_outputs(tmp_path, spy):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from warpgs.gaussians import atomic_write_bytes
+from warpgs.atomic_file import atomic_write_bytes
 
 FORMAT = "warpgs-checkpoint"
 VERSION = 1

@@ -7,7 +7,7 @@ from typing import Callable, Optional, Sequence
 
 import torch
 
-from warpgs.gaussians import atomic_write_bytes
+from warpgs.atomic_file import atomic_write_bytes
 from warpgs.metrics import LPIPSMetric, psnr, ssim
 
 

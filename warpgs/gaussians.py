@@ -10,43 +10,21 @@ The densification strategy swaps whole Parameters (rows added/removed), so keep 
 from __future__ import annotations
 
 import math
-import os
 import re
-import tempfile
 from typing import Dict, Mapping, Optional
 
 import numpy as np
 import torch
 from torch import nn
 
-SH_C0 = 0.28209479177387814
+# Also re-exported from here (their old home): atomic_write_bytes, SH_C0, sh0_to_rgb, quat_to_rotmat.
+from warpgs.atomic_file import atomic_write_bytes  # noqa: F401
+from warpgs.ply import read_ply, write_ply
+from warpgs.primitive_math import SH_C0, num_sh_coeffs, quat_to_rotmat, rgb_to_sh0, sh0_to_rgb  # noqa: F401
+
 CORE_PARAMS = ("means", "log_scales", "quats", "logit_opacities", "sh0", "shN")
 MAX_SH_DEGREE = 3
 _KNN_BLOCK = 1 << 25  # distance-matrix entries per chunk of the kNN search (128 MiB of float32)
-
-
-def num_sh_coeffs(degree: int) -> int:
-    return (int(degree) + 1) ** 2
-
-
-def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
-    """Colour in [0,1] -> DC coefficient, inverse of the renderer's `SH_C0 * c + 0.5`."""
-    return (rgb - 0.5) / SH_C0
-
-
-def sh0_to_rgb(sh0: torch.Tensor) -> torch.Tensor:
-    return sh0 * SH_C0 + 0.5
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """[N,4] wxyz (any norm; zero -> identity-free but finite) -> [N,3,3]."""
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(*q.shape[:-1], 3, 3)
 
 
 def knn_scale(points: torch.Tensor, k: int = 3, fallback: float = 0.01) -> torch.Tensor:
@@ -339,94 +317,8 @@ def load_ply(path, device=None) -> GaussianModel:
     return GaussianModel.load_ply(path, device=device)
 
 
-# ---------------------------------------------------------------------------------------------------------
-# PLY: only numpy, binary, scalar properties (what 3DGS/2DGS tools and viewers exchange).
+# PLY layout of the models (3DGS / 2DGS property names); the file format itself is warpgs.ply.
 _PLY_CORE_NAME = re.compile(r"^(x|y|z|nx|ny|nz|opacity|f_dc|f_rest|scale|rot)$")
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-def write_ply(path, columns: Mapping[str, np.ndarray]) -> None:
-    """One `vertex` element of float32 properties, in the given order; temp file + os.replace."""
-    names = list(columns)
-    if not names:
-        raise ValueError("columns: nothing to write")
-    n = len(columns[names[0]])
-    data = np.empty(n, dtype=[(name, "<f4") for name in names])
-    for name in names:
-        col = np.asarray(columns[name])
-        if col.shape != (n,):
-            raise ValueError(f"columns[{name!r}]: expected shape ({n},), got {col.shape}")
-        data[name] = col
-    header = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
-                       + [f"property float {name}" for name in names] + ["end_header"]) + "\n"
-    atomic_write_bytes(path, header.encode("ascii") + data.tobytes())
-
-
-def atomic_write_bytes(path, payload: bytes) -> None:
-    """Readers see the old file or the new one, never half of one (also on Ctrl-C)."""
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix="." + os.path.basename(path) + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(payload)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; a saved model should be readable like any other
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def read_ply(path) -> Dict[str, np.ndarray]:
-    """Columns of the `vertex` element of a binary PLY (little or big endian), in file order."""
-    with open(path, "rb") as f:
-        raw = f.read()
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise ValueError(f"path: {path} is not a PLY file (no 'ply' magic or 'end_header')")
-    body = raw.index(b"\n", end) + 1
-    lines = [ln.strip() for ln in raw[:end].decode("ascii", "replace").splitlines()]
-    endian = None
-    elements = []  # (name, count, [(prop, dtype)])
-    for ln in lines[1:]:
-        parts = ln.split()
-        if not parts or parts[0] in ("comment", "obj_info"):
-            continue
-        if parts[0] == "format":
-            fmt = {"binary_little_endian": "<", "binary_big_endian": ">"}
-            if len(parts) < 2 or parts[1] not in fmt:
-                raise ValueError(f"path: {path}: only binary PLY is supported, got format {' '.join(parts[1:])}")
-            endian = fmt[parts[1]]
-        elif parts[0] == "element":
-            elements.append((parts[1], int(parts[2]), []))
-        elif parts[0] == "property":
-            if not elements:
-                raise ValueError(f"path: {path}: property before any element")
-            if parts[1] == "list":
-                raise ValueError(f"path: {path}: list property {parts[-1]!r} in element {elements[-1][0]!r} is not supported")
-            if parts[1] not in _PLY_TYPES:
-                raise ValueError(f"path: {path}: unknown property type {parts[1]!r}")
-            elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
-    if endian is None:
-        raise ValueError(f"path: {path}: missing 'format' line")
-    offset = body
-    for name, count, props in elements:
-        dtype = np.dtype([(p, endian + t) for p, t in props])
-        if name == "vertex":
-            if len(raw) < offset + count * dtype.itemsize:
-                raise ValueError(f"path: {path}: truncated (vertex data needs {count * dtype.itemsize} bytes)")
-            data = np.frombuffer(raw, dtype=dtype, count=count, offset=offset)
-            return {p: np.ascontiguousarray(data[p]) for p, _ in props}
-        offset += count * dtype.itemsize
-    raise ValueError(f"path: {path}: no 'vertex' element")
 
 
 def model_from_ply_columns(cols: Mapping[str, np.ndarray], device=None, source: str = "ply") -> GaussianModel:

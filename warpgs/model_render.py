@@ -10,6 +10,7 @@ from typing import Optional, Sequence
 
 import torch
 
+from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.render import OUTPUTS as GAUSSIAN_OUTPUTS
 from warpgs.render import RenderOutput, rasterize
 from warpgs.render_surfels import OUTPUTS as SURFEL_OUTPUTS
@@ -31,8 +32,9 @@ def check_outputs(kind: str, outputs: Sequence[str], who: str = "outputs") -> No
 def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
                  outputs: Sequence[str] = ("rgb",), background: Optional[torch.Tensor] = None,
                  features: Optional[torch.Tensor] = None, inputs: Optional[dict] = None,
-                 track_means2d: bool = False, near: float = 0.01, far: float = 1e10, tile_size: int = 16,
-                 max_sigmas: float = 0.0, alpha_min: float = 1.0 / 255.0, transmittance_min: float = 1.0e-4,
+                 track_means2d: bool = False, near: float = 0.01, far: float = 1e10,
+                 tile_size: int = DEFAULT_TILE_SIZE, max_sigmas: float = 0.0, alpha_min: float = DEFAULT_ALPHA_MIN,
+                 transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
                  check_inputs: bool = True) -> RenderOutput:
     """One camera. `inputs` (default: model.render_inputs()) may be edited by the caller, e.g. colours from
     an MLP; `features` [N, C] is rendered when "features" is in outputs. track_means2d is honoured for 3D

@@ -16,6 +16,7 @@ if os.environ.get("WARPGS_CPU_COOPERATIVE") == "1":
     wp.config.enable_cpu_blocks = True
 
 from warpgs.cpu_threads import cpu_threads, run_threads, tile_ranges_per_thread  # noqa: E402
+from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN  # noqa: E402
 from warpgs.kernels import binning, blend, blend_gpu, project  # noqa: E402  (after setting the log level)
 
 
@@ -25,11 +26,11 @@ class Settings:
     height: int
     near: float = 0.01
     far: float = 1e10
-    tile_size: int = 16
+    tile_size: int = DEFAULT_TILE_SIZE
     max_sigmas: float = 0.0  # 0: exact footprint (everything with alpha >= alpha_min)
     sh_degree: int = -1  # -1: plain colours
-    alpha_min: float = 1.0 / 255.0  # blending skips contributions below this alpha (3DGS: 1/255)
-    transmittance_min: float = 1.0e-4  # blending stops before transmittance would drop under this (3DGS: 1e-4)
+    alpha_min: float = DEFAULT_ALPHA_MIN  # blending skips contributions below this alpha (3DGS: 1/255)
+    transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN  # blending stops before transmittance drops under this
 
     @property
     def tiles_x(self) -> int:

@@ -13,6 +13,7 @@ import torch
 import warp as wp
 
 from warpgs import pipeline
+from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.validation import check_finite, check_same_device, check_tensor
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
@@ -149,10 +150,10 @@ def rasterize(
     outputs: Sequence[str] = ("rgb", "alpha"),
     near: float = 0.01,
     far: float = 1e10,
-    tile_size: int = 16,
+    tile_size: int = DEFAULT_TILE_SIZE,
     max_sigmas: float = 0.0,
-    alpha_min: float = 1.0 / 255.0,
-    transmittance_min: float = 1.0e-4,
+    alpha_min: float = DEFAULT_ALPHA_MIN,
+    transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
     check_inputs: bool = True,
     track_means2d: bool = False,
     _means2d_probe: Optional[torch.Tensor] = None,

@@ -14,6 +14,7 @@ import warp as wp
 
 from warpgs import surfel_pipeline
 from warpgs.pipeline import Settings
+from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.render import (DEPTH_EPS, RenderOutput, _check_arguments, _intrinsics_vector, _stack, _to_wp, _wp_device,
                            check_blend_knobs)
 
@@ -120,10 +121,10 @@ def rasterize_surfels(
     outputs: Sequence[str] = ("rgb", "alpha"),
     near: float = 0.01,
     far: float = 1e10,
-    tile_size: int = 16,
+    tile_size: int = DEFAULT_TILE_SIZE,
     max_sigmas: float = 0.0,
-    alpha_min: float = 1.0 / 255.0,
-    transmittance_min: float = 1.0e-4,
+    alpha_min: float = DEFAULT_ALPHA_MIN,
+    transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
     check_inputs: bool = True,
 ) -> RenderOutput:
     """Render N 2D Gaussian surfels from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
@@ -189,7 +190,7 @@ def rasterize_surfels(
 
 
 def surfel_work(means, quats, scales, opacities, viewmat, K, width: int, height: int, *, near: float = 0.01,
-                far: float = 1e10, tile_size: int = 16) -> dict:
+                far: float = 1e10, tile_size: int = DEFAULT_TILE_SIZE) -> dict:
     """For benchmarks: the work one forward pass does on a single camera (no autograd, colour only).
 
     Returns {"evaluations": surfel-pixel evaluations the blending loops perform (each pixel walks its tile's
