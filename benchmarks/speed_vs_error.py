@@ -10,8 +10,10 @@ Knobs swept (one at a time, the others at their defaults, which are the 3DGS rul
 Parameters are stored and rendered in float32 only, so there is no precision knob to sweep.
 
 Render error is the max abs RGB error against the float64 brute-force reference (tests/reference.py, run at the
-default thresholds: the exact 3DGS image) on sampled pixels; times are medians of repeated forward and
-forward+backward calls on a standard random scene (../shared/bench/scenes.py).
+default thresholds: the exact 3DGS image) on sampled pixels. Times are taken on a standard random scene
+(../shared/bench/scenes.py) in --rounds interleaved rounds (every setting once per round, so drift of the
+machine hits all settings alike); a setting's time is the median over rounds of the median of repeated
+calls, and fwd_spread is (max - min) / median of its per-round forward times: differences below that are noise.
 Training (--train-steps > 0): for each setting, `configs/default.yaml` (the built-in synthetic orbit scene) is
 trained for that many steps with the knob set in the trainer (train.<knob>, model.sh_degree), and the held-out
 PSNR and training wall time are recorded. Settings with the same effective configuration are trained once.
@@ -109,6 +111,22 @@ def train_psnr(knobs: dict, steps: int, device: str, workdir: Path) -> dict:
                 primitives=trainer.model.num_primitives)
 
 
+def interleaved_timings(scene, W, H, settings, device, repeats, rounds):
+    """{setting key: (fwd_ms, fwd_bwd_ms, fwd_spread)}, timing every setting once per round."""
+    per_round = {key: [] for key in settings}
+    for r in range(rounds):
+        for key, knobs in settings.items():
+            per_round[key].append(timings(scene, W, H, knobs, device, repeats))
+        print(f"timing round {r + 1}/{rounds} done", flush=True)
+    out = {}
+    for key, values in per_round.items():
+        fwd = sorted(v[0] for v in values)
+        fb = sorted(v[1] for v in values)
+        median_fwd = fwd[len(fwd) // 2]
+        out[key] = (median_fwd, fb[len(fb) // 2], (fwd[-1] - fwd[0]) / median_fwd)
+    return out
+
+
 def pareto(rows, x, y, better_y_is_lower):
     """Rows not beaten on both x (time, lower is better) and y by another row."""
     def beats(o, r):
@@ -156,6 +174,7 @@ def main():
     ap.add_argument("--pixels", type=int, default=96)
     ap.add_argument("--train-steps", type=int, default=300, help="training budget per setting (0: no training)")
     ap.add_argument("--only", default="", help="comma-separated knobs to sweep (default: all)")
+    ap.add_argument("--rounds", type=int, default=None, help="interleaved timing rounds (default: 5 GPU, 3 CPU)")
     args = ap.parse_args()
     W, H = (int(v) for v in args.resolution.split("x"))
     scene, W, H = degree3_scene(args.n, W, H, args.device)
@@ -163,33 +182,38 @@ def main():
     pixels = torch.stack([torch.randint(0, W, (args.pixels,), generator=g),
                           torch.randint(0, H, (args.pixels,), generator=g)], -1).to(args.device)
     ref = reference_rgb(scene, W, H, pixels)
-    repeats = 20 if args.device.startswith("cuda") else 3
+    gpu = args.device.startswith("cuda")
+    repeats = 20 if gpu else 3
+    rounds = args.rounds or (5 if gpu else 3)
     knobs_swept = [k for k in SWEEPS if not args.only or k in args.only.split(",")]
-    trained = {}  # effective settings -> training result (defaults recur in every sweep)
+    sweep = [(knob, value, dict(DEFAULTS, **{knob: value})) for knob in knobs_swept for value in SWEEPS[knob]]
+    settings = {tuple(sorted(knobs.items())): knobs for _, _, knobs in sweep}  # the defaults recur in every sweep
+    timed = interleaved_timings(scene, W, H, settings, args.device, repeats, rounds)
+    trained = {}  # effective settings -> training result
     rows = []
     with tempfile.TemporaryDirectory(prefix="warpgs-speed-vs-error-") as tmp:
-        for knob in knobs_swept:
-            for value in SWEEPS[knob]:
-                knobs = dict(DEFAULTS, **{knob: value})
-                fwd_ms, fb_ms = timings(scene, W, H, knobs, args.device, repeats)
-                row = dict(knob=knob, value=value, fwd_ms=fwd_ms, fwd_bwd_ms=fb_ms,
-                           max_err=rgb_error(scene, W, H, knobs, pixels, ref))
-                if args.train_steps > 0:
-                    key = tuple(sorted(knobs.items()))
-                    if key not in trained:
-                        trained[key] = train_psnr(knobs, args.train_steps, args.device, Path(tmp) / f"run{len(trained)}")
-                    row.update(trained[key])
-                rows.append(row)
-                print(f"{knob}={value:.4g}: fwd {fwd_ms:.2f} ms, fwd+bwd {fb_ms:.2f} ms, max err {row['max_err']:.2e}"
-                      + (f", PSNR {row['psnr']:.2f} dB ({row['train_s']:.0f} s)" if "psnr" in row else ""), flush=True)
+        for knob, value, knobs in sweep:
+            key = tuple(sorted(knobs.items()))
+            fwd_ms, fb_ms, spread = timed[key]
+            row = dict(knob=knob, value=value, fwd_ms=fwd_ms, fwd_bwd_ms=fb_ms, fwd_spread=spread,
+                       max_err=rgb_error(scene, W, H, knobs, pixels, ref))
+            if args.train_steps > 0:
+                if key not in trained:
+                    trained[key] = train_psnr(knobs, args.train_steps, args.device, Path(tmp) / f"run{len(trained)}")
+                row.update(trained[key])
+            rows.append(row)
+            print(f"{knob}={value:.4g}: fwd {fwd_ms:.2f} ms, fwd+bwd {fb_ms:.2f} ms, max err {row['max_err']:.2e}"
+                  + (f", PSNR {row['psnr']:.2f} dB ({row['train_s']:.0f} s)" if "psnr" in row else ""), flush=True)
     fronts = {"max_err": pareto(rows, "fwd_ms", "max_err", True), "psnr": pareto(rows, "fwd_ms", "psnr", False)}
     print(f"\n{args.n} Gaussians (SH degree 3) at {W}x{H} on {args.device}; training budget {args.train_steps} steps")
-    print_table(rows, ["knob", "value", "fwd_ms", "fwd_bwd_ms", "max_err", "psnr", "train_s", "primitives"])
+    print_table(rows, ["knob", "value", "fwd_ms", "fwd_bwd_ms", "fwd_spread", "max_err", "psnr", "train_s",
+                       "primitives"])
     for y, front in fronts.items():
         if front:
             print(f"Pareto front (forward time vs {y}): " + ", ".join(f"{r['knob']}={r['value']:.4g}" for r in front))
     path = write_json(f"speed_vs_error_{args.device.split(':')[0]}", dict(
-        n=args.n, width=W, height=H, device=args.device, train_steps=args.train_steps,
+        n=args.n, width=W, height=H, device=args.device, train_steps=args.train_steps, timing_rounds=rounds,
+        repeats_per_round=repeats,
         train_config="configs/default.yaml", defaults=DEFAULTS, rows=rows, pareto=fronts))
     try:
         png = path.with_suffix(".png")

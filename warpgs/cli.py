@@ -33,8 +33,11 @@ QUICK_RUN = {
 
 
 def configs_dir() -> Path:
-    """configs/ of a source checkout (or editable install): beside the warpgs package."""
-    return Path(__file__).resolve().parent.parent / "configs"
+    """The YAML presets: configs/ beside the package in a source checkout (or editable install), else the copy
+    a wheel ships as warpgs/configs."""
+    here = Path(__file__).resolve().parent
+    source = here.parent / "configs"
+    return source if source.is_dir() else here / "configs"
 
 
 def resolve_config_source(name: Optional[str]):

@@ -30,7 +30,9 @@ class DataConfig:
     split: Optional[str] = None  # None: split.json when present else all train (light fields: "grid"); "llff", "all"
     n_train: Optional[int] = None  # keep this many training views (evenly spread)
     downscale: int = 1  # serve images at 1/downscale (1, 2, 4, 8)
-    depth_priors: Optional[str] = "auto"  # "auto": the scene's prior files if any; "none"; or a folder of priors
+    depth_priors: Optional[str] = "auto"  # "auto": the scene's prior files if any; "none"; "estimate": plane-sweep
+    #                                       stereo aligned to the SfM points, written to <output>/depth_priors;
+    #                                       or a folder of priors
     preload: bool = True  # keep all training views on the device
 
 

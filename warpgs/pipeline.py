@@ -201,13 +201,9 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
         features=wp.zeros((npix, want.num_features) if want.num_features else (1, 1), dtype=float, device=dev),
         last=wp.empty(npix, dtype=wp.int32, device=dev),
     )
-    coop = _cooperative(dev)
-    block_dim = _block_dims(s)[0] if coop else 1
-    if coop:  # features as length-C vectors (see blend_gpu)
-        kernel = blend_gpu.forward_kernel(block_dim, want.num_features)
-        features, out_features = (feature_vectors(a, want.num_features) for a in (features, out.features))
-    else:
-        kernel, out_features = blend.blend_forward, out.features
+    kernel, block_dim, kernel_features = choose_blend_kernel(dev, s, want.num_features, blend.blend_forward,
+                                                             blend_gpu, backward=False)
+    features, out_features = kernel_features(features), kernel_features(out.features)
     head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
 
     def work(_thread, chunks):  # each chunk writes only its own pixels
@@ -227,15 +223,9 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
     CPU threads would race on those sums (Warp's CPU atomics are plain adds), so every thread but the first
     accumulates into private buffers that are added in afterwards."""
     dev = p.means2d.device
-    adj_features = features.grad
-    coop = _cooperative(dev)  # GPU: blocks of consecutive pixels of a tile; CPU: one thread per pixel
-    block_dim = _block_dims(s)[1] if coop else 1
-    if coop:  # features as length-C vectors (see blend_gpu)
-        kernel = blend_gpu.backward_kernel(block_dim, _block_reduce(), want.num_features)
-        features, grad_features, adj_features = (feature_vectors(a, want.num_features)
-                                                 for a in (features, grad_features, adj_features))
-    else:
-        kernel = blend.blend_backward
+    kernel, block_dim, kernel_features = choose_blend_kernel(dev, s, want.num_features, blend.blend_backward,
+                                                             blend_gpu, backward=True)
+    features, grad_features, adj_features = (kernel_features(a) for a in (features, grad_features, features.grad))
     targets = [p.means2d.grad, p.conics.grad, opacities.grad, p.colors.grad, p.depths.grad, adj_features]
     head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
     tail = [fwd.transmittance, fwd.last, grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features]
@@ -244,11 +234,28 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
 
     def work(thread, chunks):
         for first, count in chunks:
-            wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [blend_params(s, want, first)] + tail + buffers[thread],
-                      device=dev, block_dim=block_dim)
+            wp.launch(kernel, dim=count * s.tile_size**2,
+                      inputs=head + [blend_params(s, want, first)] + tail + buffers[thread], device=dev,
+                      block_dim=block_dim)
 
     run_threads(work, per_thread)
     _merge_gradient_buffers(buffers)
+
+
+def choose_blend_kernel(device, s: Settings, num_features: int, per_thread_kernel, cooperative_kernels,
+                        backward: bool):
+    """(kernel, block_dim, kernel_features) for a blend launch: on the CPU the per-thread kernel, one thread per
+    block, features as [rows, C] arrays; on GPUs the block-cooperative kernel of `cooperative_kernels`
+    (blend_gpu or surfel_blend_gpu) compiled for this block size and feature count, features as length-C
+    vectors. kernel_features converts a features array (inputs, outputs or gradients) for the kernel."""
+    if not _cooperative(device):
+        return per_thread_kernel, 1, (lambda a: a)
+    fwd_block, bwd_block = _block_dims(s)
+    if backward:
+        kernel = cooperative_kernels.backward_kernel(bwd_block, _block_reduce(), num_features)
+    else:
+        kernel = cooperative_kernels.forward_kernel(fwd_block, num_features)
+    return kernel, (bwd_block if backward else fwd_block), (lambda a: feature_vectors(a, num_features))
 
 
 def feature_vectors(a, num_features: int):

@@ -15,14 +15,11 @@ from warpgs.pipeline import (
     Bins,
     Settings,
     Wanted,
-    _block_dims,
-    _block_reduce,
-    _cooperative,
     _gradient_buffers,
     _merge_gradient_buffers,
     _tile_launches,
     blend_params,
-    feature_vectors,
+    choose_blend_kernel,
     sort_into_tiles,
 )
 from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
@@ -126,13 +123,9 @@ def blend_forward(p: SurfelProjected, bins: Bins, opacities, features, s: Settin
         features=wp.zeros((npix, want.num_features) if want.num_features else (1, 1), dtype=float, device=dev),
         last=image(True, wp.int32),
     )
-    coop = _cooperative(dev)
-    block_dim = _block_dims(s)[0] if coop else 1
-    if coop:  # features as length-C vectors (see blend_gpu)
-        kernel = surfel_blend_gpu.forward_kernel(block_dim, want.num_features)
-        features, out_features = (feature_vectors(a, want.num_features) for a in (features, out.features))
-    else:
-        kernel, out_features = surfel_blend.blend_forward, out.features
+    kernel, block_dim, kernel_features = choose_blend_kernel(dev, s, want.num_features, surfel_blend.blend_forward,
+                                                             surfel_blend_gpu, backward=False)
+    features, out_features = kernel_features(features), kernel_features(out.features)
     head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
     outputs = [out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.normal, out.median,
                out.median_index, out.distortion, out.dist_stats, out_features, out.last]
@@ -152,15 +145,9 @@ def blend_backward(p: SurfelProjected, bins: Bins, opacities, features, s: Setti
     Accumulates into the .grad of the projected arrays, opacities and features (on the CPU, threads other than
     the first accumulate privately and are added in afterwards: Warp's CPU atomics are plain adds)."""
     dev = p.means2d.device
-    grad_features, adj_features = grads["features"], features.grad
-    coop = _cooperative(dev)  # GPU: blocks of consecutive pixels of a tile; CPU: one thread per pixel
-    block_dim = _block_dims(s)[1] if coop else 1
-    if coop:  # features as length-C vectors (see blend_gpu)
-        kernel = surfel_blend_gpu.backward_kernel(block_dim, _block_reduce(), want.num_features)
-        features, grad_features, adj_features = (feature_vectors(a, want.num_features)
-                                                 for a in (features, grad_features, adj_features))
-    else:
-        kernel = surfel_blend.blend_backward
+    kernel, block_dim, kernel_features = choose_blend_kernel(dev, s, want.num_features, surfel_blend.blend_backward,
+                                                             surfel_blend_gpu, backward=True)
+    features, grad_features, adj_features = (kernel_features(a) for a in (features, grads["features"], features.grad))
     targets = [p.transforms.grad, p.means2d.grad, p.depths.grad, opacities.grad, p.colors.grad, p.normals.grad,
                adj_features]
     head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)

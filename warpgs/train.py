@@ -62,12 +62,12 @@ class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin,
         self.device = train_setup.resolve_device(cfg.train.device)
         self.terms = _resolve_terms(cfg.losses)
 
-        self.scene = scene if scene is not None else train_setup.load_training_scene(cfg.data)
         if out_dir is not None:
             cfg.output.dir = str(out_dir)
         if cfg.output.dir is None:
             cfg.output.dir = str(Path("outputs") / train_setup.scene_label(cfg.data))
         self.out_dir = Path(cfg.output.dir)
+        self.scene = scene if scene is not None else train_setup.load_training_scene(cfg.data, self.out_dir)
         self.checkpoint_path = self.out_dir / cfg.output.checkpoint
         self.extent = train_setup.scene_extent(self.scene, cfg.train.scene_extent)
         self.background = train_setup.resolve_background(cfg.train.background, self.scene, self.device)

@@ -32,9 +32,11 @@ def scene_label(data: DataConfig) -> str:
     return re.sub(r"[^\w.-]+", "_", name) or "scene"
 
 
-def load_training_scene(data: DataConfig):
-    """The scene a config names (data.path None: the built-in synthetic scene, generated once and cached)."""
-    from warpgs.data import default_scene, load_scene
+def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
+    """The scene a config names (data.path None: the built-in synthetic scene, generated once and cached).
+    data.depth_priors "estimate" runs the built-in plane-sweep stereo on the training views, aligns it to the SfM
+    points and writes the priors to <out_dir>/depth_priors (never into the scene's own folder)."""
+    from warpgs.data import compute_depth_priors, default_scene, load_scene
 
     path = default_scene(data.synthetic, data.width, data.height) if data.path is None else Path(data.path)
     scene = load_scene(path, split=data.split, n_train=data.n_train, downscale=data.downscale)
@@ -43,6 +45,10 @@ def load_training_scene(data: DataConfig):
         if scene.has("depth_prior"):
             scene = copy.copy(scene)
             scene.files = [dataclasses.replace(f, depth_prior=None) for f in scene.files]
+    elif prior == "estimate":
+        if out_dir is None:
+            raise ValueError("data.depth_priors: 'estimate' needs an output folder to write the priors to")
+        scene, _report = compute_depth_priors(scene, out_dir=Path(out_dir) / "depth_priors")
     elif prior != "auto":
         folder = Path(prior)
         if not folder.is_absolute() and not folder.is_dir():

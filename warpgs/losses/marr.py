@@ -144,7 +144,8 @@ def prior_and_mask(batch, like: torch.Tensor, alpha: Optional[torch.Tensor] = No
         prior = batch_field(batch, PRIOR_KEY)
     except ValueError:
         raise ValueError(f"batch: the depth terms need {PRIOR_KEY!r} (an aligned inverse-depth prior): the scene has "
-                         "none for this view; set data.depth_priors, or give depth/depth_grad/depth_local weight 0"
+                         "none for this view; set data.depth_priors (a folder of priors, or 'estimate' for the built-in "
+                         "plane-sweep stereo), or give depth/depth_grad/depth_local weight 0"
                          ) from None
     prior = _bchw(prior, f"batch.{PRIOR_KEY}").to(like)
     if prior.shape[-2:] != like.shape[-2:]:
