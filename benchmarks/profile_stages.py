@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from contextlib import contextmanager
 
@@ -13,10 +14,10 @@ import warp as wp
 
 from common import print_table, standard_scenes_module, sync
 from warpgs import pipeline, rasterize
+from warpgs.raster_defaults import DEFAULT_TILE_SIZE
 from warpgs.render import _intrinsics_vector
 
-import os
-TILE = int(os.environ.get("TILE", 16))
+TILE = int(os.environ.get("TILE", DEFAULT_TILE_SIZE))  # TILE=16 profiles another tile size
 
 
 @contextmanager

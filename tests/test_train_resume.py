@@ -27,7 +27,15 @@ def uninterrupted(tmp_path_factory):
     return result, {n: p.detach().clone() for n, p in trainer.model.params.items()}
 
 
-def test_sigint_checkpoints_at_step_boundary_and_resume_is_exact(tmp_path, uninterrupted):
+@pytest.fixture
+def default_sigint():
+    """Python's own Ctrl-C handler for the test (a background job starts with SIGINT ignored), restored after."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_sigint_checkpoints_at_step_boundary_and_resume_is_exact(tmp_path, uninterrupted, default_sigint):
     reference, ref_params = uninterrupted
 
     def press_ctrl_c(trainer, step, info):
