@@ -89,6 +89,37 @@ def emit_tile_keys(
 
 
 @wp.kernel
+def emit_tile_keys_per_pair(
+    rects: wp.array(dtype=wp.vec4i),
+    offsets: wp.array(dtype=wp.int32),  # inclusive prefix sum of counts
+    counts: wp.array(dtype=wp.int32),
+    depth_bits: wp.array(dtype=wp.int32),
+    tiles_x: int,
+    num_primitives: int,
+    keys: wp.array(dtype=wp.int64),
+    values: wp.array(dtype=wp.int32),
+):
+    """The same keys as `emit_tile_keys`, one thread per (primitive, tile) pair instead of per primitive: a large
+    primitive's thousands of tiles no longer serialise on one GPU thread, and writes are coalesced. Each thread
+    finds its primitive by binary search in the prefix sum (worth it on GPUs; the CPU keeps the loop)."""
+    k = wp.tid()
+    lo = int(0)
+    hi = num_primitives - 1
+    while lo < hi:  # the first primitive whose range ends after k
+        mid = (lo + hi) / 2
+        if offsets[mid] > k:
+            hi = mid
+        else:
+            lo = mid + 1
+    r = rects[lo]
+    local = k - (offsets[lo] - counts[lo])
+    width = r[2] - r[0] + 1
+    tile = wp.int64((r[1] + local / width) * tiles_x + r[0] + local % width)
+    keys[k] = (tile << wp.int64(32)) | wp.int64(depth_bits[lo])
+    values[k] = lo
+
+
+@wp.kernel
 def tile_ranges(
     keys: wp.array(dtype=wp.int64),
     count: int,

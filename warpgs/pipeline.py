@@ -136,9 +136,14 @@ def sort_into_tiles(rects, counts, depths, q_cut, s: Settings) -> Bins:
     tile_start = wp.zeros(s.num_tiles, dtype=wp.int32, device=dev)
     tile_end = wp.zeros(s.num_tiles, dtype=wp.int32, device=dev)
     if total > 0:
-        wp.launch(binning.emit_tile_keys, dim=n,
-                  inputs=[rects, offsets, counts, depths.view(wp.int32), s.tiles_x], outputs=[keys, values],
-                  device=dev)
+        if dev.is_cpu:  # a loop per primitive: few threads, no search
+            wp.launch(binning.emit_tile_keys, dim=n,
+                      inputs=[rects, offsets, counts, depths.view(wp.int32), s.tiles_x], outputs=[keys, values],
+                      device=dev)
+        else:  # a thread per (primitive, tile) pair: balanced across the GPU
+            wp.launch(binning.emit_tile_keys_per_pair, dim=total,
+                      inputs=[rects, offsets, counts, depths.view(wp.int32), s.tiles_x, n], outputs=[keys, values],
+                      device=dev)
         tile_bits = max(1, (s.num_tiles - 1).bit_length())
         wp.utils.radix_sort_pairs(keys, values, total, begin_bit=0, end_bit=32 + tile_bits)
         wp.launch(binning.tile_ranges, dim=total, inputs=[keys, total], outputs=[tile_start, tile_end], device=dev)
