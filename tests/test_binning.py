@@ -1,18 +1,36 @@
-"""Tile-key emission: the GPU's one-thread-per-pair kernel writes exactly what the per-primitive loop writes."""
+"""Tile binning: pairs sorted by (tile, depth) with ties by primitive index, whatever kernel emits them."""
 import numpy as np
 import pytest
 import warp as wp
 
+from warpgs import pipeline
 from warpgs.kernels import binning
 
 
-def emit(kernel, rects, counts, depth_bits, tiles_x):
-    offsets = np.cumsum(counts).astype(np.int32)
+def random_rects(seed, n=300, tiles_x=13, tiles_y=9):
+    """Rectangles of 1-36 tiles, 30% culled (count 0, as the footprint kernels leave them), depths with ties."""
+    rng = np.random.default_rng(seed)
+    x0, y0 = rng.integers(0, tiles_x, n), rng.integers(0, tiles_y, n)
+    x1 = np.minimum(x0 + rng.integers(0, 6, n), tiles_x - 1)
+    y1 = np.minimum(y0 + rng.integers(0, 6, n), tiles_y - 1)
+    culled = rng.random(n) < 0.3
+    rects = np.stack([x0, y0, x1, y1], 1).astype(np.int32)
+    rects[culled] = (0, 0, -1, -1)
+    counts = np.where(culled, 0, (x1 - x0 + 1) * (y1 - y0 + 1)).astype(np.int32)
+    depths = rng.choice(np.linspace(0.5, 9.0, n // 3), n).astype(np.float32)  # about 3 primitives per depth
+    return rects, counts, depths
+
+
+def cpu(a, dtype):
+    return wp.array(a, dtype=dtype, device="cpu")
+
+
+def emit(kernel, rects, counts, order, tiles_x):
+    offsets = np.cumsum(counts[order]).astype(np.int32)
     total = int(offsets[-1])
-    arr = lambda a, dt: wp.array(a, dtype=dt, device="cpu")  # noqa: E731
-    keys = wp.zeros(total, dtype=wp.int64, device="cpu")
+    keys = wp.zeros(total, dtype=wp.int32, device="cpu")
     values = wp.zeros(total, dtype=wp.int32, device="cpu")
-    inputs = [arr(rects, wp.vec4i), arr(offsets, wp.int32), arr(counts, wp.int32), arr(depth_bits, wp.int32), tiles_x]
+    inputs = [cpu(rects, wp.vec4i), cpu(order, wp.int32), cpu(offsets, wp.int32), cpu(counts, wp.int32), tiles_x]
     if kernel is binning.emit_tile_keys:
         wp.launch(kernel, dim=len(counts), inputs=inputs, outputs=[keys, values], device="cpu")
     else:
@@ -22,18 +40,33 @@ def emit(kernel, rects, counts, depth_bits, tiles_x):
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_per_pair_emission_matches_the_per_primitive_loop(seed):
-    rng = np.random.default_rng(seed)
-    n, tiles_x, tiles_y = 300, 13, 9
-    x0, y0 = rng.integers(0, tiles_x, n), rng.integers(0, tiles_y, n)
-    x1 = np.minimum(x0 + rng.integers(0, 6, n), tiles_x - 1)
-    y1 = np.minimum(y0 + rng.integers(0, 6, n), tiles_y - 1)
-    culled = rng.random(n) < 0.3  # culled primitives touch no tile (count 0), as the footprint kernel leaves them
-    rects = np.stack([x0, y0, x1, y1], 1).astype(np.int32)
-    rects[culled] = (0, 0, -1, -1)
-    counts = np.where(culled, 0, (x1 - x0 + 1) * (y1 - y0 + 1)).astype(np.int32)
-    depth_bits = rng.random(n).astype(np.float32).view(np.int32)
-    loop_keys, loop_values = emit(binning.emit_tile_keys, rects, counts, depth_bits, tiles_x)
-    pair_keys, pair_values = emit(binning.emit_tile_keys_per_pair, rects, counts, depth_bits, tiles_x)
-    assert len(loop_keys) == counts.sum() > 1000
-    np.testing.assert_array_equal(pair_keys, loop_keys)
-    np.testing.assert_array_equal(pair_values, loop_values)
+    rects, counts, depths = random_rects(seed)
+    order = np.argsort(depths, kind="stable").astype(np.int32)
+    loop = emit(binning.emit_tile_keys, rects, counts, order, 13)
+    pair = emit(binning.emit_tile_keys_per_pair, rects, counts, order, 13)
+    assert len(loop[0]) == counts.sum() > 1000
+    np.testing.assert_array_equal(pair[0], loop[0])
+    np.testing.assert_array_equal(pair[1], loop[1])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sorted_pairs_follow_tile_then_depth_then_index(seed):
+    tiles_x, tiles_y = 13, 9
+    rects, counts, depths = random_rects(seed, tiles_x=tiles_x, tiles_y=tiles_y)
+    s = pipeline.Settings(width=tiles_x * 8, height=tiles_y * 8, tile_size=8)
+    with wp.ScopedDevice("cpu"):
+        bins = pipeline.sort_into_tiles(cpu(rects, wp.vec4i), cpu(counts, wp.int32), cpu(depths, wp.float32),
+                                        None, s)
+    # Reference: every (tile, primitive) pair, ordered by tile, then depth, then primitive index.
+    pairs = [(ty * tiles_x + tx, depths[i], i) for i in range(len(counts)) if counts[i]
+             for ty in range(rects[i, 1], rects[i, 3] + 1) for tx in range(rects[i, 0], rects[i, 2] + 1)]
+    pairs.sort()
+    assert bins.num_intersections == len(pairs)
+    np.testing.assert_array_equal(bins.sorted_ids.numpy(), [p[2] for p in pairs])
+    start, end = bins.tile_start.numpy(), bins.tile_end.numpy()
+    for tile in range(tiles_x * tiles_y):
+        in_tile = [k for k, p in enumerate(pairs) if p[0] == tile]
+        if in_tile:
+            assert (start[tile], end[tile]) == (in_tile[0], in_tile[-1] + 1)
+        else:
+            assert start[tile] == end[tile]

@@ -122,30 +122,36 @@ def bin_gaussians(p: Projected, opacities, s: Settings) -> Bins:
 
 
 def sort_into_tiles(rects, counts, depths, q_cut, s: Settings) -> Bins:
-    """Shared by every primitive kind: (tile, depth) keys for each primitive's tile rectangle, radix-sorted,
-    and each tile's [start, end) range in the sorted list. `depths` must be positive float32."""
+    """Shared by every primitive kind: each primitive's tile rectangle as (tile, primitive) pairs sorted by tile,
+    then depth, and each tile's [start, end) range in the sorted list. `depths` must be positive float32.
+    Two stable radix sorts (see kernels/binning.py): the primitives by depth, then their pairs by tile index."""
     n = counts.shape[0]
     dev = counts.device
     total = 0
-    offsets = wp.empty(n, dtype=wp.int32, device=dev)
-    if n > 0:
-        wp.utils.array_scan(counts, offsets, inclusive=True)
-        total = int(offsets[n - 1 : n].numpy()[0])  # the one host sync: sizes the key buffer
-    keys = wp.empty(2 * max(total, 1), dtype=wp.int64, device=dev)  # the sort needs 2x room
-    values = wp.empty(2 * max(total, 1), dtype=wp.int32, device=dev)
     tile_start = wp.zeros(s.num_tiles, dtype=wp.int32, device=dev)
     tile_end = wp.zeros(s.num_tiles, dtype=wp.int32, device=dev)
+    if n > 0:
+        depth_keys = wp.empty(2 * n, dtype=wp.int32, device=dev)  # radix sorts need 2x room
+        order = wp.empty(2 * n, dtype=wp.int32, device=dev)
+        wp.launch(binning.depth_sort_keys, dim=n, inputs=[depths.view(wp.int32)], outputs=[depth_keys, order],
+                  device=dev)
+        wp.utils.radix_sort_pairs(depth_keys, order, n)
+        ordered_counts = wp.empty(n, dtype=wp.int32, device=dev)
+        wp.launch(binning.counts_in_order, dim=n, inputs=[order, counts], outputs=[ordered_counts], device=dev)
+        offsets = wp.empty(n, dtype=wp.int32, device=dev)
+        wp.utils.array_scan(ordered_counts, offsets, inclusive=True)
+        total = int(offsets[n - 1 : n].numpy()[0])  # the one host sync: sizes the pair buffers
+    keys = wp.empty(2 * max(total, 1), dtype=wp.int32, device=dev)
+    values = wp.empty(2 * max(total, 1), dtype=wp.int32, device=dev)
     if total > 0:
         if dev.is_cpu:  # a loop per primitive: few threads, no search
-            wp.launch(binning.emit_tile_keys, dim=n,
-                      inputs=[rects, offsets, counts, depths.view(wp.int32), s.tiles_x], outputs=[keys, values],
-                      device=dev)
+            wp.launch(binning.emit_tile_keys, dim=n, inputs=[rects, order, offsets, counts, s.tiles_x],
+                      outputs=[keys, values], device=dev)
         else:  # a thread per (primitive, tile) pair: balanced across the GPU
-            wp.launch(binning.emit_tile_keys_per_pair, dim=total,
-                      inputs=[rects, offsets, counts, depths.view(wp.int32), s.tiles_x, n], outputs=[keys, values],
-                      device=dev)
+            wp.launch(binning.emit_tile_keys_per_pair, dim=total, inputs=[rects, order, offsets, counts, s.tiles_x, n],
+                      outputs=[keys, values], device=dev)
         tile_bits = max(1, (s.num_tiles - 1).bit_length())
-        wp.utils.radix_sort_pairs(keys, values, total, begin_bit=0, end_bit=32 + tile_bits)
+        wp.utils.radix_sort_pairs(keys, values, total, begin_bit=0, end_bit=tile_bits)
         wp.launch(binning.tile_ranges, dim=total, inputs=[keys, total], outputs=[tile_start, tile_end], device=dev)
     return Bins(tile_start, tile_end, values[: max(total, 1)], total, counts, q_cut)
 
