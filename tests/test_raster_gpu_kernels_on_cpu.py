@@ -13,7 +13,8 @@ HERE = Path(__file__).parent
 @pytest.mark.parametrize("block_reduce", ["1", "0"])
 def test_cooperative_kernels_match_the_reference(block_reduce):
     env = dict(os.environ, WARPGS_CPU_COOPERATIVE="1", WARPGS_BLOCK_REDUCE=block_reduce)
-    tests = [str(HERE / "test_raster_forward.py"), str(HERE / "test_raster_gradients.py")]
+    tests = [str(HERE / "test_raster_forward.py"), str(HERE / "test_raster_gradients.py"),
+             str(HERE / "test_raster_knobs.py")]  # the knobs file covers the surfel kernels at other thresholds too
     if block_reduce == "0":
         tests = [str(HERE / "test_raster_gradients.py") + "::test_gradients_of_all_inputs_match_reference"]
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *tests],

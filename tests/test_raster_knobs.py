@@ -8,6 +8,7 @@ from random_scenes import random_scene
 from raster_helpers import render_ours, render_ref, requested
 from reference_surfels import random_surfel_scene, render_surfels_ours, render_surfels_ref
 from test_raster_gradients import compare, gradients
+import test_surfels_gradients as surfel_grads
 
 TOL = 1e-4
 KNOBS = [dict(alpha_min=0.05, transmittance_min=1e-4), dict(alpha_min=1 / 255, transmittance_min=0.2),
@@ -55,6 +56,19 @@ def test_surfels_forward_follows_reference_at_other_thresholds(knobs):
         assert max_err(ours, ref, name) <= TOL, name
 
 
+@pytest.mark.parametrize("knobs", KNOBS[::2])
+def test_surfels_gradients_follow_reference_at_other_thresholds(knobs):
+    scene = random_surfel_scene(n=40, seed=6, num_features=2)
+    outputs = ("rgb", "alpha", "depth", "normal", "features")
+    weights = surfel_grads.weights_for(scene, outputs, seed=12)
+    bg = torch.tensor([0.3, 0.2, 0.7], dtype=torch.float64)
+    ours = surfel_grads.gradients(lambda s, b: render_surfels_ours(s, outputs, background=b, **knobs), scene,
+                                  weights, bg, torch.float32)
+    ref = surfel_grads.gradients(lambda s, b: render_surfels_ref(s, background=b, **knobs), scene, weights, bg,
+                                 torch.float64)
+    surfel_grads.compare(ours, ref)
+
+
 def test_a_higher_alpha_threshold_drops_tile_work():
     scene = random_scene(n=48, seed=7)
     base = render_ours(scene, ("rgb",))
@@ -63,7 +77,8 @@ def test_a_higher_alpha_threshold_drops_tile_work():
 
 
 @pytest.mark.parametrize("name,value", [("alpha_min", 0.0), ("alpha_min", 0.995), ("transmittance_min", 1.0),
-                                        ("transmittance_min", -0.1), ("max_sigmas", -1.0)])
+                                        ("transmittance_min", -0.1), ("transmittance_min", 0.0),
+                                        ("max_sigmas", -1.0)])
 def test_bad_knob_values_are_refused_by_name(name, value):
     scene = random_scene(n=8, seed=0)
     with pytest.raises(ValueError, match=name):

@@ -85,3 +85,22 @@ def test_bad_arguments(over, match):
 def test_not_a_tensor():
     with pytest.raises(ValueError, match="means: expected a torch.Tensor"):
         call(means=[[0.0, 0.0, 1.0]] * 8)
+
+
+def test_transposed_inputs_that_need_gradients_work():
+    """A transposed (non-contiguous) leaf still renders and gets its gradient (the grad buffer is contiguous)."""
+    import torch
+
+    from random_scenes import random_scene
+    from warpgs import rasterize
+
+    s = random_scene(n=20, seed=0, num_features=3)
+    feats = s["features"].float().t().contiguous().t().detach().requires_grad_(True)  # plain [N, 3]
+    feats_t = s["features"].float().t().detach().requires_grad_(True)  # [3, N]; .t() gives a strided [N, 3]
+    outs = []
+    for leaf, f in ((feats, feats), (feats_t, feats_t.t())):
+        out = rasterize(*(s[k].float() for k in ("means", "quats", "scales", "opacities", "colors", "viewmat", "K")),
+                        s["width"], s["height"], features=f, outputs=("features",))
+        out.features.sum().backward()
+        outs.append(leaf.grad.t() if leaf is feats_t else leaf.grad)
+    assert torch.allclose(outs[0], outs[1]) and outs[0].abs().sum() > 0

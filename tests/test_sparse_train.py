@@ -82,3 +82,17 @@ def test_estimated_priors_are_written_to_the_output_folder(tmp_path):
     info = trainer.train_step()
     assert {"depth", "depth_grad", "depth_local"} <= set(info["values"])
     assert all(math.isfinite(v) for v in info["values"].values())
+
+
+def test_estimated_priors_are_reused_by_a_later_trainer(tmp_path, monkeypatch):
+    run(tmp_path, "data.depth_priors=estimate")
+    stamps = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "depth_priors").glob("*.exr")}
+    import warpgs.data as data
+
+    def no_estimate(*args, **kwargs):
+        raise AssertionError("the priors were estimated again")
+
+    monkeypatch.setattr(data, "compute_depth_priors", no_estimate)
+    again = run(tmp_path, "data.depth_priors=estimate")
+    assert all(again.scene.files[v].depth_prior is not None for v in again.scene.train)
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "depth_priors").glob("*.exr")} == stamps

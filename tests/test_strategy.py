@@ -121,6 +121,18 @@ def test_size_pruning_starts_late():
     assert m.scales.max() < 0.1
 
 
+def test_primitives_the_renderer_cannot_see_are_pruned():
+    # Opacities 0.02 and 0.5, both above prune_opacity (0.005); with the renderer's alpha_min at 0.05 the first
+    # never reaches a tile (no gradient, ever), so it goes; with the default alpha_min it stays.
+    for alpha_min, pruned in ((0.05, 1), (1 / 255, 0)):
+        m = make([0.005, 0.005], [0.02, 0.5])
+        opt = adam_with_state(m)
+        s = DensifyStrategy(StrategyConfig(prune_screen_radius=0), invisible_below=alpha_min)
+        s.initialize(m)
+        assert feed(s, m, opt, 600, [LOW, LOW])["pruned"] == pruned
+        assert m.opacities.min() > alpha_min
+
+
 def test_screen_size_pruning():
     # Both small in the world (world pruning off), but 0 sits right in front of the camera: large on screen.
     m = make([0.005, 0.005], [0.5, 0.5])

@@ -57,6 +57,8 @@ def test_unknown_key_names_it_and_suggests(override, key, words):
     ("model.init_opacity=1.5", "model.init_opacity"),
     ("train.alpha_min=0", "train.alpha_min"),
     ("train.transmittance_min=1", "train.transmittance_min"),
+    ("train.transmittance_min=0", "train.transmittance_min"),
+    ("train.alpha_min=0.2", "train.alpha_min"),  # not below model.init_opacity (0.1)
     ("train.max_sigmas=-2", "train.max_sigmas"),
 ])
 def test_bad_value_names_the_key(override, key):
@@ -112,3 +114,12 @@ def test_cli_reports_bad_key(capsys):
     assert train_main(["steps=10", "train.stepz=4", "--print-config"]) == 2
     err = capsys.readouterr().err
     assert "train.stepz" in err and "train.steps" in err
+
+
+def test_alpha_min_above_the_opacity_reset_is_refused():
+    with pytest.raises(ConfigError) as e:
+        load_config(None, ["train.alpha_min=0.02", "strategy.reset_every=3000", "strategy.reset_opacity=0.01"])
+    assert e.value.key == "train.alpha_min" and "reset_opacity" in str(e.value)
+    # The same threshold is fine when resets are off or reset above it.
+    load_config(None, ["train.alpha_min=0.02", "strategy.reset_every=0"])
+    load_config(None, ["train.alpha_min=0.02", "strategy.reset_opacity=0.05"])

@@ -8,6 +8,7 @@ import os
 import typing
 from typing import Any, Dict, List, Mapping, Union
 
+from warpgs.raster_defaults import LOWEST_TRANSMITTANCE_MIN
 from warpgs.config_schema import (ALIASES, BACKGROUNDS, CHOICES, NON_NEGATIVE, POSITIVE, SECTIONS, Config, ConfigError,
                                   all_keys)
 
@@ -263,8 +264,18 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError("train.max_sigmas", f"expected >= 0 (0: exact footprint), got {cfg.train.max_sigmas}")
     if not 0.0 < cfg.train.alpha_min < 0.99:
         raise ConfigError("train.alpha_min", f"expected a value in (0, 0.99), got {cfg.train.alpha_min}")
-    if not 0.0 <= cfg.train.transmittance_min < 1.0:
-        raise ConfigError("train.transmittance_min", f"expected a value in [0, 1), got {cfg.train.transmittance_min}")
+    if not LOWEST_TRANSMITTANCE_MIN <= cfg.train.transmittance_min < 1.0:  # see raster_defaults
+        raise ConfigError("train.transmittance_min", f"expected a value in [{LOWEST_TRANSMITTANCE_MIN:g}, 1), got "
+                          f"{cfg.train.transmittance_min} (smaller ones let the transmittance underflow)")
+    # Primitives with opacity below alpha_min never reach a tile, so they get no gradient: a model that starts
+    # there, or an opacity reset that puts every primitive there, never renders again.
+    if cfg.model.init_opacity <= cfg.train.alpha_min:
+        raise ConfigError("train.alpha_min", f"{cfg.train.alpha_min} is not below model.init_opacity "
+                          f"({cfg.model.init_opacity}): every primitive would start invisible")
+    if cfg.strategy.reset_every > 0 and cfg.strategy.reset_opacity <= cfg.train.alpha_min:
+        raise ConfigError("train.alpha_min", f"{cfg.train.alpha_min} is not below strategy.reset_opacity "
+                          f"({cfg.strategy.reset_opacity}): every opacity reset would make all primitives invisible "
+                          "for good; raise strategy.reset_opacity above it or set strategy.reset_every=0")
     if cfg.data.downscale not in (1, 2, 4, 8):
         raise ConfigError("data.downscale", f"expected 1, 2, 4 or 8, got {cfg.data.downscale}")
     for name, dim in cfg.model.features.items():

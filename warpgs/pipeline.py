@@ -275,7 +275,9 @@ def feature_vectors(a, num_features: int):
     vec = blend_gpu.feature_vector_type(num_features)
     if num_features == 0 or a.shape[0] == 0:
         return wp.zeros(1, dtype=vec, device=a.device)
-    assert a.ndim == 2 and a.shape[1] == num_features and a.is_contiguous, (a.shape, num_features)
+    if not (a.ndim == 2 and a.shape[1] == num_features and a.is_contiguous):
+        raise ValueError(f"features: expected a contiguous [rows, {num_features}] array, got shape {a.shape}"
+                         f"{'' if a.is_contiguous else ' (not contiguous)'}")
     return wp.array(ptr=a.ptr, dtype=vec, shape=(a.shape[0],), device=a.device)
 
 

@@ -13,7 +13,8 @@ import torch
 import warp as wp
 
 from warpgs import pipeline
-from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.raster_defaults import (DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN,
+                                    LOWEST_TRANSMITTANCE_MIN)
 from warpgs.validation import check_finite, check_same_device, check_tensor
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
@@ -41,6 +42,12 @@ def _wp_device(device: torch.device) -> str:
     return "cpu" if device.type == "cpu" else f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"
 
 
+def _zero_grad(t: torch.Tensor) -> torch.Tensor:
+    """A contiguous zero gradient buffer for t (zeros_like would copy a transposed input's strides, which the
+    contiguous Warp array made from t cannot take as its grad)."""
+    return torch.zeros_like(t, memory_format=torch.contiguous_format)
+
+
 def _to_wp(t: torch.Tensor, dtype, grad: Optional[torch.Tensor] = None):
     return wp.from_torch(t.detach().contiguous(), dtype=dtype, grad=grad)
 
@@ -51,12 +58,12 @@ class _RasterizeFunction(torch.autograd.Function):
                 means2d_probe):
         needs = ctx.needs_input_grad[2:10]
         any_grad = any(ctx.needs_input_grad[2:])  # the means2d probe alone also needs the blend adjoint
-        grads = [torch.zeros_like(t) if need else None
+        grads = [_zero_grad(t) if need else None
                  for t, need in zip((means, quats, scales, opacities, coeffs, features, viewmat, intrinsics), needs)]
         # Arrays the hand-written blend adjoint writes into always need a grad buffer when anything is learnt.
         if any_grad:
-            grads[3] = torch.zeros_like(opacities) if grads[3] is None else grads[3]
-            grads[5] = torch.zeros_like(features) if grads[5] is None else grads[5]
+            grads[3] = _zero_grad(opacities) if grads[3] is None else grads[3]
+            grads[5] = _zero_grad(features) if grads[5] is None else grads[5]
         w_means = _to_wp(means, wp.vec3, grads[0])
         w_quats = _to_wp(quats, wp.vec4, grads[1])
         w_scales = _to_wp(scales, wp.vec3, grads[2])
@@ -239,8 +246,9 @@ def check_blend_knobs(max_sigmas, alpha_min, transmittance_min) -> None:
         raise ValueError(f"max_sigmas: expected >= 0 (0: exact footprint), got {max_sigmas}")
     if not 0.0 < alpha_min < 0.99:  # alpha is clamped at 0.99, so a larger threshold would drop everything
         raise ValueError(f"alpha_min: expected a value in (0, 0.99), got {alpha_min}")
-    if not 0.0 <= transmittance_min < 1.0:
-        raise ValueError(f"transmittance_min: expected a value in [0, 1), got {transmittance_min}")
+    if not LOWEST_TRANSMITTANCE_MIN <= transmittance_min < 1.0:  # see raster_defaults
+        raise ValueError(f"transmittance_min: expected a value in [{LOWEST_TRANSMITTANCE_MIN:g}, 1), got "
+                         f"{transmittance_min} (smaller ones let the transmittance underflow)")
 
 
 def _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,

@@ -16,7 +16,7 @@ from warpgs import surfel_pipeline
 from warpgs.pipeline import Settings
 from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.render import (DEPTH_EPS, RenderOutput, _check_arguments, _intrinsics_vector, _stack, _to_wp, _wp_device,
-                           check_blend_knobs)
+                           _zero_grad, check_blend_knobs)
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "normal", "median_depth", "distortion", "features")
 # 2DGS measures distortion on NDC depth m = f/(f-n) (1 - n/z) with these fixed planes; the constant part
@@ -39,12 +39,12 @@ class _RasterizeSurfelsFunction(torch.autograd.Function):
     def forward(ctx, settings, wanted, means, quats, scales, opacities, coeffs, features, viewmat, intrinsics):
         needs = ctx.needs_input_grad[2:]
         any_grad = any(needs)
-        grads = [torch.zeros_like(t) if need else None
+        grads = [_zero_grad(t) if need else None
                  for t, need in zip((means, quats, scales, opacities, coeffs, features, viewmat, intrinsics), needs)]
         # Arrays the hand-written blend adjoint writes into always need a grad buffer when anything is learnt.
         if any_grad:
-            grads[3] = torch.zeros_like(opacities) if grads[3] is None else grads[3]
-            grads[5] = torch.zeros_like(features) if grads[5] is None else grads[5]
+            grads[3] = _zero_grad(opacities) if grads[3] is None else grads[3]
+            grads[5] = _zero_grad(features) if grads[5] is None else grads[5]
         w_means = _to_wp(means, wp.vec3, grads[0])
         w_quats = _to_wp(quats, wp.vec4, grads[1])
         w_scales = _to_wp(scales, wp.vec2, grads[2])
@@ -78,7 +78,8 @@ class _RasterizeSurfelsFunction(torch.autograd.Function):
         tape, proj, bins, fwd, w_opac, w_feat, settings, wanted, grads = ctx.state
         npix = settings.width * settings.height
         device = ctx.device
-        with wp.ScopedDevice(proj.means2d.device):
+        stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
+        with wp.ScopedDevice(proj.means2d.device), stream:  # on torch's stream: no race with its kernels
             g = {}
             for (name, c, dtype), up in zip(_IMAGES, upstream):
                 if not _wanted(wanted, name):  # outputs that were not computed: a dummy the kernel never reads

@@ -132,8 +132,12 @@ class DensifyStrategy:
     """Clone small / split large high-gradient primitives, prune faint and oversized ones, reset opacities,
     all under `max_primitives`. State (`state_dict`) is per-primitive statistics plus the RNG."""
 
-    def __init__(self, config: Optional[StrategyConfig] = None, scene_extent: float = 1.0):
+    def __init__(self, config: Optional[StrategyConfig] = None, scene_extent: float = 1.0,
+                 invisible_below: float = 0.0):
+        """invisible_below: the renderer's alpha_min. Primitives with a lower opacity never reach a tile, so they
+        get no gradient and would hold budget for good: they are pruned like those under prune_opacity."""
         self.config = config or StrategyConfig()
+        self.invisible_below = float(invisible_below)
         if not (math.isfinite(float(scene_extent)) and scene_extent > 0):
             raise ValueError(f"scene_extent: expected a finite positive number, got {scene_extent}")
         self.scene_extent = float(scene_extent)
@@ -218,7 +222,7 @@ class DensifyStrategy:
         grads = self.average_grads()
         max_scale = model.scales.amax(1)
 
-        prune = model.opacities < cfg.prune_opacity
+        prune = model.opacities < max(cfg.prune_opacity, self.invisible_below)
         if step > cfg.size_prune_start:
             if cfg.prune_world_scale > 0:
                 prune |= max_scale > cfg.prune_world_scale * extent

@@ -110,7 +110,7 @@ class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin,
             groups = [{"params": list(m.parameters()), "lr": self._module_lrs[n], "name": n}
                       for n, m in self.modules.items()]
             self.module_optimizer = torch.optim.Adam(groups, lr=0.0)
-        self.strategy = DensifyStrategy(cfg.strategy, self.extent)
+        self.strategy = DensifyStrategy(cfg.strategy, self.extent, invisible_below=cfg.train.alpha_min)
         self.strategy.initialize(self.model)
 
         self.train_indices = list(self.scene.train)

@@ -35,7 +35,8 @@ def scene_label(data: DataConfig) -> str:
 def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     """The scene a config names (data.path None: the built-in synthetic scene, generated once and cached).
     data.depth_priors "estimate" runs the built-in plane-sweep stereo on the training views, aligns it to the SfM
-    points and writes the priors to <out_dir>/depth_priors (never into the scene's own folder)."""
+    points and writes the priors to <out_dir>/depth_priors (never into the scene's own folder); a later Trainer on
+    the same output folder (resume, warpgs-render/eval) reuses them. Delete that folder to estimate again."""
     from warpgs.data import compute_depth_priors, default_scene, load_scene
 
     path = default_scene(data.synthetic, data.width, data.height) if data.path is None else Path(data.path)
@@ -48,7 +49,7 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     elif prior == "estimate":
         if out_dir is None:
             raise ValueError("data.depth_priors: 'estimate' needs an output folder to write the priors to")
-        scene, _report = compute_depth_priors(scene, out_dir=Path(out_dir) / "depth_priors")
+        scene = _estimated_priors(scene, Path(out_dir) / "depth_priors", compute_depth_priors)
     elif prior != "auto":
         folder = Path(prior)
         if not folder.is_absolute() and not folder.is_dir():
@@ -57,6 +58,18 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     if not scene.train:
         raise ValueError(f"data.split: the scene at {scene.root} has no training views")
     return scene
+
+
+def _estimated_priors(scene, folder: Path, compute):
+    """The priors already estimated into `folder` when complete (format.json is written last), else new ones."""
+    from warpgs.data.scene import MapFormat
+    from warpgs.data.view_files import FORMAT_FILE
+
+    if (folder / FORMAT_FILE).is_file():
+        done = scene.with_depth_priors(folder, MapFormat("inverse_depth"))
+        if all(done.files[v].depth_prior is not None for v in scene.train):
+            return done
+    return compute(scene, out_dir=folder)[0]
 
 
 def resolve_background(spec, scene, device) -> torch.Tensor:
