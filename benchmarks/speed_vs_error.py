@@ -47,7 +47,7 @@ DEFAULTS = dict(tile_size=DEFAULT_TILE_SIZE, max_sigmas=0.0, alpha_min=DEFAULT_A
 SWEEPS = {
     "tile_size": (8, 16, 32),
     "max_sigmas": (1.5, 2.0, 2.5, 3.0, 0.0),
-    "alpha_min": (1.0 / 255.0, 0.01, 0.02, 0.05, 0.1),
+    "alpha_min": (1.0 / 255.0, 0.01, 0.02, 0.05, 0.08),  # below model.init_opacity (0.1), as the trainer requires
     "transmittance_min": (1.0e-4, 1.0e-3, 1.0e-2, 0.05),
     "sh_degree": (0, 1, 2, 3),
 }
