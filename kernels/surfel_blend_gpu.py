@@ -4,7 +4,7 @@ The block fetches its tile's list in batches of block_dim surfels into shared me
 one surfel's transform, centre, depth, opacity, cut-off, colour and normal), then every thread walks the batch
 from shared memory. The forward stops a tile once all its pixels are saturated; the backward walks back to
 front in lockstep from the block's largest stopping point and, optionally, sums each surfel's gradient over
-the block before one thread adds it to global memory. The per-pixel maths are surfel_blend.py's @wp.func's.
+the block before one thread adds it to global memory. The per-pixel maths are surfel_steps.py's @wp.func's.
 Kernels are compiled per block size (tile shapes are fixed at compile time) and per feature-channel count:
 features travel as length-C vectors, as in blend_gpu.
 """
@@ -12,7 +12,7 @@ import warp as wp
 
 from .blend import tile_of, tile_pixel
 from .blend_gpu import feature_vector_type
-from .surfel_blend import (
+from .surfel_steps import (
     ROW_HIT,
     ROW_SCREEN,
     ROW_SUFFIX,

@@ -22,7 +22,7 @@ from warpgs.pipeline import (
     choose_blend_kernel,
     sort_into_tiles,
 )
-from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
+from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project, surfel_steps
 
 
 @dataclass
@@ -97,8 +97,8 @@ def _blend_inputs(p: SurfelProjected, bins: Bins, opacities, features):
     return [p.transforms, p.means2d, p.depths, opacities, p.colors, p.normals, features, bins.q_cut]
 
 
-def surfel_blend_params(s: Settings, want: SurfelWanted, first_tile: int) -> surfel_blend.SurfelBlendParams:
-    sp = surfel_blend.SurfelBlendParams()
+def surfel_blend_params(s: Settings, want: SurfelWanted, first_tile: int) -> surfel_steps.SurfelBlendParams:
+    sp = surfel_steps.SurfelBlendParams()
     sp.base = blend_params(s, Wanted(color=want.color, depth=want.depth, inv_depth=want.inv_depth,
                                      num_features=want.num_features), first_tile)
     sp.near, sp.dist_scale = s.near, want.distortion_scale
