@@ -65,3 +65,23 @@ def test_batch_of_cameras_equals_single_renders():
                            s["width"], s["height"], outputs=("rgb", "depth"))
         assert torch.equal(batch.rgb[b], single.rgb)
         assert torch.equal(batch.depth[b], single.depth)
+
+
+def test_default_tile_size_follows_device_and_whether_a_backward_pass_comes():
+    """tile_size=None: 16 for forward-only GPU renders, else 8 (the CPU, and renders that will be
+    differentiated); the image is the same."""
+    import torch as th
+
+    from raster_helpers import DEVICE
+
+    scene = random_scene(n=48, seed=4)
+    explicit = {t: render_ours(scene, ("rgb",), tile_size=t) for t in (8, 16)}
+    assert explicit[8].num_intersections != explicit[16].num_intersections  # tile pairs tell the sizes apart
+    with th.no_grad():
+        forward_only = render_ours(scene, ("rgb",))
+    expected = 16 if DEVICE.startswith("cuda") else 8
+    assert forward_only.num_intersections == explicit[expected].num_intersections
+    learnt = dict(scene, opacities=scene["opacities"].clone().requires_grad_(True))
+    trained = render_ours(learnt, ("rgb",))
+    assert trained.num_intersections == explicit[8].num_intersections
+    assert torch.allclose(trained.rgb.detach(), forward_only.rgb, atol=1e-6)

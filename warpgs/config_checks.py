@@ -258,7 +258,7 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError("model.background_radius", f"expected > 1 (outside the scene), got {cfg.model.background_radius}")
     if not 0.0 < cfg.train.near < cfg.train.far:
         raise ConfigError("train.near", f"need 0 < near < far, got near={cfg.train.near}, far={cfg.train.far}")
-    if cfg.train.tile_size > 32:
+    if cfg.train.tile_size is not None and cfg.train.tile_size > 32:
         raise ConfigError("train.tile_size", f"at most 32, got {cfg.train.tile_size}")
     if cfg.train.max_sigmas < 0:
         raise ConfigError("train.max_sigmas", f"expected >= 0 (0: exact footprint), got {cfg.train.max_sigmas}")

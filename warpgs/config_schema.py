@@ -9,7 +9,7 @@ from typing import Any, Dict, List, Optional
 import yaml
 
 from warpgs.optim import OptimConfig
-from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.strategy import StrategyConfig
 
 
@@ -58,7 +58,8 @@ class TrainConfig:
     background: Any = "auto"  # "auto" (the scene's, else black), "black", "white" or [r, g, b] in [0, 1]
     near: float = 0.01
     far: float = 1e10
-    tile_size: int = DEFAULT_TILE_SIZE  # speed only: the image does not depend on it
+    tile_size: Optional[int] = None  # speed only (the image does not depend on it); None: 8, or 16 for forward-only
+    #                                  GPU renders (raster_defaults.py)
     # Accuracy knobs of the renderer (defaults: the 3DGS rules, exact within them); raising them trades
     # accuracy for speed, see benchmarks/speed_vs_error.py.
     max_sigmas: float = 0.0  # > 0: truncate each footprint at this many sigmas

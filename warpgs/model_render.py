@@ -10,7 +10,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.render import OUTPUTS as GAUSSIAN_OUTPUTS
 from warpgs.render import RenderOutput, rasterize
 from warpgs.render_surfels import OUTPUTS as SURFEL_OUTPUTS
@@ -33,7 +33,7 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
                  outputs: Sequence[str] = ("rgb",), background: Optional[torch.Tensor] = None,
                  features: Optional[torch.Tensor] = None, inputs: Optional[dict] = None,
                  track_means2d: bool = False, near: float = 0.01, far: float = 1e10,
-                 tile_size: int = DEFAULT_TILE_SIZE, max_sigmas: float = 0.0, alpha_min: float = DEFAULT_ALPHA_MIN,
+                 tile_size: Optional[int] = None, max_sigmas: float = 0.0, alpha_min: float = DEFAULT_ALPHA_MIN,
                  transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
                  check_inputs: bool = True) -> RenderOutput:
     """One camera. `inputs` (default: model.render_inputs()) may be edited by the caller, e.g. colours from

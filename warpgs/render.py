@@ -13,8 +13,8 @@ import torch
 import warp as wp
 
 from warpgs import pipeline
-from warpgs.raster_defaults import (DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN,
-                                    LOWEST_TRANSMITTANCE_MIN)
+from warpgs.raster_defaults import (DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, LOWEST_TRANSMITTANCE_MIN,
+                                    choose_tile_size)
 from warpgs.validation import check_finite, check_same_device, check_tensor
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
@@ -157,7 +157,7 @@ def rasterize(
     outputs: Sequence[str] = ("rgb", "alpha"),
     near: float = 0.01,
     far: float = 1e10,
-    tile_size: int = DEFAULT_TILE_SIZE,
+    tile_size: Optional[int] = None,
     max_sigmas: float = 0.0,
     alpha_min: float = DEFAULT_ALPHA_MIN,
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
@@ -172,6 +172,7 @@ def rasterize(
     "features" is in `outputs`. Only the requested outputs are computed.
     track_means2d: also return `out.means2d` [N,2] (or [B,N,2]), the projected centres in pixels, a leaf
     whose `.grad` after backward is dL/dmeans2d (what 3DGS-style densification thresholds).
+    tile_size (speed only; None: 8, or 16 for GPU renders autograd will not differentiate; see raster_defaults).
     Accuracy knobs (defaults: the 3DGS rules, exact within them): `max_sigmas` > 0 truncates each footprint at
     that many sigmas; `alpha_min` skips contributions below that alpha; blending stops before transmittance
     would drop under `transmittance_min`. Raising any of them trades accuracy for speed
@@ -185,6 +186,8 @@ def rasterize(
         raise ValueError("outputs: 'features' requested but features=None")
     _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
                      background, near, far, tile_size, check_inputs)
+    grad = track_means2d or _needs_grad(means, quats, scales, opacities, colors, features, viewmat, K, background)
+    tile_size = choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda")
     check_blend_knobs(max_sigmas, alpha_min, transmittance_min)
     if viewmat.dim() == 3:
         probe = means.new_zeros(viewmat.shape[0], means.shape[0], 2, requires_grad=True) if track_means2d else None
@@ -240,6 +243,11 @@ def _stack(per_camera: list) -> RenderOutput:
     return out
 
 
+def _needs_grad(*tensors) -> bool:
+    """Whether autograd will differentiate a render of these inputs."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
+
+
 def check_blend_knobs(max_sigmas, alpha_min, transmittance_min) -> None:
     """The accuracy knobs shared by every primitive kind."""
     if not max_sigmas >= 0.0:
@@ -279,10 +287,10 @@ def _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width,
         check_tensor("K", K, (3, 3))
     if background is not None:
         check_tensor("background", background, (3,))
-    for name, v in (("width", width), ("height", height), ("tile_size", tile_size)):
+    for name, v in (("width", width), ("height", height), ("tile_size", 1 if tile_size is None else tile_size)):
         if int(v) != v or int(v) < 1:
             raise ValueError(f"{name}: expected a positive integer, got {v}")
-    if tile_size > 32:
+    if tile_size is not None and tile_size > 32:
         raise ValueError(f"tile_size: at most 32 (a tile is one GPU block of tile_size² threads), got {tile_size}")
     if not (0 < near < far):
         raise ValueError(f"near/far: expected 0 < near < far, got near={near}, far={far}")

@@ -14,9 +14,9 @@ import warp as wp
 
 from warpgs import surfel_pipeline
 from warpgs.pipeline import Settings
-from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
-from warpgs.render import (DEPTH_EPS, RenderOutput, _check_arguments, _intrinsics_vector, _stack, _to_wp, _wp_device,
-                           _zero_grad, check_blend_knobs)
+from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN, choose_tile_size
+from warpgs.render import (DEPTH_EPS, RenderOutput, _check_arguments, _intrinsics_vector, _needs_grad, _stack, _to_wp,
+                           _wp_device, _zero_grad, check_blend_knobs)
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "normal", "median_depth", "distortion", "features")
 # 2DGS measures distortion on NDC depth m = f/(f-n) (1 - n/z) with these fixed planes; the constant part
@@ -122,7 +122,7 @@ def rasterize_surfels(
     outputs: Sequence[str] = ("rgb", "alpha"),
     near: float = 0.01,
     far: float = 1e10,
-    tile_size: int = DEFAULT_TILE_SIZE,
+    tile_size: Optional[int] = None,
     max_sigmas: float = 0.0,
     alpha_min: float = DEFAULT_ALPHA_MIN,
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
@@ -134,7 +134,8 @@ def rasterize_surfels(
     and the normal as its third. colors/sh_degree/features/background as in `rasterize`.
     outputs: any of rgb, alpha, depth (Σ w z / alpha, z the ray-surfel hit depth), inv_depth (Σ w / z),
     normal (Σ w n, world space, each normal facing the camera), median_depth, distortion, features.
-    Only the requested outputs are computed. max_sigmas / alpha_min / transmittance_min: as in `rasterize`.
+    Only the requested outputs are computed. tile_size, max_sigmas / alpha_min / transmittance_min: as in
+    `rasterize`.
     """
     outputs = tuple(outputs)
     unknown = [o for o in outputs if o not in OUTPUTS]
@@ -144,6 +145,8 @@ def rasterize_surfels(
         raise ValueError("outputs: 'features' requested but features=None")
     _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
                      background, near, far, tile_size, check_inputs, scale_dims=2)
+    grad = _needs_grad(means, quats, scales, opacities, colors, features, viewmat, K, background)
+    tile_size = choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda")
     check_blend_knobs(max_sigmas, alpha_min, transmittance_min)
     if viewmat.dim() == 3:
         per_camera = [rasterize_surfels(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
