@@ -1,8 +1,9 @@
 """Errors raised by scene loading. Every message names the file (or folder) at fault."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
-from typing import Optional, Union
+from typing import Any, Optional, Union
 
 PathLike = Union[str, Path]
 
@@ -26,6 +27,15 @@ class MissingSceneFile(FileNotFoundError):
 
 class DepthModelUnavailable(RuntimeError):
     """An optional learned depth model was asked for but its package or weights are not available locally."""
+
+
+def read_json(path: PathLike) -> Any:
+    """The parsed contents of a scene's JSON file, or SceneError naming it when it is not valid JSON (UTF-8)."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SceneError(path, f"not valid JSON ({exc})") from exc
 
 
 def require_file(path: PathLike, what: str = "file") -> Path:

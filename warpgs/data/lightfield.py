@@ -9,7 +9,6 @@ Poses come from, in order: a COLMAP model or transforms.json in the folder; a pl
 """
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 from typing import Optional
@@ -17,7 +16,7 @@ from typing import Optional
 import numpy as np
 
 from warpgs.data.camera import Camera, intrinsics_matrix
-from warpgs.data.errors import MissingSceneFile, PathLike, SceneError
+from warpgs.data.errors import MissingSceneFile, PathLike, SceneError, read_json
 from warpgs.data.image_io import image_size, list_images
 from warpgs.data.scene import MapFormat, Scene
 from warpgs.data.view_files import discover_view_files, read_label_names, read_map_format
@@ -31,10 +30,7 @@ def _read_spec(root: Path) -> dict:
     path = root / LIGHTFIELD_FILE
     if not path.is_file():
         return {}
-    try:
-        spec = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise SceneError(path, f"not valid JSON ({exc})") from exc
+    spec = read_json(path)
     if "views" in spec and not isinstance(spec["views"], dict):
         raise SceneError(path, '"views" must map image names to [row, col]')
     return spec

@@ -7,7 +7,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from warpgs.data.errors import SceneError, require_file
+from warpgs.data.errors import SceneError, read_json, require_file
 
 SPLIT_FILE = "split.json"
 
@@ -50,10 +50,7 @@ def split_from_names(names: Sequence[str], train_names: Sequence[str], test_name
 def read_split_file(path: Path, names: Sequence[str]) -> tuple[list[int], list[int]]:
     """split.json: {"train": [image names], "test": [image names]}."""
     path = require_file(path, "split file")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise SceneError(path, f"not valid JSON ({exc})") from exc
+    data = read_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("train"), list):
         raise SceneError(path, 'expected {"train": [names], "test": [names]}')
     return split_from_names(names, data["train"], data.get("test", []), path)

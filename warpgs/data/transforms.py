@@ -17,7 +17,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from warpgs.data.camera import Camera, intrinsics_matrix, opengl_camtoworld_from_viewmat, viewmat_from_opengl_camtoworld
-from warpgs.data.errors import MissingSceneFile, PathLike, SceneError
+from warpgs.data.errors import MissingSceneFile, PathLike, SceneError, read_json
 from warpgs.data.image_io import IMAGE_EXTENSIONS, image_size
 from warpgs.data.points import PointCloud
 from warpgs.data.scene import MapFormat, Scene
@@ -36,10 +36,7 @@ def find_transforms(root: PathLike) -> list[Path]:
 
 
 def _read_json(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise SceneError(path, f"not valid JSON ({exc})") from exc
+    data = read_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
         raise SceneError(path, 'expected an object with a "frames" list')
     if not data["frames"]:

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Sequence
 
 from warpgs.data.depth_io import DEPTH_EXTENSIONS, KINDS
-from warpgs.data.errors import SceneError
+from warpgs.data.errors import SceneError, read_json
 from warpgs.data.image_io import find_sibling
 from warpgs.data.scene import MapFormat, ViewFiles
 
@@ -46,10 +46,7 @@ def read_map_format(root: Path, attr: str, default: MapFormat) -> MapFormat:
     for folder in FOLDERS[attr][0]:
         path = Path(root) / folder / FORMAT_FILE
         if path.is_file():
-            try:
-                data = json.loads(path.read_text())
-            except json.JSONDecodeError as exc:
-                raise SceneError(path, f"not valid JSON ({exc})") from exc
+            data = read_json(path)
             kind = data.get("kind", default.kind)
             if kind is not None and kind not in KINDS:
                 raise SceneError(path, f"kind must be one of {KINDS}, got {kind!r}")
@@ -69,10 +66,7 @@ def read_label_names(root: Path) -> dict[int, str]:
     path = Path(root) / LABELS_FILE
     if not path.is_file():
         return {}
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise SceneError(path, f"not valid JSON ({exc})") from exc
+    data = read_json(path)
     try:
         items = enumerate(data) if isinstance(data, list) else ((int(k), v) for k, v in data.items())
         return {int(k): str(v) for k, v in items}
