@@ -5,20 +5,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from warpgs.data.camera import Camera, look_at
-
-
-def _focus(cams: Sequence[Camera]) -> Optional[np.ndarray]:
-    """Least-squares point closest to all optical axes; None when they are (nearly) parallel."""
-    A, b = np.zeros((3, 3)), np.zeros(3)
-    for cam in cams:
-        d = cam.forward
-        P = np.eye(3) - np.outer(d, d)
-        A += P
-        b += P @ cam.center
-    if np.linalg.cond(A) > 1e4:
-        return None
-    return np.linalg.solve(A, b)
+from warpgs.data.camera import Camera, look_at, optical_axes_focus
 
 
 def orbit_cameras(cameras: Sequence[Camera], n: int, points: Optional[np.ndarray] = None) -> list:
@@ -32,7 +19,7 @@ def orbit_cameras(cameras: Sequence[Camera], n: int, points: Optional[np.ndarray
     centres = np.stack([c.center for c in cams])
     up = -np.mean([c.viewmat[1, :3] for c in cams], 0)  # image "down" is camera +y
     up /= max(np.linalg.norm(up), 1e-12)
-    focus = _focus(cams)
+    focus = optical_axes_focus(cams, max_condition=1e4)
     out = []
     if focus is not None:
         rel = centres - focus

@@ -147,6 +147,20 @@ class Camera:
                       name=name, image_path=image_path, model=cam.model_name, distortion=distortion)
 
 
+def optical_axes_focus(cameras: Sequence["Camera"], max_condition: float) -> Optional[np.ndarray]:
+    """The least-squares point closest to all cameras' optical axes; None when the axes are (nearly) parallel,
+    i.e. the normal equations' condition number exceeds max_condition."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for cam in cameras:
+        d = cam.forward
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ cam.center
+    if np.linalg.cond(A) > max_condition:
+        return None
+    return np.linalg.solve(A, b)
+
+
 def invert_rigid(mat: np.ndarray) -> np.ndarray:
     """Inverse of a 4x4 rigid transform."""
     rot, t = mat[:3, :3], mat[:3, 3]

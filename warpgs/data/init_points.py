@@ -9,6 +9,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from warpgs.data.camera import optical_axes_focus
 from warpgs.data.points import PointCloud
 from warpgs.data.scene import Scene
 
@@ -81,15 +82,9 @@ def random_points(scene: Scene, n: int = 100_000, near: Optional[float] = None, 
 
 def _distance_to_focus(cams) -> float:
     """Median camera distance to the least-squares closest point of all optical axes."""
-    A, b = np.zeros((3, 3)), np.zeros(3)
-    for cam in cams:
-        d = cam.forward
-        P = np.eye(3) - np.outer(d, d)
-        A += P
-        b += P @ cam.center
-    if np.linalg.cond(A) > 1e6:  # parallel axes (a planar camera array): no focus point
+    focus = optical_axes_focus(cams, max_condition=1e6)
+    if focus is None:  # parallel axes (a planar camera array): no focus point
         raise ValueError("random_points: the cameras' axes are parallel; pass near= and far=")
-    focus = np.linalg.solve(A, b)
     return float(np.median([np.linalg.norm(c.center - focus) for c in cams]))
 
 
