@@ -12,6 +12,8 @@ features travel as length-C vectors (`feature_vector_type`), so a pixel accumula
 backward sums a Gaussian's feature gradient over the block in one vector reduction, instead of C global
 read-modify-writes and C block reductions per blended Gaussian.
 """
+import functools
+
 import warp as wp
 
 from .blend import (
@@ -32,8 +34,6 @@ from .blend import (
     write_pixel,
 )
 
-_kernels = {}
-_feature_types = {}
 
 # What the block sums per Gaussian: the ten gradient entries of a GradRow and its "used" flag.
 GradSum = wp.types.vector(length=11, dtype=float)
@@ -41,10 +41,12 @@ GradSum = wp.types.vector(length=11, dtype=float)
 
 def feature_vector_type(num_features: int):
     """The vector type features are passed as for C channels (length 1, unused, when there are none)."""
-    n = max(int(num_features), 1)
-    if n not in _feature_types:
-        _feature_types[n] = wp.types.vector(length=n, dtype=float)
-    return _feature_types[n]
+    return _vector_type(max(int(num_features), 1))
+
+
+@functools.lru_cache(maxsize=None)  # one type per length: kernels and the arrays passed to them must agree
+def _vector_type(length: int):
+    return wp.types.vector(length=length, dtype=float)
 
 
 @wp.func
@@ -63,21 +65,8 @@ def add_gradient_sum(g: int, total: GradSum, adj_means2d: wp.array(dtype=wp.vec2
     wp.atomic_add(adj_depths, g, total[9])
 
 
+@functools.lru_cache(maxsize=None)  # compiled once per block size and feature count
 def forward_kernel(block_dim: int, num_features: int):
-    key = ("forward", block_dim, num_features)
-    if key not in _kernels:
-        _kernels[key] = _make_forward(block_dim, num_features)
-    return _kernels[key]
-
-
-def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
-    key = ("backward", block_dim, block_reduce, num_features)
-    if key not in _kernels:
-        _kernels[key] = _make_backward(block_dim, block_reduce, num_features)
-    return _kernels[key]
-
-
-def _make_forward(block_dim: int, num_features: int):
     FeatureVec = feature_vector_type(num_features)
     has_features = num_features > 0
 
@@ -142,7 +131,8 @@ def _make_forward(block_dim: int, num_features: int):
     return blend_forward_blocks
 
 
-def _make_backward(block_dim: int, block_reduce: bool, num_features: int):
+@functools.lru_cache(maxsize=None)
+def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
     FeatureVec = feature_vector_type(num_features)
     has_features = num_features > 0
 

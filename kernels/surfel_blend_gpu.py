@@ -8,6 +8,8 @@ the block before one thread adds it to global memory. The per-pixel maths are su
 Kernels are compiled per block size (tile shapes are fixed at compile time) and per feature-channel count:
 features travel as length-C vectors, as in blend_gpu.
 """
+import functools
+
 import warp as wp
 
 from .blend import tile_of, tile_pixel
@@ -31,7 +33,6 @@ from .surfel_steps import (
     write_surfel_pixel,
 )
 
-_kernels = {}
 
 # What the block sums per surfel: the gradient entries of a SurfelGradRow and its hit / screen flags, which
 # then count the pixels that took each path (add_surfel_gradient_row reads them the same way).
@@ -55,21 +56,8 @@ def gradient_sum_row(total: SurfelGradSum) -> SurfelGradRow:
     return row
 
 
+@functools.lru_cache(maxsize=None)  # compiled once per block size and feature count
 def forward_kernel(block_dim: int, num_features: int):
-    key = ("forward", block_dim, num_features)
-    if key not in _kernels:
-        _kernels[key] = _make_forward(block_dim, num_features)
-    return _kernels[key]
-
-
-def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
-    key = ("backward", block_dim, block_reduce, num_features)
-    if key not in _kernels:
-        _kernels[key] = _make_backward(block_dim, block_reduce, num_features)
-    return _kernels[key]
-
-
-def _make_forward(block_dim: int, num_features: int):
     FeatureVec = feature_vector_type(num_features)
     has_features = num_features > 0
 
@@ -149,7 +137,8 @@ def _make_forward(block_dim: int, num_features: int):
     return surfel_blend_forward_blocks
 
 
-def _make_backward(block_dim: int, block_reduce: bool, num_features: int):
+@functools.lru_cache(maxsize=None)
+def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
     FeatureVec = feature_vector_type(num_features)
     has_features = num_features > 0
 
