@@ -178,17 +178,10 @@ def rasterize(
     would drop under `transmittance_min`. Raising any of them trades accuracy for speed
     (benchmarks/speed_vs_error.py measures how much).
     """
-    outputs = tuple(outputs)
-    unknown = [o for o in outputs if o not in OUTPUTS]
-    if unknown:
-        raise ValueError(f"outputs: unknown {unknown}; choose from {OUTPUTS}")
-    if "features" in outputs and features is None:
-        raise ValueError("outputs: 'features' requested but features=None")
-    _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
-                     background, near, far, tile_size, check_inputs)
-    grad = track_means2d or _needs_grad(means, quats, scales, opacities, colors, features, viewmat, K, background)
-    tile_size = choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda")
-    check_blend_knobs(max_sigmas, alpha_min, transmittance_min)
+    outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
+                                      height, sh_degree, features, background, near, far, tile_size, check_inputs,
+                                      max_sigmas, alpha_min, transmittance_min, scale_dims=3,
+                                      track_means2d=track_means2d)
     if viewmat.dim() == 3:
         probe = means.new_zeros(viewmat.shape[0], means.shape[0], 2, requires_grad=True) if track_means2d else None
         per_camera = [rasterize(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
@@ -241,6 +234,24 @@ def _stack(per_camera: list) -> RenderOutput:
                           if f.name not in ("num_intersections", "means2d")})
     out.num_intersections = sum(o.num_intersections for o in per_camera)
     return out
+
+
+def checked_call(known_outputs, outputs, means, quats, scales, opacities, colors, viewmat, K, width, height,
+                 sh_degree, features, background, near, far, tile_size, check_values, max_sigmas, alpha_min,
+                 transmittance_min, scale_dims, track_means2d=False):
+    """What both render ops check before rendering (a ValueError naming the argument), and the settings they
+    derive: (outputs as a tuple, the tile size to use)."""
+    outputs = tuple(outputs)
+    unknown = [o for o in outputs if o not in known_outputs]
+    if unknown:
+        raise ValueError(f"outputs: unknown {unknown}; choose from {known_outputs}")
+    if "features" in outputs and features is None:
+        raise ValueError("outputs: 'features' requested but features=None")
+    _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
+                     background, near, far, tile_size, check_values, scale_dims)
+    check_blend_knobs(max_sigmas, alpha_min, transmittance_min)
+    grad = track_means2d or _needs_grad(means, quats, scales, opacities, colors, features, viewmat, K, background)
+    return outputs, choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda")
 
 
 def _needs_grad(*tensors) -> bool:

@@ -14,9 +14,9 @@ import warp as wp
 
 from warpgs import surfel_pipeline
 from warpgs.pipeline import Settings
-from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN, choose_tile_size
-from warpgs.render import (DEPTH_EPS, RenderOutput, _check_arguments, _intrinsics_vector, _needs_grad, _stack, _to_wp,
-                           _wp_device, _zero_grad, check_blend_knobs)
+from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.render import (DEPTH_EPS, RenderOutput, _intrinsics_vector, _stack, _to_wp, _wp_device, _zero_grad,
+                           checked_call)
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "normal", "median_depth", "distortion", "features")
 # 2DGS measures distortion on NDC depth m = f/(f-n) (1 - n/z) with these fixed planes; the constant part
@@ -137,17 +137,9 @@ def rasterize_surfels(
     Only the requested outputs are computed. tile_size, max_sigmas / alpha_min / transmittance_min: as in
     `rasterize`.
     """
-    outputs = tuple(outputs)
-    unknown = [o for o in outputs if o not in OUTPUTS]
-    if unknown:
-        raise ValueError(f"outputs: unknown {unknown}; choose from {OUTPUTS}")
-    if "features" in outputs and features is None:
-        raise ValueError("outputs: 'features' requested but features=None")
-    _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
-                     background, near, far, tile_size, check_inputs, scale_dims=2)
-    grad = _needs_grad(means, quats, scales, opacities, colors, features, viewmat, K, background)
-    tile_size = choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda")
-    check_blend_knobs(max_sigmas, alpha_min, transmittance_min)
+    outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
+                                      height, sh_degree, features, background, near, far, tile_size, check_inputs,
+                                      max_sigmas, alpha_min, transmittance_min, scale_dims=2)
     if viewmat.dim() == 3:
         per_camera = [rasterize_surfels(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
                                         sh_degree=sh_degree, features=features, background=background,
