@@ -31,9 +31,9 @@ import torch
 
 from common import ROOT, write_json
 
-from warpgs.config import load_config
-from warpgs.depth_metrics import evaluate_depth
-from warpgs.train import Trainer
+from warpgs.config.loader import load_config
+from warpgs.metrics.depth import evaluate_depth
+from warpgs.train.trainer import Trainer
 
 # (label in the table, preset in configs/), in the paper's order.
 SETTINGS = [

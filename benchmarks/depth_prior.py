@@ -25,7 +25,7 @@ import torch
 from common import print_table, write_json
 
 from warpgs.data import PlaneSweepStereo, align_depth_to_points, depth_metrics, load_scene
-from warpgs.data.synthetic import RigSettings, write_synthetic_scene
+from warpgs.data.formats.synthetic import RigSettings, write_synthetic_scene
 
 
 def evaluate(scene, estimates: dict, views: list[int]) -> dict:

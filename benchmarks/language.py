@@ -39,7 +39,7 @@ VARIANTS = {
 def run_variant(name: str, spec: dict, args, scene_path: Path, seed: int, work: Path) -> dict:
     import warpgs.language  # noqa: F401
     from warpgs.language.query import LanguageField
-    from warpgs.train import Trainer
+    from warpgs.train.trainer import Trainer
 
     losses = {"l1": 0.0, "dssim": 0.0, **spec["losses"]}
     overrides = [f"steps={args.steps}", f"device={args.device}", f"seed={seed}", f"data.path={scene_path}",

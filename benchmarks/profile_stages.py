@@ -13,9 +13,10 @@ import torch
 import warp as wp
 
 from common import print_table, standard_scenes_module, sync
-from warpgs import pipeline, rasterize
-from warpgs.raster_defaults import DEFAULT_TILE_SIZE
-from warpgs.render import _intrinsics_vector
+from warpgs import rasterize
+from warpgs.render import pipeline_gaussians as pipeline
+from warpgs.render.defaults import DEFAULT_TILE_SIZE
+from warpgs.render.gaussians import _intrinsics_vector
 
 TILE = int(os.environ.get("TILE", DEFAULT_TILE_SIZE))  # TILE=16 profiles another tile size
 

@@ -24,9 +24,11 @@ sys.path.insert(0, str(ROOT / "tests"))
 from reference import render_reference  # noqa: E402  (the float64 oracles of the test suite)
 from reference_surfels import render_surfels_reference  # noqa: E402
 
-from warpgs import pipeline, rasterize, rasterize_surfels  # noqa: E402
-from warpgs.render_surfels import surfel_work  # noqa: E402
-from warpgs.render import DEFAULT_TILE_SIZE, _intrinsics_vector  # noqa: E402
+from warpgs import rasterize, rasterize_surfels  # noqa: E402
+
+from warpgs.render import pipeline_gaussians as pipeline
+from warpgs.render.surfels import surfel_work  # noqa: E402
+from warpgs.render.gaussians import DEFAULT_TILE_SIZE, _intrinsics_vector  # noqa: E402
 
 OUTPUTS = ("rgb", "alpha", "depth")
 FLOPS_PER_EVALUATION = 20  # q (8), exp (~8 with range reduction), clamp/compare (2), blend 3 colours + depth (8) ~ 20-26

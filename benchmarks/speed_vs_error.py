@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from reference import render_reference  # noqa: E402
 
 from warpgs import rasterize  # noqa: E402
-from warpgs.raster_defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN  # noqa: E402
+from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN  # noqa: E402
 
 SH_C0 = 0.28209479177387814
 DEFAULTS = dict(tile_size=DEFAULT_TILE_SIZE, max_sigmas=0.0, alpha_min=DEFAULT_ALPHA_MIN,
@@ -94,8 +94,8 @@ def timings(scene, W, H, knobs, device, repeats):
 
 def train_psnr(knobs: dict, steps: int, device: str, workdir: Path) -> dict:
     """Held-out PSNR of configs/default.yaml trained `steps` steps with the renderer knobs set in the trainer."""
-    from warpgs.config import load_config
-    from warpgs.train import Trainer
+    from warpgs.config.loader import load_config
+    from warpgs.train.trainer import Trainer
 
     overrides = [f"train.steps={steps}", f"train.device={device}", "train.progress=false",
                  "train.checkpoint_every=0", "eval.every=0", "eval.save_images=false", "eval.lpips=false",

@@ -28,8 +28,8 @@ from common import ROOT, print_table, write_json
 
 sys.path.insert(0, str(ROOT))
 
-from warpgs.checkpoint import load_checkpoint  # noqa: E402
-from warpgs.train import NonFiniteError, Trainer  # noqa: E402
+from warpgs.train.checkpoint import load_checkpoint  # noqa: E402
+from warpgs.train.trainer import NonFiniteError, Trainer  # noqa: E402
 
 SHORT = {"modules.environment.coeffs": "environment", "logit_opacities": "opacity_logit"}
 

@@ -29,13 +29,13 @@ from common import ROOT, print_table, write_json
 
 sys.path.insert(0, str(ROOT))
 
-from warpgs.checkpoint import seed_everything  # noqa: E402
-from warpgs.cli import resolve_config_source  # noqa: E402
-from warpgs.config import load_config  # noqa: E402
-from warpgs.metrics import psnr, ssim  # noqa: E402
-from warpgs.optim import means_lr_at  # noqa: E402
-from warpgs.train import Trainer  # noqa: E402
-from warpgs import train_setup  # noqa: E402
+from warpgs.train.checkpoint import seed_everything  # noqa: E402
+from warpgs.cli.commands import resolve_config_source  # noqa: E402
+from warpgs.config.loader import load_config  # noqa: E402
+from warpgs.metrics.image import psnr, ssim  # noqa: E402
+from warpgs.train.optim import means_lr_at  # noqa: E402
+from warpgs.train.trainer import Trainer  # noqa: E402
+from warpgs.train import setup as train_setup  # noqa: E402
 
 
 def sync(device) -> None:
@@ -84,7 +84,7 @@ def run_gsplat(cfg, eval_every: int) -> dict:
                                       betas=(o.beta1, o.beta2)) for k, lr in lrs.items()}
     env, env_opt, dirs = None, None, {}
     if "environment" in cfg.extensions:
-        from warpgs.environment import EnvironmentMap, ray_directions
+        from warpgs.model.environment import EnvironmentMap, ray_directions
 
         opts = cfg.extensions["environment"]
         env = EnvironmentMap(opts.get("degree", 3), opts.get("init_color", 0.5)).to(device)

@@ -1,5 +1,5 @@
 """Warp kernels of warpgs, shipped as ``warpgs.kernels``.
 
 Warp only: nothing here imports torch. One module per pipeline stage; the torch-facing op in
-``warpgs.render`` launches them.
+``warpgs.render.gaussians`` launches them.
 """

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from warpgs.data.synthetic import default_scene, write_synthetic_scene
+from warpgs.data.formats.synthetic import default_scene, write_synthetic_scene
 
 _ROOT = Path(tempfile.mkdtemp(prefix="warpgs-data-tests-"))
 atexit.register(shutil.rmtree, _ROOT, ignore_errors=True)

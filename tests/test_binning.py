@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpgs import pipeline
+from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.kernels import binning
 
 

@@ -9,8 +9,8 @@ from PIL import Image
 
 from data_fixtures import write_rgb
 from warpgs.data import Camera, PointCloud, load_colmap, look_at, save_colmap
-from warpgs.data.depth_align import sample_bilinear
-from warpgs.data.image_io import read_image
+from warpgs.data.depth.align import sample_bilinear
+from warpgs.data.formats.image_io import read_image
 
 
 def _pycolmap_model(root: Path, binary: bool):

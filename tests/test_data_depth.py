@@ -12,9 +12,9 @@ from data_fixtures import copy_of, default_lightfield, synthetic_dir
 from warpgs.data import (DepthModelUnavailable, VideoDepthAnything, align_depth_to_points,
                          align_inverse_depth, compute_depth_priors, depth_metrics, initial_points, load_scene,
                          points_from_depth, random_points, read_depth, read_inverse_depth, write_exr)
-from warpgs.data.image_io import to_uint8
-from warpgs.data.lightfield import pseudo_video_order
-from warpgs.data.video_depth import PseudoVideoDepth
+from warpgs.data.formats.image_io import to_uint8
+from warpgs.data.formats.lightfield import pseudo_video_order
+from warpgs.data.depth.video_depth import PseudoVideoDepth
 
 
 def test_depth_file_formats(tmp_path):

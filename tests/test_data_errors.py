@@ -8,7 +8,7 @@ from PIL import Image
 
 from data_fixtures import copy_of, write_rgb
 from warpgs.data import MissingSceneFile, SceneError, load_colmap, load_scene, load_transforms, save_colmap
-from warpgs.data.depth_io import write_exr
+from warpgs.data.depth.files import write_exr
 
 
 @pytest.fixture
@@ -50,7 +50,7 @@ def test_truncated_image(lf):
 
 
 def test_truncated_jpeg_and_non_image(tmp_path):
-    from warpgs.data.image_io import read_image
+    from warpgs.data.formats.image_io import read_image
 
     path = tmp_path / "a.jpg"
     Image.fromarray(np.random.default_rng(0).integers(0, 255, (64, 64, 3), dtype=np.uint8)).save(path)

@@ -7,7 +7,7 @@ import pytest
 
 from data_fixtures import synthetic_dir
 from warpgs.data import load_colmap, load_scene, run_sfm
-from warpgs.data.sim3 import pose_errors, umeyama
+from warpgs.data.sfm.sim3 import pose_errors, umeyama
 
 # Tolerances at 128x96: (max rotation deg, mean rotation deg, max centre error as a fraction of the orbit radius).
 # Runs are single-threaded, hence reproducible (multi-threaded pycolmap varies from run to run, and at this size

@@ -8,8 +8,8 @@ import torch
 
 from data_fixtures import GENERATION_SECONDS, default_lightfield, synthetic_dir
 from warpgs.data import default_scene, load_scene
-from warpgs.data.raytrace import Box, Plane, Sphere
-from warpgs.data.synthetic import scene_definition
+from warpgs.data.formats.raytrace import Box, Plane, Sphere
+from warpgs.data.formats.synthetic import scene_definition
 
 
 def _surface_distance(obj, p):
@@ -52,7 +52,7 @@ def test_depth_labels_normals_are_exact(kind):
 
 
 def test_normals_are_unit_and_face_the_camera():
-    from warpgs.data.depth_io import read_exr_channels
+    from warpgs.data.depth.files import read_exr_channels
 
     root = synthetic_dir("lightfield")
     scene = load_scene(root)

@@ -3,14 +3,14 @@ and the registered terms on a tiny fake render."""
 import pytest
 import torch
 
-from warpgs.gaussians import SurfelModel
+from warpgs.model.gaussians import SurfelModel
 from warpgs.language.bridge import BridgeMLP
 from warpgs.language.losses import (BRIDGE_MODULE, SIGMA_MODULE, HomoscedasticWeights, LanguageContext,
                                     active_branch, beta_from_uncertainty, bidirectional_loss, color_bridge_loss,
                                     feature_bridge_loss, safe_norm)
 from warpgs.language.settings import LanguageConfig
 from warpgs.losses import compute_losses, resolve_losses
-from warpgs.render import RenderOutput
+from warpgs.render.gaussians import RenderOutput
 
 
 def _unit(x):

@@ -14,7 +14,7 @@ import warpgs.language  # noqa: F401  (registers the extension and losses)
 from warpgs.data import make_synthetic_scene
 from warpgs.language.cli import query_main
 from warpgs.language.query import LanguageField
-from warpgs.train import Trainer
+from warpgs.train.trainer import Trainer
 
 CONFIG = Path(__file__).resolve().parent.parent / "configs" / "language.yaml"
 STEPS = 160

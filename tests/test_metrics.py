@@ -4,8 +4,8 @@ import sys
 import pytest
 import torch
 
-import warpgs.metrics as metrics
-from warpgs.metrics import LPIPSMetric, image_metrics, lpips_unavailable_reason, psnr, ssim
+import warpgs.metrics.image as metrics
+from warpgs.metrics.image import LPIPSMetric, image_metrics, lpips_unavailable_reason, psnr, ssim
 
 
 def test_psnr_known_values():

@@ -4,8 +4,8 @@ import math
 import pytest
 import torch
 
-import warpgs.gaussians as gs
-from warpgs.gaussians import SH_C0, GaussianModel, SurfelModel, knn_scale, rgb_to_sh0, sh0_to_rgb
+import warpgs.model.gaussians as gs
+from warpgs.model.gaussians import SH_C0, GaussianModel, SurfelModel, knn_scale, rgb_to_sh0, sh0_to_rgb
 
 
 def grid(n=3, spacing=0.5, offset=0.0):

@@ -4,8 +4,8 @@ import math
 import pytest
 import torch
 
-from warpgs.gaussians import GaussianModel
-from warpgs.optim import (OptimConfig, build_optimizer, exponential_lr, means_lr_at, set_param_values,
+from warpgs.model.gaussians import GaussianModel
+from warpgs.train.optim import (OptimConfig, build_optimizer, exponential_lr, means_lr_at, set_param_values,
                           update_learning_rates, update_rows)
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from warpgs.gaussians import GaussianModel, SurfelModel, load_ply, read_ply
+from warpgs.model.gaussians import GaussianModel, SurfelModel, load_ply, read_ply
 
 THREEDGS_PROPS = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
                   + [f"f_rest_{i}" for i in range(45)] + ["opacity", "scale_0", "scale_1", "scale_2"]

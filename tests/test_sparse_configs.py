@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from warpgs.config import load_config
+from warpgs.config.loader import load_config
 from warpgs.losses import required_outputs, resolve_losses
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"

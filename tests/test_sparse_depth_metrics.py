@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from warpgs.depth_metrics import abs_rel, depth_order_accuracy, evaluate_depth, sample_pairs
+from warpgs.metrics.depth import abs_rel, depth_order_accuracy, evaluate_depth, sample_pairs
 
 
 def scene_depth(h=24, w=32, seed=0):

@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from raster_helpers import DEVICE
-from warpgs.gaussians import GaussianModel
+from warpgs.model.gaussians import GaussianModel
 from warpgs.losses import get_loss
-from warpgs.model_render import render_model
+from warpgs.model.rendering import render_model
 
 W, H = 32, 24
 K = torch.tensor([[30.0, 0.0, W / 2], [0.0, 30.0, H / 2], [0.0, 0.0, 1.0]])

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from warpgs.data.depth_io import write_exr
-from warpgs.data.load import load_scene
-from warpgs.data.synthetic import RigSettings, write_synthetic_scene
-from warpgs.train import Trainer
+from warpgs.data.depth.files import write_exr
+from warpgs.data.formats.load import load_scene
+from warpgs.data.formats.synthetic import RigSettings, write_synthetic_scene
+from warpgs.train.trainer import Trainer
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 _ROOT = Path(tempfile.mkdtemp(prefix="warpgs-sparse-tests-"))

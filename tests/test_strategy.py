@@ -4,9 +4,9 @@ import math
 import pytest
 import torch
 
-from warpgs.gaussians import GaussianModel, SurfelModel, quat_to_rotmat
-from warpgs.optim import build_optimizer
-from warpgs.strategy import DensifyStrategy, StrategyConfig, screen_grads_from_means_grad, screen_radii
+from warpgs.model.gaussians import GaussianModel, SurfelModel, quat_to_rotmat
+from warpgs.train.optim import build_optimizer
+from warpgs.train.strategy import DensifyStrategy, StrategyConfig, screen_grads_from_means_grad, screen_radii
 
 W = H = 100
 HIGH = 1e-5  # px gradient -> NDC norm 1e-5 * 50 = 5e-4 > 2e-4

@@ -3,8 +3,8 @@
 import pytest
 import yaml
 
-from warpgs.cli import QUICK_RUN, configs_dir
-from warpgs.config import ConfigError, load_config
+from warpgs.cli.commands import QUICK_RUN, configs_dir
+from warpgs.config.loader import ConfigError, load_config
 
 CONFIGS = configs_dir()
 
@@ -102,14 +102,14 @@ def test_config_round_trips_through_yaml(tmp_path):
 
 
 def test_unknown_loss_is_named_at_trainer_construction():
-    from warpgs.train import Trainer
+    from warpgs.train.trainer import Trainer
 
     with pytest.raises(ValueError, match=r"losses\.l2: unknown loss.*did you mean 'l1'"):
         Trainer(None, overrides=["losses.l2=1.0", "device=cpu"])
 
 
 def test_cli_reports_bad_key(capsys):
-    from warpgs.cli import train_main
+    from warpgs.cli.commands import train_main
 
     assert train_main(["steps=10", "train.stepz=4", "--print-config"]) == 2
     err = capsys.readouterr().err

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from train_fixtures import quick_overrides
-from warpgs.gaussians import SurfelModel, load_ply
-from warpgs.train import Trainer
+from warpgs.model.gaussians import SurfelModel, load_ply
+from warpgs.train.trainer import Trainer
 
 STEPS = 200
 # With the learned environment background, as the default run. Measured on the 64x48 scene (seed 0):
@@ -70,7 +70,7 @@ def test_ply_round_trips(fitted):
 
 
 def test_eval_cli_recomputes_metrics(fitted, capsys):
-    from warpgs.cli import eval_main
+    from warpgs.cli.commands import eval_main
 
     _, result, _ = fitted
     assert eval_main(["--model", str(result.out_dir), "--no-lpips"]) == 0
@@ -81,7 +81,7 @@ def test_eval_cli_recomputes_metrics(fitted, capsys):
 
 
 def test_render_cli_orbit(fitted, tmp_path):
-    from warpgs.cli import render_main
+    from warpgs.cli.commands import render_main
 
     _, result, _ = fitted
     assert render_main(["--model", str(result.out_dir), "--orbit", "3", "--out", str(tmp_path)]) == 0

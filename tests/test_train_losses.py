@@ -9,11 +9,11 @@ import torch
 from torch import nn
 
 import warpgs
-import warpgs.model_render as model_render
+import warpgs.model.rendering as model_render
 from train_fixtures import quick_overrides
-from warpgs.extensions import Extension
+from warpgs.train.extensions import Extension
 from warpgs.losses import unregister_loss
-from warpgs.train import Trainer
+from warpgs.train.trainer import Trainer
 
 STEPS = 25
 
@@ -150,7 +150,7 @@ def test_extension_features_and_module_train_and_resume(tmp_path):
 
 
 def test_package_exports_are_lazy():
-    code = ("import sys, warpgs, warpgs.losses, warpgs.config; assert 'warp' not in sys.modules; "
+    code = ("import sys, warpgs, warpgs.losses, warpgs.config.loader; assert 'warp' not in sys.modules; "
             "from warpgs import register_loss, load_config; assert 'warp' not in sys.modules; "
             "from warpgs import Trainer, rasterize; assert 'warp' in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
@@ -197,7 +197,7 @@ def test_depth_to_normal_of_a_tilted_plane():
 
 
 def test_surfel_geometry_losses_run(tmp_path):
-    from warpgs.cli import configs_dir
+    from warpgs.cli.commands import configs_dir
 
     overrides = quick_overrides(tmp_path, 6, **{"losses.normal_consistency.schedule": None,
                                                 "losses.distortion.weight": 10.0, "losses.distortion.schedule": None})

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from train_fixtures import quick_overrides
-from warpgs.checkpoint import load_checkpoint
+from warpgs.train.checkpoint import load_checkpoint
 from warpgs.losses import register_loss, unregister_loss
-from warpgs.train import NonFiniteError, Trainer
+from warpgs.train.trainer import NonFiniteError, Trainer
 
 STEPS = 40  # densification at 20 and 30, SH degree raised at 15 and 30
 
@@ -128,7 +128,7 @@ def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
 def test_cli_train_then_resume_with_more_steps(tmp_path, capsys):
     import json
 
-    from warpgs.cli import train_main
+    from warpgs.cli.commands import train_main
 
     assert train_main(quick_overrides(tmp_path, 8) + ["--quiet"]) == 0
     assert f"results in {tmp_path.resolve()}" in capsys.readouterr().out

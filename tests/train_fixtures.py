@@ -7,7 +7,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from warpgs.data.synthetic import RigSettings, write_synthetic_scene
+from warpgs.data.formats.synthetic import RigSettings, write_synthetic_scene
 
 _ROOT = Path(tempfile.mkdtemp(prefix="warpgs-train-tests-"))
 atexit.register(shutil.rmtree, _ROOT, ignore_errors=True)

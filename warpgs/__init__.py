@@ -4,9 +4,14 @@ Names are imported on first use, so `import warpgs.losses` (or warpgs.data) does
 """
 import importlib
 
+from warpgs import _moved
+
+_moved.install()  # old flat module paths (warpgs.pipeline, warpgs.train_loop, ...) alias their new homes
+
 _LAZY = {
-    "rasterize": "warpgs.render", "RenderOutput": "warpgs.render", "rasterize_surfels": "warpgs.render_surfels",
-    "register_loss": "warpgs.losses", "Trainer": "warpgs.train", "load_config": "warpgs.config",
+    "rasterize": "warpgs.render.gaussians", "RenderOutput": "warpgs.render.gaussians", "rasterize_surfels": "warpgs.render.surfels",
+    "register_loss": "warpgs.losses", "Trainer": "warpgs.train.trainer",
+    "load_config": "warpgs.config.loader",
 }
 
 __all__ = list(_LAZY)

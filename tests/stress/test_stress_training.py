@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from train_fixtures import small_orbit
-from warpgs.checkpoint import load_checkpoint
-from warpgs.config import Config, load_config
-from warpgs.gaussians import SurfelModel, load_ply
-from warpgs.train import NonFiniteError, Trainer
+from warpgs.train.checkpoint import load_checkpoint
+from warpgs.config.loader import Config, load_config
+from warpgs.model.gaussians import SurfelModel, load_ply
+from warpgs.train.trainer import NonFiniteError, Trainer
 
 STRESS = Path(__file__).resolve().parents[2] / "configs" / "stress.yaml"
 DEFAULT = STRESS.with_name("default.yaml")

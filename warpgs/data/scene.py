@@ -15,14 +15,16 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from warpgs.data import depth_io, image_io
+from warpgs.data.depth import files as depth_io
+
+from warpgs.data.formats import image_io
 from warpgs.data.cache import cache_dir, file_key
 from warpgs.data.camera import Camera
 from warpgs.data.errors import MissingSceneFile, SceneError
 from warpgs.data.points import PointCloud
-from warpgs.data.resize import (DOWNSCALE_FACTORS, downscaled_size, resize_area, resize_bilinear, resize_masked,
+from warpgs.data.formats.resize import (DOWNSCALE_FACTORS, downscaled_size, resize_area, resize_bilinear, resize_masked,
                                 resize_nearest)
-from warpgs.data.undistort import UndistortMap
+from warpgs.data.formats.undistort import UndistortMap
 
 _MEMORY_BUDGET_BYTES = 1 << 30
 

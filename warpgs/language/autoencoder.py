@@ -69,7 +69,7 @@ class FeatureAutoencoder(nn.Module):
 
     # ----- persistence -----
     def save(self, path) -> Path:
-        from warpgs.atomic_file import atomic_write_bytes
+        from warpgs.utils.atomic_file import atomic_write_bytes
         import io
 
         buf = io.BytesIO()

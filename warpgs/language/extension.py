@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from warpgs.extensions import Extension, register_extension
+from warpgs.train.extensions import Extension, register_extension
 from warpgs.language.autoencoder import FeatureAutoencoder
 from warpgs.language.bridge import BridgeMLP
 from warpgs.language.losses import BRIDGE_MODULE, SIGMA_MODULE, HomoscedasticWeights, LanguageContext

@@ -224,7 +224,7 @@ def photometric_loss(render_out, batch, dssim_weight: float = 0.0) -> torch.Tens
     target = batch_field(batch, "image").to(pred)
     loss = (pred - target).abs().mean()
     if dssim_weight > 0:
-        from warpgs.metrics import ssim
+        from warpgs.metrics.image import ssim
 
         loss = (1.0 - dssim_weight) * loss + dssim_weight * (1.0 - ssim(pred, target))
     return loss

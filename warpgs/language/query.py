@@ -111,7 +111,7 @@ class LanguageField:
 
     @classmethod
     def from_run(cls, run_dir, device: Optional[str] = None, **kwargs) -> "LanguageField":
-        from warpgs.cli import load_run
+        from warpgs.cli.commands import load_run
 
         return cls.from_trainer(load_run(run_dir, device), **kwargs)
 
@@ -153,7 +153,7 @@ class LanguageField:
                composite: bool = True):
         """Render the model (latent as `features`); keep [N] bool hides the other primitives. With a trainer,
         composite=True lets its other extensions finish the image (e.g. the learned environment behind it)."""
-        from warpgs.model_render import render_model
+        from warpgs.model.rendering import render_model
 
         outputs = tuple(outputs)
         if "rgb" in outputs and "alpha" not in outputs:

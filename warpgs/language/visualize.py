@@ -40,6 +40,6 @@ def _erode(mask: np.ndarray) -> np.ndarray:
 
 
 def save_png(path, array: np.ndarray) -> Path:
-    from warpgs.data.image_io import write_png
+    from warpgs.data.formats.image_io import write_png
 
     return write_png(Path(path), np.asarray(array))

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 from warpgs.losses.registry import batch_field, register_loss, render_output
-from warpgs.metrics import ssim
+from warpgs.metrics.image import ssim
 
 IMAGE_KEY = "image"
 

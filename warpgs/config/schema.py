@@ -1,0 +1,165 @@
+"""The config schema: section dataclasses with their defaults, and the key tables (aliases, choices, ranges)."""
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional
+
+import yaml
+
+from warpgs.train.optim import OptimConfig
+from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.train.strategy import StrategyConfig
+
+
+class ConfigError(ValueError):
+    """A bad config key or value; `key` is the dotted path at fault."""
+
+    def __init__(self, key: str, problem: str):
+        self.key = key
+        super().__init__(f"{key}: {problem}" if key else problem)
+
+
+@dataclass
+class DataConfig:
+    path: Optional[str] = None  # scene folder (COLMAP, transforms.json, light field); None: built-in synthetic
+    synthetic: str = "orbit"  # built-in scene when path is None: "orbit" (dense ring) or "lightfield" (3x3)
+    width: int = 128  # built-in scene resolution
+    height: int = 96
+    split: Optional[str] = None  # None: split.json when present else all train (light fields: "grid"); "llff", "all"
+    n_train: Optional[int] = None  # keep this many training views (evenly spread)
+    downscale: int = 1  # serve images at 1/downscale (1, 2, 4, 8)
+    depth_priors: Optional[str] = "auto"  # "auto": the scene's prior files if any; "none"; "estimate": plane-sweep
+    #                                       stereo aligned to the SfM points, written to <output>/depth_priors;
+    #                                       or a folder of priors
+    preload: bool = True  # keep all training views on the device
+
+
+@dataclass
+class ModelConfig:
+    kind: str = "gaussians"  # "gaussians" (3DGS) or "surfels" (2DGS)
+    sh_degree: int = 3  # highest SH degree
+    sh_interval: int = 1000  # raise the active SH degree by one every this many steps (0: all bands from the start)
+    init: str = "auto"  # "auto" (SfM points, else depth priors, else random), "sfm", "depth", "random"
+    init_points: int = 100_000  # points drawn for depth/random initialisation
+    init_opacity: float = 0.1
+    background_points: int = 0  # extra points on a far sphere, where sky/background can live (0: none, as 3DGS)
+    background_radius: float = 3.0  # that sphere's radius, in multiples of the scene's radius
+    init_knn: int = 3  # initial scale: RMS distance to this many nearest points
+    features: Dict[str, int] = field(default_factory=dict)  # extra per-primitive params rendered as `features`
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 30_000
+    seed: int = 0
+    device: str = "auto"  # "auto" (CUDA when available), "cpu", "cuda", "cuda:N"
+    background: Any = "auto"  # "auto" (the scene's, else black), "black", "white" or [r, g, b] in [0, 1]
+    near: float = 0.01
+    far: float = 1e10
+    tile_size: Optional[int] = None  # speed only (the image does not depend on it); None: 8, or 16 for forward-only
+    #                                  GPU renders (raster_defaults.py)
+    # Accuracy knobs of the renderer (defaults: the 3DGS rules, exact within them); raising them trades
+    # accuracy for speed, see benchmarks/speed_vs_error.py.
+    max_sigmas: float = 0.0  # > 0: truncate each footprint at this many sigmas
+    alpha_min: float = DEFAULT_ALPHA_MIN  # skip contributions below this alpha
+    transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN  # stop blending a pixel before its transmittance drops under this
+    scene_extent: Optional[float] = None  # None: from the cameras (3DGS); scales means_lr and densify sizes
+    checkpoint_every: int = 1000  # 0: only at the end (and on Ctrl-C)
+    log_every: int = 100  # progress line period when the output is not a terminal
+    progress: bool = True
+    nan_guard: bool = True  # stop at the first non-finite loss, gradient or parameter
+    threads: int = 0  # torch CPU threads during fit (0: 1 on CPU, where Warp's own thread pool uses the cores;
+    #                   torch's default on CUDA)
+
+    def render_options(self) -> dict:
+        """The renderer settings every render of the model uses (training, evaluation, queries)."""
+        return dict(near=self.near, far=self.far, tile_size=self.tile_size, max_sigmas=self.max_sigmas,
+                    alpha_min=self.alpha_min, transmittance_min=self.transmittance_min)
+
+
+@dataclass
+class EvalConfig:
+    every: int = 1000  # evaluate the held-out views every this many steps (0: only at the end)
+    split: str = "test"  # "test" or "train" (the final metrics fall back to train when there is no test split)
+    lpips: bool = True  # LPIPS when its weights are on disk (never downloaded)
+    lpips_net: str = "alex"
+    save_images: bool = True  # write the final test renders as PNG
+    max_views: int = 0  # evaluate at most this many views during training (0: all); the final pass uses all
+
+
+@dataclass
+class OutputConfig:
+    dir: Optional[str] = None  # None: outputs/<scene name>
+    ply: str = "point_cloud.ply"
+    checkpoint: str = "checkpoint.pt"
+    metrics: str = "metrics.json"
+
+
+@dataclass
+class Config:
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    strategy: StrategyConfig = field(default_factory=StrategyConfig)
+    losses: Dict[str, Any] = field(default_factory=lambda: {"l1": 0.8, "dssim": 0.2})
+    train: TrainConfig = field(default_factory=TrainConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    imports: List[str] = field(default_factory=list)
+    extensions: Dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return _plain(dataclasses.asdict(self))
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=False)
+
+    def copy(self) -> "Config":
+        return copy.deepcopy(self)
+
+
+ALIASES = {
+    "steps": "train.steps", "device": "train.device", "eval_every": "eval.every", "seed": "train.seed",
+    "background": "train.background", "out": "output.dir", "data": "data.path", "kind": "model.kind",
+    "budget": "strategy.max_primitives", "max_primitives": "strategy.max_primitives",
+    "sh_degree": "model.sh_degree", "checkpoint_every": "train.checkpoint_every",
+}
+CHOICES = {
+    "data.synthetic": ("orbit", "lightfield"),
+    "data.split": ("file", "llff", "all", "grid"),  # "grid": light-field folders (their default)
+    "model.kind": ("gaussians", "surfels"),
+    "model.init": ("auto", "sfm", "depth", "random"),
+    "eval.split": ("test", "train"),
+    "eval.lpips_net": ("alex", "vgg", "squeeze"),
+}
+POSITIVE = {"data.width", "data.height", "data.downscale", "data.n_train", "model.init_points", "model.init_knn",
+            "train.steps", "train.tile_size"}
+NON_NEGATIVE = {"model.sh_interval", "model.background_points", "train.checkpoint_every", "train.log_every", "train.threads", "eval.every",
+                "eval.max_views"}
+# Mappings whose keys are free (user names), not fields.
+FREE_MAPPINGS = {"losses", "extensions", "model.features", "optim.extras_lr"}
+SECTIONS = {f.name: f for f in dataclasses.fields(Config)}
+BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
+
+
+def all_keys() -> List[str]:
+    """Every dotted key a config accepts (free mappings appear as their own key)."""
+    keys = []
+    for name, f in SECTIONS.items():
+        default = f.default_factory()
+        if dataclasses.is_dataclass(default):
+            keys += [f"{name}.{g.name}" for g in dataclasses.fields(default)]
+        else:
+            keys.append(name)
+    return keys + list(ALIASES)
+
+
+def _plain(obj):
+    """Tuples -> lists so the YAML dump stays plain."""
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    return obj

@@ -1,0 +1,1 @@
+"""Structure from motion with pycolmap, initial points for the model, similarity transforms between poses."""

@@ -1,0 +1,53 @@
+"""Render a primitive model (3D Gaussians or surfels) from one camera: the trainer's single call into the render op.
+
+`render_model` picks `rasterize` or `rasterize_surfels` by the model's kind, passes the model's activated
+parameters (`model.render_inputs()`), and asks for exactly the `outputs` given. Everything the trainer, the
+evaluation and the CLI render goes through here, so a test can spy on the rasterizer calls in one place.
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import torch
+
+from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.render.gaussians import OUTPUTS as GAUSSIAN_OUTPUTS
+from warpgs.render.gaussians import RenderOutput, rasterize
+from warpgs.render.surfels import OUTPUTS as SURFEL_OUTPUTS
+from warpgs.render.surfels import rasterize_surfels
+
+OUTPUTS_BY_KIND = {"gaussians": GAUSSIAN_OUTPUTS, "surfels": SURFEL_OUTPUTS}
+
+
+def check_outputs(kind: str, outputs: Sequence[str], who: str = "outputs") -> None:
+    """Raise a clear error when a primitive kind cannot render one of `outputs`."""
+    can = OUTPUTS_BY_KIND[kind]
+    missing = [o for o in outputs if o not in can]
+    if missing:
+        other = [k for k, outs in OUTPUTS_BY_KIND.items() if k != kind and all(o in outs for o in missing)]
+        hint = f" (model.kind={other[0]} can)" if other else ""
+        raise ValueError(f"{who}: model.kind={kind} cannot render {missing}{hint}; it renders {list(can)}")
+
+
+def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
+                 outputs: Sequence[str] = ("rgb",), background: Optional[torch.Tensor] = None,
+                 features: Optional[torch.Tensor] = None, inputs: Optional[dict] = None,
+                 track_means2d: bool = False, near: float = 0.01, far: float = 1e10,
+                 tile_size: Optional[int] = None, max_sigmas: float = 0.0, alpha_min: float = DEFAULT_ALPHA_MIN,
+                 transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
+                 check_inputs: bool = True) -> RenderOutput:
+    """One camera. `inputs` (default: model.render_inputs()) may be edited by the caller, e.g. colours from
+    an MLP; `features` [N, C] is rendered when "features" is in outputs. track_means2d is honoured for 3D
+    Gaussians only (surfels: `out.means2d` stays None and densification falls back to means.grad)."""
+    kind = model.kind
+    if kind not in OUTPUTS_BY_KIND:
+        raise ValueError(f"model.kind: expected one of {sorted(OUTPUTS_BY_KIND)}, got {kind!r}")
+    inputs = dict(model.render_inputs() if inputs is None else inputs)
+    if features is not None:
+        inputs["features"] = features
+    kwargs = dict(viewmat=viewmat, K=K, width=width, height=height, outputs=tuple(outputs), background=background,
+                  near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
+                  transmittance_min=transmittance_min, check_inputs=check_inputs, **inputs)
+    if kind == "gaussians":
+        return rasterize(track_means2d=track_means2d, **kwargs)
+    return rasterize_surfels(**kwargs)

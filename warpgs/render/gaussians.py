@@ -1,0 +1,312 @@
+"""The torch op: `rasterize` renders 3D Gaussians with the Warp pipeline; gradients flow through a wp.Tape.
+
+Conventions follow gsplat so users can swap: OpenCV camera (x right, y down, z forward), world-to-camera
+`viewmat`, pixel centres at +0.5, wxyz quaternions (unnormalised), linear scales, opacities in [0, 1].
+"""
+from __future__ import annotations
+
+from contextlib import nullcontext
+from dataclasses import dataclass, fields
+from typing import Optional, Sequence
+
+import torch
+import warp as wp
+
+from warpgs.render import pipeline_gaussians as pipeline
+from warpgs.render.defaults import (DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, LOWEST_TRANSMITTANCE_MIN,
+                                    choose_tile_size)
+from warpgs.render.validation import check_finite, check_same_device, check_tensor
+
+OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
+DEPTH_EPS = 1e-10
+
+
+@dataclass
+class RenderOutput:
+    """Images are [H, W, C] for one camera and [B, H, W, C] for a batch; outputs not asked for are None."""
+
+    rgb: Optional[torch.Tensor] = None
+    alpha: Optional[torch.Tensor] = None
+    depth: Optional[torch.Tensor] = None  # expected camera z: Σ w_i z_i / alpha
+    inv_depth: Optional[torch.Tensor] = None  # accumulated Σ w_i / z_i
+    features: Optional[torch.Tensor] = None
+    normal: Optional[torch.Tensor] = None  # surfels only: world-space normals facing the camera, Σ w_i n_i
+    median_depth: Optional[torch.Tensor] = None  # surfels only: z where accumulated opacity crosses 0.5
+    distortion: Optional[torch.Tensor] = None  # surfels only: the 2DGS depth-distortion term
+    visible: Optional[torch.Tensor] = None  # [N] (or [B, N]) bool: touched at least one tile
+    means2d: Optional[torch.Tensor] = None  # with track_means2d: projected centres; .grad = dL/dmeans2d
+    num_intersections: int = 0  # Gaussian-tile pairs (summed over a batch)
+
+
+def _wp_device(device: torch.device) -> str:
+    return "cpu" if device.type == "cpu" else f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"
+
+
+def _zero_grad(t: torch.Tensor) -> torch.Tensor:
+    """A contiguous zero gradient buffer for t (zeros_like would copy a transposed input's strides, which the
+    contiguous Warp array made from t cannot take as its grad)."""
+    return torch.zeros_like(t, memory_format=torch.contiguous_format)
+
+
+def _to_wp(t: torch.Tensor, dtype, grad: Optional[torch.Tensor] = None):
+    return wp.from_torch(t.detach().contiguous(), dtype=dtype, grad=grad)
+
+
+class _RasterizeFunction(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, settings, wanted, means, quats, scales, opacities, coeffs, features, viewmat, intrinsics,
+                means2d_probe):
+        needs = ctx.needs_input_grad[2:10]
+        any_grad = any(ctx.needs_input_grad[2:])  # the means2d probe alone also needs the blend adjoint
+        grads = [_zero_grad(t) if need else None
+                 for t, need in zip((means, quats, scales, opacities, coeffs, features, viewmat, intrinsics), needs)]
+        # Arrays the hand-written blend adjoint writes into always need a grad buffer when anything is learnt.
+        if any_grad:
+            grads[3] = _zero_grad(opacities) if grads[3] is None else grads[3]
+            grads[5] = _zero_grad(features) if grads[5] is None else grads[5]
+        w_means = _to_wp(means, wp.vec3, grads[0])
+        w_quats = _to_wp(quats, wp.vec4, grads[1])
+        w_scales = _to_wp(scales, wp.vec3, grads[2])
+        w_opac = _to_wp(opacities, wp.float32, grads[3])
+        w_coeffs = _to_wp(coeffs, wp.vec3, grads[4])
+        w_feat = _to_wp(features, wp.float32, grads[5])
+        w_view = _to_wp(viewmat.reshape(1, 4, 4), wp.mat44, None if grads[6] is None else grads[6].view(1, 4, 4))
+        w_intr = _to_wp(intrinsics.reshape(1, 4), wp.vec4, None if grads[7] is None else grads[7].view(1, 4))
+
+        tape = wp.Tape()
+        # With geometry and colour frozen (e.g. training only opacities or features) the projection's
+        # adjoint has nothing to deliver: leave it off the tape.
+        project_grad = any(needs[i] for i in (0, 1, 2, 4, 6, 7))
+        with tape if project_grad else nullcontext():
+            proj = pipeline.project_gaussians(w_means, w_quats, w_scales, w_opac, w_coeffs, w_view, w_intr,
+                                              settings, requires_grad=any_grad)
+        bins = pipeline.bin_gaussians(proj, w_opac, settings)
+        fwd = pipeline.blend_forward(proj, bins, w_opac, w_feat, settings, wanted)
+
+        H, W = settings.height, settings.width
+        color = wp.to_torch(fwd.color).view(-1, 3)[: H * W].view(H, W, 3) if wanted.color else None
+        alpha = wp.to_torch(fwd.alpha).view(H, W, 1)
+        depth = wp.to_torch(fwd.depth).view(H, W, 1) if wanted.depth else None
+        inv_depth = wp.to_torch(fwd.inv_depth).view(H, W, 1) if wanted.inv_depth else None
+        feats = wp.to_torch(fwd.features).view(H, W, -1) if wanted.num_features else None
+        visible = wp.to_torch(bins.counts) > 0
+        if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
+            means2d_probe.data.copy_(wp.to_torch(proj.means2d).view(-1, 2))
+        ctx.state = (tape, proj, bins, fwd, w_opac, w_feat, settings, wanted, grads)
+        empty = means.new_zeros(0)
+        outs = [color, alpha, depth, inv_depth, feats]
+        count = torch.tensor(bins.num_intersections)
+        ctx.mark_non_differentiable(visible, count)
+        ctx.device = means.device
+        return tuple(empty if o is None else o for o in outs) + (visible, count)
+
+    @staticmethod
+    def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count):
+        tape, proj, bins, fwd, w_opac, w_feat, settings, wanted, grads = ctx.state
+        npix = settings.width * settings.height
+        device = ctx.device
+        if proj.means2d.shape[0] == 0:  # empty scene: nothing to differentiate (Warp has no grads for size 0)
+            ctx.state = None
+            probe_grad = torch.zeros(0, 2, device=device) if ctx.needs_input_grad[10] else None
+            return (None, None) + tuple(grads) + (probe_grad,)
+
+        def upstream(g, shape):
+            return (torch.zeros(shape, device=device) if g is None else g).contiguous().view(shape)
+
+        stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
+        with wp.ScopedDevice(proj.means2d.device), stream:  # on torch's stream: no race with its kernels
+            # Outputs that were not computed get a 1-element dummy the kernel never reads.
+            gc = wp.from_torch(upstream(g_color, (npix, 3)), dtype=wp.vec3) if wanted.color else wp.zeros(1, dtype=wp.vec3)
+            ga = wp.from_torch(upstream(g_alpha, (npix,)))
+            gd = wp.from_torch(upstream(g_depth, (npix,))) if wanted.depth else wp.zeros(1, dtype=float)
+            gi = wp.from_torch(upstream(g_inv, (npix,))) if wanted.inv_depth else wp.zeros(1, dtype=float)
+            nf = wanted.num_features
+            gf = wp.from_torch(upstream(g_feat, (npix, nf))) if nf else wp.zeros((1, 1), dtype=float)
+
+            g2d = []
+
+            def blend_adjoint():
+                pipeline.blend_backward(proj, bins, w_opac, w_feat, settings, wanted, fwd, gc, ga, gd, gi, gf)
+                if ctx.needs_input_grad[10]:  # read before the projection adjoint consumes it
+                    g2d.append(wp.to_torch(proj.means2d.grad).view(-1, 2).clone())
+
+            tape.record_func(blend_adjoint, [proj.means2d, proj.conics, proj.colors, proj.depths, w_opac, w_feat])
+            tape.backward()
+        ctx.state = None
+        return (None, None) + tuple(grads) + (g2d[0] if g2d else None,)
+
+
+def _intrinsics_vector(K: torch.Tensor) -> torch.Tensor:
+    return torch.stack([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+
+
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    *,
+    sh_degree: Optional[int] = None,
+    features: Optional[torch.Tensor] = None,
+    background: Optional[torch.Tensor] = None,
+    outputs: Sequence[str] = ("rgb", "alpha"),
+    near: float = 0.01,
+    far: float = 1e10,
+    tile_size: Optional[int] = None,
+    max_sigmas: float = 0.0,
+    alpha_min: float = DEFAULT_ALPHA_MIN,
+    transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
+    check_inputs: bool = True,
+    track_means2d: bool = False,
+    _means2d_probe: Optional[torch.Tensor] = None,
+) -> RenderOutput:
+    """Render N 3D Gaussians from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
+
+    colors: [N,3] plain colours, or SH coefficients [N,K,3] with `sh_degree` d (K >= (d+1)^2; evaluated
+    from the camera centre, plus 0.5, clamped at 0). features: [N,C] rendered into `out.features` when
+    "features" is in `outputs`. Only the requested outputs are computed.
+    track_means2d: also return `out.means2d` [N,2] (or [B,N,2]), the projected centres in pixels, a leaf
+    whose `.grad` after backward is dL/dmeans2d (what 3DGS-style densification thresholds).
+    tile_size (speed only; None: 8, or 16 for GPU renders autograd will not differentiate; see raster_defaults).
+    Accuracy knobs (defaults: the 3DGS rules, exact within them): `max_sigmas` > 0 truncates each footprint at
+    that many sigmas; `alpha_min` skips contributions below that alpha; blending stops before transmittance
+    would drop under `transmittance_min`. Raising any of them trades accuracy for speed
+    (benchmarks/speed_vs_error.py measures how much).
+    """
+    outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
+                                      height, sh_degree, features, background, near, far, tile_size, check_inputs,
+                                      max_sigmas, alpha_min, transmittance_min, scale_dims=3,
+                                      track_means2d=track_means2d)
+    if viewmat.dim() == 3:
+        probe = means.new_zeros(viewmat.shape[0], means.shape[0], 2, requires_grad=True) if track_means2d else None
+        per_camera = [rasterize(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
+                                sh_degree=sh_degree, features=features, background=background, outputs=outputs,
+                                near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
+                                transmittance_min=transmittance_min, check_inputs=False,
+                                _means2d_probe=None if probe is None else probe[b])
+                      for b in range(viewmat.shape[0])]
+        out = _stack(per_camera)
+        out.means2d = probe
+        return out
+    probe = _means2d_probe
+    if probe is None and track_means2d:
+        probe = means.new_zeros(means.shape[0], 2, requires_grad=True)
+
+    n = means.shape[0]
+    coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
+    feats = features if (features is not None and "features" in outputs) else means.new_zeros(n, 0)
+    settings = pipeline.Settings(width=int(width), height=int(height), near=float(near), far=float(far),
+                                 tile_size=int(tile_size), max_sigmas=float(max_sigmas),
+                                 sh_degree=-1 if sh_degree is None else int(sh_degree), alpha_min=float(alpha_min),
+                                 transmittance_min=float(transmittance_min))
+    wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
+                             num_features=feats.shape[1])
+    device = means.device
+    with wp.ScopedDevice(_wp_device(device)):
+        stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
+        with stream:
+            color, alpha, zacc, inv, fout, visible, count = _RasterizeFunction.apply(
+                settings, wanted, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K), probe)
+    out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible,
+                       num_intersections=int(count), means2d=probe)
+    if wanted.color:
+        out.rgb = color if background is None else color + (1.0 - alpha) * background
+    if wanted.depth:
+        out.depth = zacc / alpha.clamp_min(DEPTH_EPS)
+    if wanted.inv_depth:
+        out.inv_depth = inv
+    if wanted.num_features:
+        out.features = fout
+    return out
+
+
+def _stack(per_camera: list) -> RenderOutput:
+    def cat(name):
+        vals = [getattr(o, name) for o in per_camera]
+        return None if vals[0] is None else torch.stack(vals)
+
+    out = RenderOutput(**{f.name: cat(f.name) for f in fields(RenderOutput)
+                          if f.name not in ("num_intersections", "means2d")})
+    out.num_intersections = sum(o.num_intersections for o in per_camera)
+    return out
+
+
+def checked_call(known_outputs, outputs, means, quats, scales, opacities, colors, viewmat, K, width, height,
+                 sh_degree, features, background, near, far, tile_size, check_values, max_sigmas, alpha_min,
+                 transmittance_min, scale_dims, track_means2d=False):
+    """What both render ops check before rendering (a ValueError naming the argument), and the settings they
+    derive: (outputs as a tuple, the tile size to use)."""
+    outputs = tuple(outputs)
+    unknown = [o for o in outputs if o not in known_outputs]
+    if unknown:
+        raise ValueError(f"outputs: unknown {unknown}; choose from {known_outputs}")
+    if "features" in outputs and features is None:
+        raise ValueError("outputs: 'features' requested but features=None")
+    _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
+                     background, near, far, tile_size, check_values, scale_dims)
+    check_blend_knobs(max_sigmas, alpha_min, transmittance_min)
+    grad = track_means2d or _needs_grad(means, quats, scales, opacities, colors, features, viewmat, K, background)
+    return outputs, choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda")
+
+
+def _needs_grad(*tensors) -> bool:
+    """Whether autograd will differentiate a render of these inputs."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
+
+
+def check_blend_knobs(max_sigmas, alpha_min, transmittance_min) -> None:
+    """The accuracy knobs shared by every primitive kind."""
+    if not max_sigmas >= 0.0:
+        raise ValueError(f"max_sigmas: expected >= 0 (0: exact footprint), got {max_sigmas}")
+    if not 0.0 < alpha_min < 0.99:  # alpha is clamped at 0.99, so a larger threshold would drop everything
+        raise ValueError(f"alpha_min: expected a value in (0, 0.99), got {alpha_min}")
+    if not LOWEST_TRANSMITTANCE_MIN <= transmittance_min < 1.0:  # see raster_defaults
+        raise ValueError(f"transmittance_min: expected a value in [{LOWEST_TRANSMITTANCE_MIN:g}, 1), got "
+                         f"{transmittance_min} (smaller ones let the transmittance underflow)")
+
+
+def _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
+                     background, near, far, tile_size, check_values, scale_dims=3):
+    check_tensor("means", means, (None, 3))
+    n = means.shape[0]
+    check_tensor("quats", quats, (n, 4))
+    check_tensor("scales", scales, (n, scale_dims))
+    check_tensor("opacities", opacities, (n,))
+    if sh_degree is None:
+        check_tensor("colors", colors, (n, 3))
+    else:
+        if not 0 <= int(sh_degree) <= 3:
+            raise ValueError(f"sh_degree: expected 0..3, got {sh_degree}")
+        check_tensor("colors", colors, (n, None, 3))
+        need = (int(sh_degree) + 1) ** 2
+        if colors.shape[1] < need:
+            raise ValueError(f"colors: sh_degree={sh_degree} needs {need} SH coefficients, got {colors.shape[1]}")
+    if features is not None:
+        check_tensor("features", features, (n, None))
+        if features.shape[1] < 1:
+            raise ValueError("features: need at least one channel")
+    if viewmat.dim() == 3:
+        check_tensor("viewmat", viewmat, (None, 4, 4))
+        check_tensor("K", K, (viewmat.shape[0], 3, 3))
+    else:
+        check_tensor("viewmat", viewmat, (4, 4))
+        check_tensor("K", K, (3, 3))
+    if background is not None:
+        check_tensor("background", background, (3,))
+    for name, v in (("width", width), ("height", height), ("tile_size", 1 if tile_size is None else tile_size)):
+        if int(v) != v or int(v) < 1:
+            raise ValueError(f"{name}: expected a positive integer, got {v}")
+    if tile_size is not None and tile_size > 32:
+        raise ValueError(f"tile_size: at most 32 (a tile is one GPU block of tile_size² threads), got {tile_size}")
+    if not (0 < near < far):
+        raise ValueError(f"near/far: expected 0 < near < far, got near={near}, far={far}")
+    named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+             "features": features, "viewmat": viewmat, "K": K, "background": background}
+    check_same_device(named)
+    if check_values:
+        check_finite(named, opacities)

@@ -1,0 +1,13 @@
+"""Training: the Trainer and its collaborators (loop, checkpoints, evaluation, non-finite guard), the
+densification strategy, optimizers and trainer extensions."""
+from warpgs._lazy import lazy_exports
+
+_NAMES = {
+    "Trainer": "warpgs.train.trainer",
+    "TrainResult": "warpgs.train.loop",
+    "NonFiniteError": "warpgs.train.guard",
+    "Extension": "warpgs.train.extensions",
+    "register_extension": "warpgs.train.extensions",
+}
+__all__ = list(_NAMES)
+__getattr__, __dir__ = lazy_exports(globals(), _NAMES)

@@ -1,0 +1,57 @@
+"""The trainer's NaN guard: `NonFiniteError` and the check naming the first non-finite loss, gradient or parameter."""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+
+class NonFiniteError(FloatingPointError):
+    """Training produced NaN/Inf; `step` and `name` (the first offending parameter or loss term) say where."""
+
+    def __init__(self, step: int, name: str, problem: str):
+        self.step, self.name = step, name
+        super().__init__(f"step {step}: {problem}")
+
+
+class NonFiniteGuardMixin:
+    """Part of `warpgs.train.trainer.Trainer` (uses its model and modules)."""
+
+    # ----- NaN guard ------------------------------------------------------------------------------------------
+    def named_parameters(self):
+        for name, p in self.model.params.items():
+            yield name, p
+        for name, p in self.modules.named_parameters():
+            yield f"modules.{name}", p
+
+    def check_finite(self, step: int, result=None) -> None:
+        """Raise NonFiniteError unless the loss, every gradient and every parameter are finite. Cheap on the
+        good path: one sum per tensor (NaN and Inf propagate through it) and one device sync; the names come
+        from a second, exact pass only when a sum is not finite. Parameters are checked too because an
+        invisible NaN primitive has zero gradient and would otherwise reach a checkpoint unnoticed."""
+        named = list(self.named_parameters())
+        sums = [p.detach().sum().float() for _, p in named if p.numel()]
+        sums += [p.grad.sum().float() for _, p in named if p.grad is not None and p.grad.numel()]
+        if result is not None:
+            sums.append(result.total.detach().reshape(()).float())
+        if not sums or bool(torch.isfinite(torch.stack(sums)).all()):
+            return
+        name = self._first_nonfinite(grads=False)
+        if name is not None:
+            raise NonFiniteError(step, name, f"parameter {name!r} is not finite")
+        if result is not None and not bool(torch.isfinite(result.total.detach())):
+            terms = [n for n, v in result.values.items() if not bool(torch.isfinite(v))]
+            label = "/".join(terms) or "total"
+            raise NonFiniteError(step, terms[0] if terms else "loss",
+                                 f"loss {label} is not finite (all parameters are finite)")
+        name = self._first_nonfinite(grads=True)
+        if name is not None:
+            raise NonFiniteError(step, name, f"gradient of {name!r} is not finite")
+        # Only a sum overflowed (finite values beyond float range in total): nothing is actually non-finite.
+
+    def _first_nonfinite(self, grads: bool) -> Optional[str]:
+        for name, p in self.named_parameters():
+            t = p.grad if grads else p.detach()
+            if t is not None and not bool(torch.isfinite(t).all()):
+                return name
+        return None

@@ -1,0 +1,186 @@
+"""Adam with the 3DGS learning rates, the exponential position schedule, and optimizer-state surgery.
+
+Surgery: densification changes the number of primitives, so every per-primitive Parameter is replaced by a
+new one and its Adam moments (exp_avg, exp_avg_sq, ...) are re-indexed to match: kept rows carry their
+moments, new rows start at zero (as 3DGS and gsplat do). Any optimizer/param group holding one of the model's
+parameters is updated; other groups (an MLP, uncertainty weights) are left alone.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Dict, Iterable, Mapping, Optional, Union
+
+import torch
+from torch import nn
+
+from warpgs.model.gaussians import GaussianModel
+
+Optimizers = Union[torch.optim.Optimizer, Iterable[torch.optim.Optimizer]]
+
+
+@dataclass
+class OptimConfig:
+    means_lr: float = 1.6e-4  # x scene extent, at step 0
+    means_lr_final: float = 1.6e-6  # x scene extent, reached at max_steps (log-linear in between)
+    means_lr_delay_steps: int = 0  # optional warm-up as 3DGS's delay (0: none)
+    means_lr_delay_mult: float = 0.01
+    scales_lr: float = 5e-3
+    quats_lr: float = 1e-3
+    opacities_lr: float = 2.5e-2  # later 3DGS releases; the paper's 0.05 also works
+    sh0_lr: float = 2.5e-3
+    shN_lr: float = 2.5e-3 / 20
+    extra_lr: float = 1e-3  # for extras not named in extras_lr
+    extras_lr: Dict[str, float] = field(default_factory=dict)
+    eps: float = 1e-15  # 3DGS's Adam epsilon: gradients of far/small primitives are tiny
+    beta1: float = 0.9
+    beta2: float = 0.999
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float) and not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{f.name}: expected a finite non-negative number, got {v}")
+        for name, v in self.extras_lr.items():
+            if not (math.isfinite(float(v)) and v >= 0):
+                raise ValueError(f"extras_lr.{name}: expected a finite non-negative number, got {v}")
+        if self.means_lr > 0 and self.means_lr_final <= 0:
+            raise ValueError("means_lr_final: must be > 0 for the exponential decay (set means_lr=0 to freeze)")
+
+    def lr_for(self, name: str, scene_extent: float) -> float:
+        fixed = {"means": self.means_lr * scene_extent, "log_scales": self.scales_lr, "quats": self.quats_lr,
+                 "logit_opacities": self.opacities_lr, "sh0": self.sh0_lr, "shN": self.shN_lr}
+        if name in fixed:
+            return fixed[name]
+        return float(self.extras_lr.get(name, self.extra_lr))
+
+
+def _check_extent(scene_extent: float) -> float:
+    if not (math.isfinite(float(scene_extent)) and scene_extent > 0):
+        raise ValueError(f"scene_extent: expected a finite positive number, got {scene_extent}")
+    return float(scene_extent)
+
+
+def build_optimizer(model: GaussianModel, config: Optional[OptimConfig] = None,
+                    scene_extent: float = 1.0) -> torch.optim.Adam:
+    """One Adam, one named group per parameter (group["name"] is the key in model.params)."""
+    config = config or OptimConfig()
+    extent = _check_extent(scene_extent)
+    unknown = [n for n in config.extras_lr if n not in model.params]
+    if unknown:
+        raise ValueError(f"extras_lr: no such model parameters {unknown}; have {list(model.params)}")
+    groups = [{"params": [p], "lr": config.lr_for(name, extent), "name": name} for name, p in model.params.items()]
+    return torch.optim.Adam(groups, lr=0.0, eps=config.eps, betas=(config.beta1, config.beta2))
+
+
+def exponential_lr(step: int, lr_init: float, lr_final: float, max_steps: int, delay_steps: int = 0,
+                   delay_mult: float = 1.0) -> float:
+    """log-linear from lr_init (step 0) to lr_final (step >= max_steps), times an optional sine warm-up."""
+    if max_steps < 1:
+        raise ValueError(f"max_steps: expected a positive integer, got {max_steps}")
+    if lr_init == 0.0 and lr_final == 0.0:
+        return 0.0
+    t = min(max(step / max_steps, 0.0), 1.0)
+    lr = math.exp(math.log(lr_init) * (1.0 - t) + math.log(lr_final) * t)
+    if delay_steps > 0:
+        lr *= delay_mult + (1.0 - delay_mult) * math.sin(0.5 * math.pi * min(max(step / delay_steps, 0.0), 1.0))
+    return lr
+
+
+def means_lr_at(step: int, config: OptimConfig, scene_extent: float, max_steps: int) -> float:
+    extent = _check_extent(scene_extent)
+    return exponential_lr(step, config.means_lr * extent, config.means_lr_final * extent, max_steps,
+                          config.means_lr_delay_steps, config.means_lr_delay_mult)
+
+
+def update_learning_rates(optimizer: torch.optim.Optimizer, step: int, config: OptimConfig, scene_extent: float,
+                          max_steps: int) -> float:
+    """Set the `means` group's lr for this step (call once per step before optimizer.step()); returns it."""
+    lr = means_lr_at(step, config, scene_extent, max_steps)
+    hit = False
+    for group in optimizer.param_groups:
+        if group.get("name") == "means":
+            group["lr"] = lr
+            hit = True
+    if not hit:
+        raise ValueError("optimizer: no param group named 'means' (build it with build_optimizer)")
+    return lr
+
+
+# ----- surgery -----------------------------------------------------------------------------------------------
+def _optimizer_list(optimizers: Optimizers) -> list:
+    if optimizers is None:
+        return []
+    if isinstance(optimizers, torch.optim.Optimizer):
+        return [optimizers]
+    if isinstance(optimizers, Mapping):
+        return list(optimizers.values())
+    return list(optimizers)
+
+
+def _swap(optimizers: list, old: nn.Parameter, new: nn.Parameter, state_fn) -> None:
+    """Point every group holding `old` at `new`; its state tensors shaped like `old` go through state_fn."""
+    for opt in optimizers:
+        for group in opt.param_groups:
+            for j, q in enumerate(group["params"]):
+                if q is old:
+                    group["params"][j] = new
+                    state = opt.state.pop(old, None)
+                    if state:
+                        # Per-row moments have the parameter's shape; scalars such as `step` are kept.
+                        opt.state[new] = {k: state_fn(v) if torch.is_tensor(v) and v.shape == old.shape else v
+                                          for k, v in state.items()}
+
+
+def update_rows(model: GaussianModel, optimizers: Optimizers, keep: Optional[torch.Tensor] = None,
+                append: Optional[Mapping[str, torch.Tensor]] = None) -> None:
+    """Keep rows `keep` (bool mask [N] or index tensor) then append new rows (one tensor per parameter).
+
+    Parameters and their optimizer moments stay aligned row by row; appended rows get zero moments.
+    """
+    optimizers = _optimizer_list(optimizers)
+    n = model.num_primitives
+    if keep is None:
+        idx = torch.arange(n, device=model.device)
+    else:
+        keep = torch.as_tensor(keep, device=model.device)
+        if keep.dtype == torch.bool:
+            if keep.shape != (n,):
+                raise ValueError(f"keep: expected a bool mask of shape [{n}], got {list(keep.shape)}")
+            idx = keep.nonzero().squeeze(1)
+        else:
+            idx = keep.long()
+    if append is not None:
+        missing = [name for name in model.params if name not in append]
+        extra = [name for name in append if name not in model.params]
+        if missing or extra:
+            raise ValueError(f"append: needs exactly the model's parameters; missing {missing}, unknown {extra}")
+        counts = {name: t.shape[0] for name, t in append.items()}
+        if len(set(counts.values())) > 1:
+            raise ValueError(f"append: row counts differ between parameters: {counts}")
+    for name, old in list(model.params.items()):
+        def rows(t, _name=name, zero=False):
+            kept = t[idx]
+            if append is None:
+                return kept
+            add = append[_name].to(device=t.device, dtype=t.dtype)
+            if add.shape[1:] != t.shape[1:]:
+                raise ValueError(f"append[{_name!r}]: expected rows of shape {list(t.shape[1:])}, got {list(add.shape[1:])}")
+            return torch.cat([kept, torch.zeros_like(add) if zero else add])
+
+        new = nn.Parameter(rows(old.detach()), requires_grad=old.requires_grad)
+        _swap(optimizers, old, new, lambda v, _rows=rows: _rows(v, zero=True))
+        model.params[name] = new
+
+
+def set_param_values(model: GaussianModel, optimizers: Optimizers, name: str, values: torch.Tensor,
+                     reset_state: bool = True) -> None:
+    """Replace one parameter's values (same shape), zeroing its Adam moments (as 3DGS's opacity reset)."""
+    if name not in model.params:
+        raise ValueError(f"name: no parameter {name!r}; have {list(model.params)}")
+    old = model.params[name]
+    if values.shape != old.shape:
+        raise ValueError(f"values: expected shape {list(old.shape)}, got {list(values.shape)}")
+    new = nn.Parameter(values.detach().to(old.device, old.dtype).clone(), requires_grad=old.requires_grad)
+    _swap(_optimizer_list(optimizers), old, new, torch.zeros_like if reset_state else (lambda v: v))
+    model.params[name] = new

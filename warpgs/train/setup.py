@@ -1,0 +1,156 @@
+"""What the trainer builds before step 0: device, scene, background, initial model. Plain functions so that
+scripts (benchmarks, notebooks) can build the same pieces without a Trainer."""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import re
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+from warpgs.config.loader import BACKGROUNDS, Config, DataConfig
+from warpgs.model.gaussians import MODEL_KINDS, GaussianModel
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"train.device: {name!r} asked for but CUDA is not available (use device=cpu)")
+    return device
+
+
+def scene_label(data: DataConfig) -> str:
+    """A short name for the scene: the folder name, or synthetic-<kind>."""
+    if data.path is None:
+        return f"synthetic-{data.synthetic}"
+    name = Path(data.path).resolve().name
+    return re.sub(r"[^\w.-]+", "_", name) or "scene"
+
+
+def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
+    """The scene a config names (data.path None: the built-in synthetic scene, generated once and cached).
+    data.depth_priors "estimate" runs the built-in plane-sweep stereo on the training views, aligns it to the SfM
+    points and writes the priors to <out_dir>/depth_priors (never into the scene's own folder); a later Trainer on
+    the same output folder (resume, warpgs-render/eval) reuses them. Delete that folder to estimate again."""
+    from warpgs.data import compute_depth_priors, default_scene, load_scene
+
+    path = default_scene(data.synthetic, data.width, data.height) if data.path is None else Path(data.path)
+    scene = load_scene(path, split=data.split, n_train=data.n_train, downscale=data.downscale)
+    prior = data.depth_priors
+    if prior in (None, "none"):
+        if scene.has("depth_prior"):
+            scene = copy.copy(scene)
+            scene.files = [dataclasses.replace(f, depth_prior=None) for f in scene.files]
+    elif prior == "estimate":
+        if out_dir is None:
+            raise ValueError("data.depth_priors: 'estimate' needs an output folder to write the priors to")
+        scene = _estimated_priors(scene, Path(out_dir) / "depth_priors", compute_depth_priors)
+    elif prior != "auto":
+        folder = Path(prior)
+        if not folder.is_absolute() and not folder.is_dir():
+            folder = scene.root / prior
+        scene = scene.with_depth_priors(folder)
+    if not scene.train:
+        raise ValueError(f"data.split: the scene at {scene.root} has no training views")
+    return scene
+
+
+def _estimated_priors(scene, folder: Path, compute):
+    """The priors already estimated into `folder` when complete (format.json is written last), else new ones."""
+    from warpgs.data.scene import MapFormat
+    from warpgs.data.formats.view_files import FORMAT_FILE
+
+    if (folder / FORMAT_FILE).is_file():
+        done = scene.with_depth_priors(folder, MapFormat("inverse_depth"))
+        if all(done.files[v].depth_prior is not None for v in scene.train):
+            return done
+    return compute(scene, out_dir=folder)[0]
+
+
+def resolve_background(spec, scene, device) -> torch.Tensor:
+    """[3] float tensor: "auto" -> the scene's background (e.g. white for NeRF-synthetic) else black."""
+    if isinstance(spec, str):
+        if spec == "auto":
+            bg = getattr(scene, "background", None)
+            rgb = (0.0, 0.0, 0.0) if bg is None else tuple(float(v) for v in np.asarray(bg).reshape(-1)[:3])
+        else:
+            rgb = BACKGROUNDS[spec]
+    else:
+        rgb = tuple(float(v) for v in spec)
+    return torch.tensor(rgb, dtype=torch.float32, device=device)
+
+
+def initial_points(scene, config: Config):
+    """(xyz [N,3], rgb [N,3] float tensors, source) following model.init."""
+    from warpgs.data.sfm import init_points as ip
+
+    how, n, seed = config.model.init, config.model.init_points, config.train.seed
+    if how == "auto":
+        cloud, source = ip.initial_points(scene, n=n, seed=seed)
+    elif how == "sfm":
+        if scene.points is None or len(scene.points) == 0:
+            raise ValueError(f"model.init: 'sfm' but the scene at {scene.root} has no SfM points (use auto/random)")
+        cloud, source = scene.points, "sfm"
+    elif how == "depth":
+        src = "prior" if scene.has("depth_prior") else "depth"
+        cloud, source = ip.points_from_depth(scene, n=n, source=src, seed=seed), f"depth ({src})"
+    else:
+        try:
+            cloud, source = ip.random_points(scene, n=n, seed=seed), "random"
+        except ValueError:  # parallel optical axes (a camera array): a box around the cameras instead
+            centres = np.stack([c.center for c in scene.cameras])
+            extent = scene.camera_extent()
+            rng = np.random.default_rng(seed)
+            lo, hi = centres.min(0) - 3 * extent, centres.max(0) + 3 * extent
+            from warpgs.data.points import PointCloud
+
+            cloud, source = PointCloud(rng.uniform(lo, hi, (n, 3)), rng.uniform(0, 1, (n, 3))), "random (box)"
+    xyz, rgb = cloud.tensors()
+    xyz, rgb = xyz.float(), rgb.float()
+    if config.model.background_points:
+        bx, bc = background_points(scene, xyz, config.model.background_points, config.model.background_radius, seed)
+        xyz, rgb = torch.cat([xyz, bx]), torch.cat([rgb, bc])
+        source += f" + {len(bx)} background"
+    return xyz, rgb, source
+
+
+def background_points(scene, points: torch.Tensor, n: int, radius: float, seed: int = 0):
+    """n grey points uniformly on a sphere around the cameras' centre, `radius` times the scene's radius (the
+    farthest camera or 99th-percentile point). Scenes with sky get somewhere far away to put it, instead of
+    floaters in front of the cameras that haze every novel view."""
+    centres = torch.as_tensor(np.stack([c.center for c in scene.cameras]), dtype=torch.float32)
+    centre = centres.mean(0)
+    reach = float((centres - centre).norm(dim=1).max())
+    if len(points):
+        reach = max(reach, float(torch.quantile((points - centre).norm(dim=1), 0.99)))
+    gen = torch.Generator().manual_seed(int(seed) + 1)
+    d = torch.randn(int(n), 3, generator=gen)
+    d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return centre + radius * max(reach, 1e-3) * d, torch.full((int(n), 3), 0.5)
+
+
+def build_model(scene, config: Config, device) -> tuple:
+    """(model, init source): primitives of model.kind from the initial points, at most the strategy budget."""
+    xyz, rgb, source = initial_points(scene, config)
+    cls = MODEL_KINDS[config.model.kind]
+    gen = torch.Generator().manual_seed(int(config.train.seed))
+    model: GaussianModel = cls.from_points(xyz, rgb, sh_degree=config.model.sh_degree,
+                                           opacity=config.model.init_opacity, knn=config.model.init_knn,
+                                           max_points=config.strategy.max_primitives, generator=gen)
+    for name, dim in config.model.features.items():
+        model.add_extra(name, torch.zeros(model.num_primitives, int(dim)))
+    return model.to(device), source
+
+
+def active_sh_degree(step: int, config: Config, max_degree: int) -> int:
+    interval = config.model.sh_interval
+    return max_degree if interval <= 0 else min(max_degree, step // interval)
+
+
+def scene_extent(scene, override: Optional[float]) -> float:
+    return float(override) if override else float(scene.camera_extent())

@@ -1,0 +1,305 @@
+"""3DGS-style adaptive density control with a hard primitive budget.
+
+Trainer contract, once per training step (step counts from 0):
+
+    strategy = DensifyStrategy(StrategyConfig(...), scene_extent)
+    strategy.initialize(model)                          # before step 0 (and after loading a checkpoint)
+    out = rasterize(**model.render_inputs(), viewmat=V, K=K, width=W, height=H, ...)
+    strategy.step_pre_backward(model, step)
+    loss.backward()
+    optimizer.step()                                    # grads are still there: only zero_grad clears them
+    strategy.step_post_backward(model, optimizer, step, visible=out.visible, viewmat=V, K=K, width=W, height=H)
+    optimizer.zero_grad(set_to_none=True)
+
+`step_post_backward` needs, per rendered camera, `visible` ([N] bool, `RenderOutput.visible`), `viewmat`
+[4,4], `K` [3,3], `width`, `height` (or batches [B,N], [B,4,4], [B,3,3]), and the loss gradient with
+respect to each primitive's projected 2D mean:
+  - `grad2d` [N,2] or [B,N,2] in pixel units (dL/d(pixel x, pixel y)) when the renderer exposes it;
+  - otherwise (one camera only) it is recovered from `model.means.grad`: with p = R mu + t and the pinhole
+    Jacobian J = d(mean2d)/dp, the 3D gradient is R^T J^T g2d plus the (smaller) terms through the
+    covariance and the SH view direction; g2d = (J J^T)^-1 J R dL/dmu is the least-squares solution and is
+    exact when the loss depends on the means only through their 2D positions.
+Calling it after optimizer.step() (as above) means the densify step does not lose an Adam update; calling it
+before works too (new Parameters then have no grad for that step, like 3DGS).
+
+Gradient units: as 3DGS (and gsplat), the accumulated statistic is the norm of the gradient with respect to
+NDC coordinates, dL/dndc = dL/dpixel * (W/2, H/2), times B for a batch of B cameras (the loss is a mean over
+them), averaged over the steps in which the primitive was visible. The default threshold 0.0002 therefore
+matches 3DGS for a loss on the same scale (0.8 L1 + 0.2 (1 - SSIM), means over pixels).
+
+Screen radii (for screen-size pruning) are computed here from the camera: 3 sqrt(largest eigenvalue) of the
+projected covariance with the 0.3 px^2 low-pass, as the projection kernel does (3D scales; surfels get 0 for
+the third axis).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Optional
+
+import torch
+
+from warpgs.model.gaussians import GaussianModel, quat_to_rotmat
+from warpgs.train.optim import Optimizers, set_param_values, update_rows
+
+LOW_PASS = 0.3  # px^2, as kernels/project.py
+
+
+@dataclass
+class StrategyConfig:
+    grad_threshold: float = 2e-4  # mean NDC-gradient norm that marks a primitive for densification
+    refine_start: int = 500  # densify/prune when refine_start < step < refine_stop and step % refine_every == 0
+    refine_stop: int = 15_000
+    refine_every: int = 100
+    reset_every: int = 3000  # opacities clamped to reset_opacity when step % reset_every == 0 (< refine_stop); 0 off
+    reset_opacity: float = 0.01
+    prune_opacity: float = 0.005  # prune below this opacity
+    size_prune_start: int = 3000  # world/screen-size pruning only after this step (3DGS: after the first reset)
+    prune_world_scale: float = 0.1  # prune if max scale > this x scene extent; 0 disables
+    prune_screen_radius: float = 20.0  # prune if the max screen radius (px) since the last refine exceeds it; 0 off
+    dense_scale: float = 0.01  # max scale <= this x extent -> clone, else split (3DGS's percent_dense)
+    split_count: int = 2  # children per split primitive
+    split_shrink: float = 1.6  # child scale = parent scale / split_shrink (3DGS: 0.8 x split_count)
+    max_primitives: int = 1_000_000  # hard budget: never exceeded
+    seed: int = 0  # for the split sampling
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"{f.name}: expected a finite non-negative number, got {v!r}")
+        for name in ("refine_every", "max_primitives"):
+            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
+        if int(self.split_count) != self.split_count or self.split_count < 2:
+            raise ValueError(f"split_count: expected an integer >= 2, got {self.split_count}")
+        if self.split_shrink <= 0:
+            raise ValueError(f"split_shrink: expected > 0, got {self.split_shrink}")
+        if not 0 < self.reset_opacity < 1:
+            raise ValueError(f"reset_opacity: expected a value in (0, 1), got {self.reset_opacity}")
+
+
+def _camera_frame(means: torch.Tensor, viewmat: torch.Tensor):
+    R, t = viewmat[:3, :3].to(means), viewmat[:3, 3].to(means)
+    return R, means @ R.T + t
+
+
+def screen_grads_from_means_grad(means: torch.Tensor, means_grad: torch.Tensor, viewmat: torch.Tensor,
+                                 K: torch.Tensor, near: float = 0.01) -> torch.Tensor:
+    """[N,2] pixel-space gradient g2d with J^T g2d = the camera-frame 3D gradient, least squares (see module doc).
+    Primitives behind the near plane get 0."""
+    R, p = _camera_frame(means.detach(), viewmat)
+    g = means_grad.detach() @ R.T  # dL/dp = R dL/dmu
+    z = p[:, 2].clamp_min(near)
+    fx, fy = K[0, 0].to(means), K[1, 1].to(means)
+    u, v = p[:, 0] / z, p[:, 1] / z
+    # J = [[a, 0, -a u], [0, b, -b v]] with a = fx/z, b = fy/z; solve (J J^T) g2 = J g in closed form.
+    a, b = fx / z, fy / z
+    jg = torch.stack([a * (g[:, 0] - u * g[:, 2]), b * (g[:, 1] - v * g[:, 2])], 1)
+    m00, m11, m01 = a * a * (1 + u * u), b * b * (1 + v * v), a * b * u * v
+    det = (m00 * m11 - m01 * m01).clamp_min(1e-30)  # = a^2 b^2 (1 + u^2 + v^2) > 0
+    g2 = torch.stack([(m11 * jg[:, 0] - m01 * jg[:, 1]) / det, (m00 * jg[:, 1] - m01 * jg[:, 0]) / det], 1)
+    return torch.where((p[:, 2] >= near)[:, None], g2, torch.zeros_like(g2))
+
+
+def screen_radii(model: GaussianModel, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
+                 near: float = 0.01) -> torch.Tensor:
+    """[N] 3-sigma screen radius in pixels (0 behind the near plane), mirroring the projection kernel."""
+    with torch.no_grad():
+        means = model.means
+        R, p = _camera_frame(means, viewmat)
+        z = p[:, 2].clamp_min(near)
+        fx, fy, cx, cy = (K[0, 0].item(), K[1, 1].item(), K[0, 2].item(), K[1, 2].item())
+        tx, ty = 0.5 * width / fx, 0.5 * height / fy
+        u = (p[:, 0] / z).clamp(-(cx / fx + 0.3 * tx), (width - cx) / fx + 0.3 * tx)
+        v = (p[:, 1] / z).clamp(-(cy / fy + 0.3 * ty), (height - cy) / fy + 0.3 * ty)
+        zero = torch.zeros_like(z)
+        J = torch.stack([torch.stack([fx / z, zero, -fx * u / z], -1),
+                         torch.stack([zero, fy / z, -fy * v / z], -1)], -2)
+        scales = model.scales
+        if scales.shape[1] < 3:
+            scales = torch.cat([scales, scales.new_zeros(len(scales), 3 - scales.shape[1])], 1)
+        T = J @ R @ (quat_to_rotmat(model.quats) * scales.clamp_max(1e8)[:, None, :])
+        cov = T @ T.transpose(1, 2)
+        a, b, c = cov[:, 0, 0] + LOW_PASS, cov[:, 0, 1], cov[:, 1, 1] + LOW_PASS
+        mid = 0.5 * (a + c)
+        lam = mid + ((0.5 * (a - c)) ** 2 + b * b).sqrt()
+        r = 3.0 * lam.sqrt()
+        return torch.where(p[:, 2] >= near, r, torch.zeros_like(r))
+
+
+class DensifyStrategy:
+    """Clone small / split large high-gradient primitives, prune faint and oversized ones, reset opacities,
+    all under `max_primitives`. State (`state_dict`) is per-primitive statistics plus the RNG."""
+
+    def __init__(self, config: Optional[StrategyConfig] = None, scene_extent: float = 1.0,
+                 invisible_below: float = 0.0):
+        """invisible_below: the renderer's alpha_min. Primitives with a lower opacity never reach a tile, so they
+        get no gradient and would hold budget for good: they are pruned like those under prune_opacity."""
+        self.config = config or StrategyConfig()
+        self.invisible_below = float(invisible_below)
+        if not (math.isfinite(float(scene_extent)) and scene_extent > 0):
+            raise ValueError(f"scene_extent: expected a finite positive number, got {scene_extent}")
+        self.scene_extent = float(scene_extent)
+        self.generator = torch.Generator().manual_seed(int(self.config.seed))
+        self.grad_accum = self.count = self.max_radii = None
+
+    # ----- hooks -----
+    def initialize(self, model: GaussianModel) -> None:
+        n = model.num_primitives
+        if n > self.config.max_primitives:
+            raise ValueError(f"max_primitives: the model starts with {n} primitives, more than the budget "
+                             f"{self.config.max_primitives} (initialise with max_points=...)")
+        self._reset_stats(n, model.device)
+
+    def step_pre_backward(self, model: GaussianModel, step: int) -> None:
+        """Checks that the model was not resized behind the strategy's back. (Where a renderer exposes 2D
+        means, this is where their .retain_grad() would go.)"""
+        self._check_model(model)
+
+    def step_post_backward(self, model: GaussianModel, optimizers: Optimizers, step: int, *,
+                           visible: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
+                           grad2d: Optional[torch.Tensor] = None, near: float = 0.01) -> Optional[dict]:
+        """Accumulate statistics, then refine / reset opacities on their steps. Returns a report dict on steps
+        that changed the model ({"step", "cloned", "split", "pruned", "budget_dropped", "num_primitives",
+        "opacity_reset"}), else None."""
+        cfg = self.config
+        self._check_model(model)
+        if step >= cfg.refine_stop:
+            return None
+        batched = viewmat.dim() == 3
+        views = viewmat if batched else viewmat[None]
+        Ks = K if batched else K[None]
+        vis = visible if batched else visible[None]
+        if grad2d is None:
+            if views.shape[0] != 1:
+                raise ValueError("grad2d: required for a batch of cameras (means.grad sums over them)")
+            if model.means.grad is None:
+                raise ValueError("grad2d: not given and model.means.grad is None; call step_post_backward after "
+                                 "loss.backward() and before optimizer.zero_grad()")
+            g2 = screen_grads_from_means_grad(model.means, model.means.grad, views[0], Ks[0], near)[None]
+        else:
+            g2 = grad2d if batched else grad2d[None]
+        n = model.num_primitives
+        if g2.shape != (views.shape[0], n, 2) or vis.shape != (views.shape[0], n):
+            raise ValueError(f"grad2d/visible: expected [{n},2]/[{n}] per camera, got {list(g2.shape)}/{list(vis.shape)}")
+        radii = torch.stack([screen_radii(model, views[b], Ks[b], width, height, near) for b in range(len(views))])
+        self.accumulate(g2, vis, radii, width, height)
+
+        report = None
+        if step > cfg.refine_start and step % cfg.refine_every == 0:
+            report = self.refine(model, optimizers, step)
+        if cfg.reset_every and step > 0 and step % cfg.reset_every == 0:
+            self.reset_opacities(model, optimizers)
+            report = report or {"step": step, "num_primitives": model.num_primitives}
+            report["opacity_reset"] = True
+        return report
+
+    # ----- pieces (usable on their own) -----
+    @torch.no_grad()
+    def accumulate(self, grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, width: int,
+                   height: int) -> None:
+        """grad2d [B,N,2] in pixels, visible [B,N] bool, radii [B,N] px: one training step's observations."""
+        if self.grad_accum is None:
+            raise ValueError("strategy: call initialize(model) first")
+        batch = grad2d.shape[0]
+        scale = grad2d.new_tensor([0.5 * width * batch, 0.5 * height * batch])
+        norms = (grad2d.detach() * scale).norm(dim=-1)
+        vis = visible.to(torch.bool)
+        self.grad_accum += torch.where(vis, norms, torch.zeros_like(norms)).sum(0)
+        self.count += vis.sum(0)
+        self.max_radii = torch.maximum(self.max_radii, torch.where(vis, radii, torch.zeros_like(radii)).amax(0))
+
+    def average_grads(self) -> torch.Tensor:
+        return self.grad_accum / self.count.clamp_min(1)
+
+    @torch.no_grad()
+    def refine(self, model: GaussianModel, optimizers: Optimizers, step: int) -> dict:
+        """One densify-and-prune pass; resets the statistics."""
+        cfg, extent = self.config, self.scene_extent
+        self._check_model(model)
+        n = model.num_primitives
+        grads = self.average_grads()
+        max_scale = model.scales.amax(1)
+
+        prune = model.opacities < max(cfg.prune_opacity, self.invisible_below)
+        if step > cfg.size_prune_start:
+            if cfg.prune_world_scale > 0:
+                prune |= max_scale > cfg.prune_world_scale * extent
+            if cfg.prune_screen_radius > 0:
+                prune |= self.max_radii > cfg.prune_screen_radius
+        # Pruned primitives are not densified: their copies would be pruned too (or waste budget).
+        cand = (grads >= cfg.grad_threshold) & ~prune
+        small = max_scale <= cfg.dense_scale * extent
+
+        budget_dropped = 0
+        base = n - int(prune.sum())
+        cost = torch.where(small, 1, cfg.split_count - 1)
+        need = int(cost[cand].sum())
+        room = cfg.max_primitives - base
+        if need > room:
+            # Keep the highest-gradient candidates whose total cost fits (stable sort: ties by index).
+            idx = cand.nonzero().squeeze(1)
+            order = idx[torch.argsort(grads[idx], descending=True, stable=True)]
+            fits = torch.cumsum(cost[order], 0) <= max(room, 0)
+            chosen = torch.zeros_like(cand)
+            chosen[order[fits]] = True
+            budget_dropped = int(cand.sum()) - int(chosen.sum())
+            cand = chosen
+        clone = cand & small
+        split = cand & ~small
+
+        new_rows = self._clone_rows(model, clone)
+        split_rows = self._split_rows(model, split)
+        append = {name: torch.cat([new_rows[name], split_rows[name]]) for name in model.params}
+        update_rows(model, optimizers, keep=~prune & ~split, append=append)
+        self._reset_stats(model.num_primitives, model.device)
+        return {"step": step, "cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(prune.sum()),
+                "budget_dropped": budget_dropped, "num_primitives": model.num_primitives}
+
+    @torch.no_grad()
+    def reset_opacities(self, model: GaussianModel, optimizers: Optimizers) -> None:
+        """opacity <- min(opacity, reset_opacity), done in logit space (monotone, no 0/1 round trip);
+        the opacity moments are zeroed as in 3DGS."""
+        cap = math.log(self.config.reset_opacity / (1.0 - self.config.reset_opacity))
+        set_param_values(model, optimizers, "logit_opacities", model.logit_opacities.clamp_max(cap))
+
+    # ----- checkpoints -----
+    def state_dict(self) -> dict:
+        return {"grad_accum": self.grad_accum, "count": self.count, "max_radii": self.max_radii,
+                "generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.grad_accum, self.count, self.max_radii = state["grad_accum"], state["count"], state["max_radii"]
+        self.generator.set_state(state["generator"])
+
+    # ----- internals -----
+    def _reset_stats(self, n: int, device) -> None:
+        self.grad_accum = torch.zeros(n, device=device)
+        self.count = torch.zeros(n, dtype=torch.int64, device=device)
+        self.max_radii = torch.zeros(n, device=device)
+
+    def _check_model(self, model: GaussianModel) -> None:
+        if self.grad_accum is None:
+            raise ValueError("strategy: call initialize(model) first")
+        if self.grad_accum.shape[0] != model.num_primitives:
+            raise ValueError(f"model: has {model.num_primitives} primitives but the strategy tracks "
+                             f"{self.grad_accum.shape[0]}; resize only through the strategy (or initialize again)")
+
+    @staticmethod
+    def _clone_rows(model: GaussianModel, mask: torch.Tensor) -> dict:
+        # Exact copies at the same place, as 3DGS's code: the next gradient steps pull them apart.
+        return {name: p.detach()[mask] for name, p in model.params.items()}
+
+    def _split_rows(self, model: GaussianModel, mask: torch.Tensor) -> dict:
+        k = self.config.split_count
+        rows = {name: p.detach()[mask].repeat_interleave(k, 0) for name, p in model.params.items()}
+        scales = model.scales.detach()[mask].repeat_interleave(k, 0)
+        # Children are sampled from the parent's own Gaussian (surfels: within their plane).
+        std = torch.cat([scales, scales.new_zeros(len(scales), 3 - scales.shape[1])], 1)
+        noise = torch.randn(std.shape, generator=self.generator).to(std.device) * std
+        rot = quat_to_rotmat(rows["quats"])
+        rows["means"] = rows["means"] + (rot @ noise[:, :, None])[:, :, 0]
+        # In log space: exp() of a very negative log-scale (a flat axis) underflows to 0, and log(0) = -inf.
+        rows["log_scales"] = rows["log_scales"] - math.log(self.config.split_shrink)
+        return rows

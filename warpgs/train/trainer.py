@@ -1,0 +1,282 @@
+"""The trainer: data -> model -> render op -> losses -> optimizer step -> strategy, driven by a Config.
+
+    from warpgs import Trainer, load_config
+    result = Trainer(load_config("configs/default.yaml", ["steps=500"])).fit()
+    result.metrics["psnr"], result.out_dir
+
+One step: pick the next training view (a seeded random order, reshuffled every epoch), set the active SH degree
+and the position learning rate, render exactly the outputs the active losses (and extensions) declare, sum the
+weighted losses, backward, step Adam, let the densification strategy clone/split/prune under its hard budget.
+
+Output folder: config.yaml (the resolved config), checkpoint.pt (atomic; model, optimizer, strategy, RNG
+states, step), point_cloud.ply (3DGS layout; surfels in the 2DGS layout), renders/<split>/*.png and
+metrics.json. `Trainer(config, resume=True)` continues from the checkpoint to the same result as an
+uninterrupted run (bit-exact on CPU). Ctrl-C stops at the end of the current step and writes a checkpoint
+there (a second Ctrl-C aborts at once; the previous checkpoint is then kept as it was). A non-finite loss,
+gradient or parameter stops training with `NonFiniteError` naming the first offender; the last checkpoint is
+left as it was.
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Callable, Dict, Iterable, List, Optional, Sequence, Union
+
+import torch
+from torch import nn
+
+from warpgs.train import checkpoint as ckpt
+from warpgs.config.loader import Config, load_config
+from warpgs.train.extensions import CallbackExtension, Extension, build_extension
+from warpgs.model.gaussians import GaussianModel
+from warpgs.losses import compute_losses, registered_losses, required_outputs, resolve_losses
+from warpgs.metrics.image import LPIPSMetric
+from warpgs.model.rendering import check_outputs, render_model
+from warpgs.train.optim import build_optimizer, update_learning_rates
+from warpgs.train.strategy import DensifyStrategy
+from warpgs.model import environment  # noqa: F401  (registers the built-in "environment" extension)
+from warpgs.train import setup as train_setup
+from warpgs.train.evaluation import TrainerEvaluationMixin
+from warpgs.train.guard import NonFiniteError, NonFiniteGuardMixin  # noqa: F401  (NonFiniteError re-exported)
+from warpgs.train.loop import TrainingLoopMixin, TrainResult
+from warpgs.train.state import TrainerCheckpointMixin
+from warpgs.config.user_imports import import_user_module
+
+VIEW_FIELDS = ("mask", "inv_depth_prior", "inv_depth_valid", "depth", "labels", "features")
+
+
+class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin, NonFiniteGuardMixin):
+    """See the module docstring. `scene`/`model` override what the config would build; `extensions` are
+    Extension objects (added to those the config names); `callbacks` are `fn(trainer, step, info)` called
+    after every step."""
+
+    def __init__(self, config: Union[None, str, Path, dict, Config] = None, *, overrides: Sequence[str] = (),
+                 scene=None, model: Optional[GaussianModel] = None, extensions: Iterable[Extension] = (),
+                 callbacks: Iterable[Callable] = (), resume: bool = False, out_dir=None, quiet: bool = False):
+        self.config = load_config(config, overrides)  # a private, checked copy
+        cfg = self.config
+        self.quiet = quiet
+        for module in cfg.imports:  # e.g. modules that register custom losses or extensions
+            import_user_module(module)
+        self.device = train_setup.resolve_device(cfg.train.device)
+        self.terms = _resolve_terms(cfg.losses)
+
+        if out_dir is not None:
+            cfg.output.dir = str(out_dir)
+        if cfg.output.dir is None:
+            cfg.output.dir = str(Path("outputs") / train_setup.scene_label(cfg.data))
+        self.out_dir = Path(cfg.output.dir)
+        self.scene = scene if scene is not None else train_setup.load_training_scene(cfg.data, self.out_dir)
+        self.checkpoint_path = self.out_dir / cfg.output.checkpoint
+        self.extent = train_setup.scene_extent(self.scene, cfg.train.scene_extent)
+        self.background = train_setup.resolve_background(cfg.train.background, self.scene, self.device)
+        self.max_steps = cfg.train.steps
+
+        state = None
+        if resume:
+            if not self.checkpoint_path.is_file():
+                raise FileNotFoundError(f"--resume: no checkpoint at {self.checkpoint_path}")
+            state = ckpt.load_checkpoint(self.checkpoint_path)
+        ckpt.seed_everything(cfg.train.seed)
+        if state is not None:
+            self.model = GaussianModel.from_dict(state["model"], device=self.device)
+            self.init_source = "checkpoint"
+        elif model is not None:
+            self.model, self.init_source = model.to(self.device), "given"
+        else:
+            self.model, self.init_source = train_setup.build_model(self.scene, cfg, self.device)
+        if self.model.kind != cfg.model.kind:
+            raise ValueError(f"model.kind: config says {cfg.model.kind!r} but the model is {self.model.kind!r}")
+
+        # Extension points: extras rendered through `features`, extra modules with their own optimizer.
+        self.feature_names: List[str] = [n for n in cfg.model.features]
+        self.modules = nn.ModuleDict()
+        self._module_lrs: Dict[str, float] = {}
+        self.extensions: List[Extension] = [build_extension(n, o) for n, o in cfg.extensions.items()]
+        self.extensions += list(extensions) + [CallbackExtension(fn) for fn in callbacks]
+        for ext in self.extensions:
+            ext.setup(self)
+
+        self.outputs = required_outputs(self.terms, always=[o for e in self.extensions for o in e.outputs()])
+        check_outputs(self.model.kind, self.outputs, "losses")
+        if "features" in self.outputs and not self.feature_names and not self.extensions:
+            raise ValueError("losses: a term needs the 'features' output but the model renders no features "
+                             "(add model.features: {name: channels} or an extension)")
+
+        self.optimizer = build_optimizer(self.model, cfg.optim, self.extent)
+        self.module_optimizer = None
+        if len(self.modules):
+            groups = [{"params": list(m.parameters()), "lr": self._module_lrs[n], "name": n}
+                      for n, m in self.modules.items()]
+            self.module_optimizer = torch.optim.Adam(groups, lr=0.0)
+        self.strategy = DensifyStrategy(cfg.strategy, self.extent, invisible_below=cfg.train.alpha_min)
+        self.strategy.initialize(self.model)
+
+        self.train_indices = list(self.scene.train)
+        self.view_generator = torch.Generator().manual_seed(int(cfg.train.seed))
+        self._queue: List[int] = []
+        self._views: Dict[int, object] = {}
+        self._eval_views: Optional[list] = None
+        self._lpips: Optional[LPIPSMetric] = None
+        self.step = 0
+        self.train_seconds = 0.0
+        self.history: List[dict] = []
+        self.last_loss: Optional[float] = None
+        self._at_boundary = True
+        self._checkpoint_step = -1
+        if state is not None:
+            self._load_state(state)
+
+    # ----- extension API --------------------------------------------------------------------------------------
+    def add_extra(self, name: str, values: torch.Tensor, *, lr: Optional[float] = None, render: bool = True) -> None:
+        """A learnable per-primitive parameter [N, C] (copied/pruned with the primitives, saved in the PLY).
+        render=True concatenates it into the `features` input when a loss asks for that output."""
+        if name in self.model.params:  # restored from a checkpoint
+            if self.model.params[name].shape[1:] != torch.Size(values.shape[1:]):
+                raise ValueError(f"add_extra: {name!r} exists with shape {list(self.model.params[name].shape)}")
+        else:
+            self.model.add_extra(name, values)
+        if lr is not None:
+            self.config.optim.extras_lr[name] = float(lr)
+        if render and name not in self.feature_names:
+            self.feature_names.append(name)
+
+    def add_module(self, name: str, module: nn.Module, *, lr: float) -> None:
+        """An nn.Module trained alongside (its own Adam group; saved in checkpoints; in batch["modules"])."""
+        if name in self.modules:
+            raise ValueError(f"add_module: a module {name!r} already exists")
+        self.modules[name] = module.to(self.device)
+        self._module_lrs[name] = float(lr)
+
+    @property
+    def optimizers(self) -> list:
+        return [self.optimizer] + ([self.module_optimizer] if self.module_optimizer is not None else [])
+
+    @property
+    def feature_slices(self) -> Dict[str, slice]:
+        out, start = {}, 0
+        for name in self.feature_names:
+            c = self.model.params[name].shape[1]
+            out[name] = slice(start, start + c)
+            start += c
+        return out
+
+    # ----- one step -------------------------------------------------------------------------------------------
+    def view(self, index: int):
+        if index not in self._views:
+            v = self.scene.view(index, self.device)
+            if not self.config.data.preload:
+                return v
+            self._views[index] = v
+        return self._views[index]
+
+    def next_view(self):
+        if not self._queue:
+            self._queue = torch.randperm(len(self.train_indices), generator=self.view_generator).tolist()
+        return self.view(self.train_indices[self._queue.pop(0)])
+
+    def make_batch(self, view, step: int) -> dict:
+        """What losses read: image, camera, the view's optional maps (mask, inv_depth_prior + inv_depth_valid,
+        depth, labels, features) when the scene has them, and the trainer's modules and feature slices."""
+        batch = {"image": view.image, "view": view, "name": view.name, "index": view.index,
+                 "viewmat": view.viewmat, "K": view.K, "width": view.width, "height": view.height,
+                 "background": self.background, "step": step, "max_steps": self.max_steps,
+                 "modules": self.modules, "feature_slices": self.feature_slices}
+        for key in VIEW_FIELDS:
+            value = getattr(view, key, None)
+            if value is not None:
+                batch[key] = value
+        for ext in self.extensions:
+            batch = ext.make_batch(self, view, batch)
+        return batch
+
+    def render_inputs(self, batch: dict, step: int, outputs: Sequence[str]) -> dict:
+        inputs = self.model.render_inputs()
+        if "features" in outputs and self.feature_names:
+            inputs["features"] = torch.cat([self.model.params[n] for n in self.feature_names], 1)
+        for ext in self.extensions:
+            inputs = ext.render_inputs(self, inputs, batch, step)
+        return inputs
+
+    def render(self, view, outputs: Sequence[str] = ("rgb",), batch: Optional[dict] = None, *,
+               track_means2d: bool = False, step: Optional[int] = None):
+        step = self.step if step is None else step
+        batch = self.make_batch(view, step) if batch is None else batch
+        t = self.config.train
+        extra = [o for e in self.extensions for o in e.outputs() if o not in outputs]
+        outputs = tuple(outputs) + tuple(dict.fromkeys(extra))
+        out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,
+                           background=self.background, inputs=self.render_inputs(batch, step, outputs),
+                           track_means2d=track_means2d, check_inputs=not t.nan_guard, **t.render_options())
+        for ext in self.extensions:
+            out = ext.after_render(self, out, batch, step)
+        return out
+
+    def outputs_at(self, step: int) -> tuple:
+        """The outputs rendered at this step: those of the terms whose scheduled weight is not 0 now, plus the
+        extensions' (self.outputs is the union over the whole run)."""
+        if all(t.schedule is None for t in self.terms):
+            return self.outputs
+        live = [t for t in self.terms if t.weight_at(step, self.max_steps) > 0]
+        return required_outputs(live, always=[o for e in self.extensions for o in e.outputs()])
+
+    def train_step(self) -> dict:
+        """One optimisation step at self.step; returns info for logging and hooks."""
+        cfg, model, step = self.config, self.model, self.step
+        self._at_boundary = False
+        t0 = time.perf_counter()
+        view = self.next_view()
+        batch = self.make_batch(view, step)
+        model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
+        update_learning_rates(self.optimizer, step, cfg.optim, self.extent, self.max_steps)
+        densify = step < cfg.strategy.refine_stop
+        out = self.render(view, self.outputs_at(step), batch, track_means2d=densify, step=step)
+        result = compute_losses(self.terms, out, batch, model, step, self.max_steps)
+        self.strategy.step_pre_backward(model, step)
+        result.total.backward()
+        if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied
+            self.check_finite(step, result)
+        for opt in self.optimizers:
+            opt.step()
+        report = None
+        if densify:
+            grad2d = out.means2d.grad if out.means2d is not None else None
+            report = self.strategy.step_post_backward(model, self.optimizer, step, visible=out.visible,
+                                                      viewmat=view.viewmat, K=view.K, width=view.width,
+                                                      height=view.height, grad2d=grad2d, near=cfg.train.near)
+        for opt in self.optimizers:
+            opt.zero_grad(set_to_none=True)
+        model.zero_grad(set_to_none=True)
+        loss = float(result.total.detach())
+        train_psnr = None
+        if out.rgb is not None:
+            mse = float(((out.rgb.detach() - view.image) ** 2).mean())
+            train_psnr = 10.0 * math.log10(1.0 / max(mse, 1e-10))
+        self.train_seconds += time.perf_counter() - t0
+        self.step = step + 1
+        self.last_loss = loss
+        self._at_boundary = True
+        return {"step": step, "loss": loss, "values": {k: float(v) for k, v in result.values.items()},
+                "psnr": train_psnr, "num_primitives": model.num_primitives, "densify": report, "view": view.name}
+
+
+def _resolve_terms(losses: dict):
+    try:
+        return resolve_losses(losses)
+    except ValueError as e:
+        msg = str(e)
+        if "unknown loss" in msg:
+            import difflib
+
+            name = msg.split(":", 1)[0].replace("losses.", "")
+            close = difflib.get_close_matches(name, registered_losses(), n=1, cutoff=0.5)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise ValueError(f"losses.{name}: unknown loss; registered: {registered_losses()} (register your own "
+                             f"with warpgs.register_loss and list its module under `imports`){hint}") from None
+        raise
+
+
+def train(config=None, overrides: Sequence[str] = (), **kwargs) -> TrainResult:
+    """Shorthand: Trainer(config, overrides=overrides, **kwargs).fit()."""
+    return Trainer(config, overrides=overrides, **kwargs).fit()
