@@ -81,3 +81,53 @@ class Progress:
             self.stream.write("\n")
             self.stream.flush()
             self._width = 0
+
+
+class Stages:
+    """Per-stage progress of a multi-stage job (SfM: features, matching, triangulation, ...), on the same stream
+    and in the same style as the training line:
+
+        stages = Stages(["features", "matching", "mapping"], prefix="sfm")
+        with stages.run("features", detail="292 images, max 1600 px"):
+            ...                                   # prints "sfm [1/3] features (292 images, ...) ..." then "done in 12 s"
+        stages.report("registered 290/292 images") # a free line in between
+
+    `times` maps each finished stage to its wall time in seconds (for benchmarks and logs)."""
+
+    def __init__(self, names, *, prefix: str = "warpgs", stream: Optional[TextIO] = None, enabled: bool = True):
+        self.names = list(names)
+        self.prefix = prefix
+        self.stream = stream or sys.stderr
+        self.enabled = enabled
+        self.times: dict = {}
+
+    def _say(self, text: str) -> None:
+        if self.enabled:
+            self.stream.write(text + "\n")
+            self.stream.flush()
+
+    def report(self, message: str) -> None:
+        self._say(f"{self.prefix}: {message}")
+
+    def run(self, name: str, detail: str = ""):
+        return _Stage(self, name, detail)
+
+
+class _Stage:
+    def __init__(self, stages: Stages, name: str, detail: str):
+        self.stages, self.name, self.detail = stages, name, detail
+
+    def __enter__(self):
+        s = self.stages
+        index = s.names.index(self.name) + 1 if self.name in s.names else len(s.times) + 1
+        detail = f" ({self.detail})" if self.detail else ""
+        s._say(f"{s.prefix} [{index}/{max(len(s.names), index)}] {self.name}{detail} ...")
+        self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        elapsed = time.perf_counter() - self.t0
+        self.stages.times[self.name] = elapsed
+        status = "failed" if exc_type is not None else "done"
+        self.stages._say(f"{self.stages.prefix} [{self.name}] {status} in {_fmt_seconds(elapsed)}")
+        return False
