@@ -1,0 +1,121 @@
+"""Held-out PSNR / SSIM (LPIPS where its weights are local) against training time on a real capture, for the
+warpgs trainer and — with --gsplat — the plain gsplat loop on the same data, initial points, view order, steps,
+learning rates and losses (benchmarks/train_compare.py).
+
+    python benchmarks/real_capture.py data/beer --device cuda --gsplat --steps 7000,30000
+    python benchmarks/real_capture.py data/fern --downscale 8 --steps 300           # CPU smoke run
+
+DIR is any scene warpgs-train reads (COLMAP, transforms.json, LLFF poses_bounds.npy); the held-out views are
+the every-8th LLFF split. Each --steps value is an evaluation point of one run to the largest. Prints a table
+and writes benchmarks/results/real_capture_<name>_<device>[_gsplat].json (every evaluation point, time per step
+of each system and their ratio, the largest one-step drop in primitive count) and a PNG plot next to it.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+from common import ROOT, print_table, write_json
+
+sys.path.insert(0, str(ROOT))
+
+from train_compare import initial_model, run_gsplat, run_warpgs  # noqa: E402
+from warpgs.cli.commands import resolve_config_source  # noqa: E402
+from warpgs.config.loader import load_config  # noqa: E402
+
+
+def plot(runs: list, title: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in runs:
+        ax.plot([p["seconds"] for p in r["points"]], [p["psnr"] for p in r["points"]], "o-", label=r["system"])
+    ax.set_xlabel("training seconds")
+    ax.set_ylabel("held-out PSNR (dB)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("data", help="scene folder (COLMAP, transforms.json or LLFF)")
+    ap.add_argument("--config", default="gaussians", help="preset or YAML (default: gaussians, the 3DGS recipe)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--steps", default="7000", help="comma-separated evaluation steps; the run goes to the largest")
+    ap.add_argument("--eval-every", type=int, default=1000, help="extra evaluation points in between")
+    ap.add_argument("--downscale", type=int, default=None, help="data.downscale (default: the config's)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--gsplat", action="store_true", help="also run the plain gsplat loop (CUDA only)")
+    ap.add_argument("--lpips", action="store_true", help="score LPIPS at the end (needs its weights locally)")
+    ap.add_argument("--out", default=None, help="output folder for the warpgs run (default: a temp folder)")
+    ap.add_argument("overrides", nargs="*", help="extra key=value config overrides (both systems)")
+    args = ap.parse_intermixed_args(argv)
+    data = Path(args.data)
+    if not data.is_dir():
+        raise SystemExit(f"data: {data} is not a folder")
+    if args.gsplat and not args.device.startswith("cuda"):
+        raise SystemExit("--gsplat needs --device cuda (gsplat has no CPU rasterizer)")
+    try:
+        marks = sorted({int(s) for s in args.steps.split(",")})
+    except ValueError:
+        raise SystemExit(f"--steps: expected comma-separated integers, got {args.steps!r}")
+    if not marks or marks[0] < 1:
+        raise SystemExit(f"--steps: expected positive step counts, got {args.steps!r}")
+    eval_every = min([args.eval_every] + [m for m in marks])
+    out = args.out or tempfile.mkdtemp(prefix="warpgs-bench-real-")
+    overrides = [f"data.path={data.resolve()}", "data.split=llff", f"train.device={args.device}",
+                 f"train.seed={args.seed}", f"train.steps={marks[-1]}", f"eval.every={eval_every}",
+                 "train.progress=false", "train.checkpoint_every=0", "eval.save_images=false",
+                 f"eval.lpips={str(bool(args.lpips)).lower()}", f"output.dir={out}"]
+    if args.downscale:
+        overrides.append(f"data.downscale={args.downscale}")
+    cfg = load_config(resolve_config_source(args.config), overrides + list(args.overrides))
+
+    trainer, start, counts = initial_model(cfg)
+    scene = trainer.scene
+    print(f"{data.name}: {scene.summary()}; init {trainer.model.num_primitives} primitives "
+          f"from {trainer.init_source}", flush=True)
+    runs = [run_warpgs(trainer, counts, eval_every)]
+    if args.gsplat:
+        runs.append(run_gsplat(cfg, eval_every, scene, start))
+
+    rows = [{"system": r["system"], "step": p["step"], "seconds": p["seconds"], "psnr": p["psnr"], "ssim": p["ssim"],
+             "primitives": p["num_primitives"]} for r in runs for p in r["points"] if p["step"] in [0] + marks]
+    print(f"held-out PSNR vs training time: {data.name}, {marks[-1]} steps, device {args.device}")
+    print_table(rows, ["system", "step", "seconds", "psnr", "ssim", "primitives"])
+    per_step = {r["system"]: r["final"]["train_seconds"] / marks[-1] for r in runs}
+    for r in runs:
+        d = r["largest_drop"]
+        print(f"{r['system']}: {1e3 * per_step[r['system']]:.2f} ms/step; largest one-step primitive drop "
+              f"{100 * d['fraction_removed']:.1f}% (step {d['step']}: {d['before']} -> {d['after']})")
+    payload = {"data": str(data), "scene": scene.summary(), "device": args.device, "steps": marks,
+               "seed": args.seed, "config": cfg.to_dict(), "runs": runs, "ms_per_step": per_step,
+               "init_source": str(trainer.init_source)}
+    if args.gsplat:
+        payload["step_time_ratio"] = per_step["warpgs"] / per_step["gsplat"]
+        print(f"time per step warpgs / gsplat = {payload['step_time_ratio']:.2f}")
+    if args.device.startswith("cuda"):
+        payload["gpu"] = torch.cuda.get_device_name()
+    name = f"real_capture_{data.resolve().name}_{torch.device(args.device).type}" + ("_gsplat" if args.gsplat else "")
+    path = write_json(name, payload)
+    try:
+        plot(runs, f"{data.name}: held-out PSNR vs time ({args.device})", path.with_suffix(".png"))
+    except ImportError:
+        print("matplotlib not installed: no plot (pip install -e '.[bench]')")
+    print(f"\nwrote {path}")
+    return payload
+
+
+if __name__ == "__main__":
+    main()

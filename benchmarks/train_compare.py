@@ -1,0 +1,189 @@
+"""The two training loops the training benchmarks compare, on the same data, initial points, view order, steps,
+learning rates and losses: the warpgs Trainer, and a plain loop over gsplat's `rasterization` and
+`DefaultStrategy` (used by benchmarks/train.py on the synthetic scene and benchmarks/real_capture.py on real
+captures).
+
+Differences left in the gsplat loop, on purpose or by necessity: gsplat's DefaultStrategy has no primitive
+budget (ours stops densifying at strategy.max_primitives), samples split children with the global RNG, and
+resets opacity to 2 x prune_opa; the size rules map to prune_scale3d (world) only; step 0 is not reported to
+it. When the config enables the learned environment background, the gsplat loop composites the same
+EnvironmentMap module behind its render, with the same learning rate.
+
+Both loops record the primitive count after every step, so a refine step that deletes most of the model shows
+(`largest_drop`).
+"""
+from __future__ import annotations
+
+import time
+
+import torch
+
+from warpgs.metrics.image import psnr, ssim
+from warpgs.train import setup as train_setup
+from warpgs.train.checkpoint import seed_everything
+from warpgs.train.optim import means_lr_at
+from warpgs.train.trainer import Trainer
+
+
+def sync(device) -> None:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+
+
+def largest_drop(counts: list) -> dict:
+    """The step whose primitive count fell the most, relative to the count before it."""
+    worst = {"step": None, "before": None, "after": None, "fraction_removed": 0.0}
+    for (s0, n0), (s1, n1) in zip(counts, counts[1:]):
+        if n0 > 0 and (n0 - n1) / n0 > worst["fraction_removed"]:
+            worst = {"step": s1, "before": n0, "after": n1, "fraction_removed": round((n0 - n1) / n0, 4)}
+    return worst
+
+
+def initial_model(cfg):
+    """(the warpgs Trainer for `cfg`, a copy of its initial parameters that both loops start from, the list its
+    per-step primitive counts are recorded into)."""
+    counts: list = []
+    trainer = Trainer(cfg, quiet=True,
+                      callbacks=[lambda tr, step, info: counts.append((step + 1, tr.model.num_primitives))])
+    counts.append((0, trainer.model.num_primitives))
+    start = {k: v.detach().clone() for k, v in trainer.model.params.items()}
+    return trainer, start, counts
+
+
+def run_warpgs(trainer, counts: list, eval_every: int) -> dict:
+    start = trainer.evaluate()
+    points = [{"step": 0, "seconds": 0.0, "psnr": start["psnr"], "ssim": start["ssim"],
+               "num_primitives": trainer.model.num_primitives}]
+    t_wall = time.perf_counter()
+    result = trainer.fit()
+    wall = time.perf_counter() - t_wall
+    for h in result.history:
+        points.append({"step": h["step"], "seconds": h["train_seconds"], "psnr": h["psnr"], "ssim": h["ssim"],
+                       "num_primitives": h["num_primitives"]})
+    if points[-1]["step"] != result.steps:
+        points.append({"step": result.steps, "seconds": round(result.train_seconds, 3),
+                       "psnr": result.metrics["psnr"], "ssim": result.metrics["ssim"],
+                       "num_primitives": result.num_primitives})
+    final = {k: result.metrics[k] for k in ("psnr", "ssim", "num_primitives", "train_seconds")}
+    if result.metrics.get("lpips") is not None:
+        final["lpips"] = result.metrics["lpips"]
+    return {"system": "warpgs", "points": points, "wall_seconds": round(wall, 2), "final": final,
+            "largest_drop": largest_drop(counts)}
+
+
+def run_gsplat(cfg, eval_every: int, scene, start: dict) -> dict:
+    """The plain loop: gsplat rasterization + DefaultStrategy on `scene`, from the initial parameters `start`
+    (the warpgs model's), with our losses, learning rates and view order."""
+    try:
+        from gsplat import rasterization
+        from gsplat.strategy import DefaultStrategy
+    except ImportError as e:
+        raise SystemExit(f"--gsplat: gsplat is not importable ({e}); pip install gsplat on the GPU machine")
+    device = train_setup.resolve_device(cfg.train.device)
+    seed_everything(cfg.train.seed)
+    extent = train_setup.scene_extent(scene, cfg.train.scene_extent)
+    background = train_setup.resolve_background(cfg.train.background, scene, device)
+    o, s = cfg.optim, cfg.strategy
+    params = torch.nn.ParameterDict({
+        "means": start["means"].clone(), "scales": start["log_scales"].clone(), "quats": start["quats"].clone(),
+        "opacities": start["logit_opacities"].clone(), "sh0": start["sh0"].clone(),
+        "shN": start["shN"].clone()}).to(device)
+    lrs = {"means": o.means_lr * extent, "scales": o.scales_lr, "quats": o.quats_lr, "opacities": o.opacities_lr,
+           "sh0": o.sh0_lr, "shN": o.shN_lr}
+    optimizers = {k: torch.optim.Adam([{"params": [params[k]], "lr": lr, "name": k}], eps=o.eps,
+                                      betas=(o.beta1, o.beta2)) for k, lr in lrs.items()}
+    env, env_opt, dirs = None, None, {}
+    if "environment" in cfg.extensions:
+        from warpgs.model.environment import EnvironmentMap, ray_directions
+
+        opts = cfg.extensions["environment"]
+        env = EnvironmentMap(opts.get("degree", 3), opts.get("init_color", 0.5)).to(device)
+        env_opt = torch.optim.Adam(env.parameters(), lr=opts.get("lr", 0.01))
+        background = torch.zeros(3, device=device)
+    steps = cfg.train.steps
+    strategy = DefaultStrategy(
+        prune_opa=s.prune_opacity, grow_grad2d=s.grad_threshold, grow_scale3d=s.dense_scale,
+        prune_scale3d=s.prune_world_scale if s.prune_world_scale > 0 else float("inf"),
+        refine_start_iter=s.refine_start, refine_stop_iter=s.refine_stop, refine_every=s.refine_every,
+        reset_every=s.reset_every if s.reset_every else steps + 1)
+    strategy.check_sanity(params, optimizers)
+    state = strategy.initialize_state(scene_scale=extent)
+
+    train_views = [scene.view(i, device) for i in scene.train]
+    test_views = [scene.view(i, device) for i in (scene.test or scene.train)]
+    gen = torch.Generator().manual_seed(int(cfg.train.seed))
+    queue: list = []
+    max_deg = cfg.model.sh_degree
+    counts = [(0, len(params["means"]))]
+
+    def render(v, deg, grad=True):
+        k = (deg + 1) ** 2
+        colors = torch.cat([params["sh0"], params["shN"][:, : k - 1]], 1)
+        img, alpha, info = rasterization(params["means"], params["quats"], torch.exp(params["scales"]),
+                                         torch.sigmoid(params["opacities"]), colors, v.viewmat[None], v.K[None],
+                                         v.width, v.height, sh_degree=deg, packed=False,
+                                         backgrounds=background[None], near_plane=cfg.train.near,
+                                         far_plane=cfg.train.far)
+        img = img[0]
+        if env is not None:
+            if v.name not in dirs:
+                dirs[v.name] = ray_directions(v.viewmat, v.K, v.width, v.height)
+            img = img + (1.0 - alpha[0]) * env(dirs[v.name])
+        return img, info
+
+    def evaluate(deg):
+        with torch.no_grad():
+            ps, ss = [], []
+            for v in test_views:
+                img = render(v, deg)[0].clamp(0, 1)
+                ps.append(float(psnr(img, v.image)))
+                ss.append(float(ssim(img, v.image)))
+        return sum(ps) / len(ps), sum(ss) / len(ss)
+
+    points = [{"step": 0, "seconds": 0.0, **dict(zip(("psnr", "ssim"), evaluate(0))),
+               "num_primitives": len(params["means"])}]
+    seconds = 0.0
+    t_wall = time.perf_counter()
+    for step in range(steps):
+        sync(device)
+        t0 = time.perf_counter()
+        if not queue:
+            queue = torch.randperm(len(train_views), generator=gen).tolist()
+        v = train_views[queue.pop(0)]
+        deg = train_setup.active_sh_degree(step, cfg, max_deg)
+        optimizers["means"].param_groups[0]["lr"] = means_lr_at(step, o, extent, steps)
+        img, info = render(v, deg)
+        strategy.step_pre_backward(params, optimizers, state, step, info)
+        loss = 0.8 * (img - v.image).abs().mean() + 0.2 * (1.0 - ssim(img, v.image))
+        loss.backward()
+        for opt in list(optimizers.values()) + ([env_opt] if env_opt is not None else []):
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        if step > 0:  # some gsplat releases reset opacities at step 0 (step % reset_every == 0); ours never does
+            strategy.step_post_backward(params, optimizers, state, step, info, packed=False)
+        sync(device)
+        seconds += time.perf_counter() - t0
+        counts.append((step + 1, len(params["means"])))
+        if (step + 1) % eval_every == 0 or step + 1 == steps:
+            p, q = evaluate(deg)
+            points.append({"step": step + 1, "seconds": round(seconds, 3), "psnr": p, "ssim": q,
+                           "num_primitives": len(params["means"])})
+    wall = time.perf_counter() - t_wall
+    last = points[-1]
+    return {"system": "gsplat", "points": points, "wall_seconds": round(wall, 2),
+            "final": {"psnr": last["psnr"], "ssim": last["ssim"], "num_primitives": last["num_primitives"],
+                      "train_seconds": last["seconds"]},
+            "largest_drop": largest_drop(counts)}
+
+
+def time_to(points: list, level: float):
+    """Training seconds until the held-out PSNR first reaches `level` (linear between evaluation points)."""
+    prev = None
+    for p in points:
+        if p["psnr"] >= level:
+            if prev is None or p["psnr"] == prev["psnr"]:
+                return p["seconds"]
+            f = (level - prev["psnr"]) / (p["psnr"] - prev["psnr"])
+            return prev["seconds"] + f * (p["seconds"] - prev["seconds"])
+        prev = p
+    return None
