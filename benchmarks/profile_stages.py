@@ -1,99 +1,163 @@
-"""Time each stage of the 3D rasterizer (forward and backward) on one scene, to see where time goes.
+"""Time each stage of the 3D rasterizer (forward and backward) on one scene, to see where time goes, for one or
+several renderer variants side by side (benchmarks/variants.py).
 
     python benchmarks/profile_stages.py --device cuda --n 1000000 --resolution 1920x1080
+    python benchmarks/profile_stages.py --device cuda --variants legacy,fast,fast+sort=single64,fast+bwd=block
+
+Fast-path variants are timed through the real op (forward and backward through autograd) with a synchronisation
+after each stage (fast_pipeline.stage_hook); the legacy variant drives the legacy pipeline stage by stage. Stage
+times include the host work of the stage. Then the whole op, forward and forward+backward, without the hooks, and
+on CUDA the per-kernel GPU times of one call (Warp's activity timing; the radix sorts are CUB calls it may not see).
+Prints tables and writes benchmarks/results/profile_stages_<device>.json ($OUT when set).
 """
 from __future__ import annotations
 
 import argparse
 import os
 import time
-from contextlib import contextmanager
 
 import torch
 import warp as wp
 
-from common import print_table, standard_scenes_module, sync
+from common import print_table, standard_scenes_module, sync, time_call, write_json
+from variants import describe, variant
 from warpgs import rasterize
+from warpgs.render import fast_pipeline
 from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.defaults import DEFAULT_TILE_SIZE
 from warpgs.render.gaussians import _intrinsics_vector
 
-TILE = int(os.environ.get("TILE", DEFAULT_TILE_SIZE))  # TILE=16 profiles another tile size
+OUTPUTS = ("rgb", "alpha", "depth")
 
 
-@contextmanager
-def timed(name, device, table):
-    sync(device)
-    wp.synchronize()
-    t0 = time.perf_counter()
-    yield
-    sync(device)
-    wp.synchronize()
-    table[name] = table.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+class StageClock:
+    """The fast pipeline's stage hook: synchronises and charges the time since the last mark to the stage."""
+
+    def __init__(self, device):
+        self.device = device
+        self.table = {}
+        self.mark()
+
+    def mark(self):
+        sync(self.device)
+        wp.synchronize()
+        self.t0 = time.perf_counter()
+
+    def __call__(self, name):
+        sync(self.device)
+        wp.synchronize()
+        t = time.perf_counter()
+        self.table[name] = self.table.get(name, 0.0) + (t - self.t0) * 1e3
+        self.t0 = t
 
 
-def profile_once(scene, W, H, device):
+def profile_fast(scene, W, H, device, tile):
+    means, quats, scales, opacities, colors, viewmat, K = scene
+    leaves = [x.detach().requires_grad_(True) for x in (means, quats, scales, opacities, colors)]
+    clock = StageClock(device)
+    fast_pipeline.stage_hook = clock
+    try:
+        clock.mark()
+        out = rasterize(*leaves, viewmat, K, W, H, outputs=OUTPUTS, tile_size=tile, check_inputs=False)
+        (out.rgb.sum() + out.depth.sum()).backward()
+        clock("end (grads to autograd)")
+    finally:
+        fast_pipeline.stage_hook = None
+    return clock.table, out.num_intersections
+
+
+def profile_legacy(scene, W, H, device, tile):
+    """The legacy pipeline stage by stage (the op's own path with per-call allocation and a wp.Tape)."""
     means, quats, scales, opacities, colors, viewmat, K = scene
     t = {}
+    clock = StageClock(device)
     wdev = "cpu" if device == "cpu" else "cuda:0"
     with wp.ScopedDevice(wdev):
-        s = pipeline.Settings(width=W, height=H, tile_size=TILE)
-        with timed("wrap inputs", device, t):
-            w = lambda x, dt: wp.from_torch(x.contiguous(), dtype=dt, requires_grad=True)  # noqa: E731
-            args = (w(means, wp.vec3), w(quats, wp.vec4), w(scales, wp.vec3), w(opacities, wp.float32),
-                    w(colors.reshape(-1, 1, 3), wp.vec3), wp.from_torch(viewmat.reshape(1, 4, 4).contiguous(), dtype=wp.mat44),
-                    wp.from_torch(_intrinsics_vector(K).reshape(1, 4).contiguous(), dtype=wp.vec4))
+        s = pipeline.Settings(width=W, height=H, tile_size=tile)
+        w = lambda x, dt: wp.from_torch(x.contiguous(), dtype=dt, requires_grad=True)  # noqa: E731
+        args = (w(means, wp.vec3), w(quats, wp.vec4), w(scales, wp.vec3), w(opacities, wp.float32),
+                w(colors.reshape(-1, 1, 3), wp.vec3), wp.from_torch(viewmat.reshape(1, 4, 4).contiguous(), dtype=wp.mat44),
+                wp.from_torch(_intrinsics_vector(K).reshape(1, 4).contiguous(), dtype=wp.vec4))
+        clock("wrap inputs")
         tape = wp.Tape()
-        with timed("project", device, t), tape:
+        with tape:
             proj = pipeline.project_gaussians(*args, s, requires_grad=True)
-        with timed("bin+sort", device, t):
-            bins = pipeline.bin_gaussians(proj, args[3], s)
+        clock("project")
+        bins = pipeline.bin_gaussians(proj, args[3], s)
+        clock("bin+sort")
         want = pipeline.Wanted(color=True, depth=True, inv_depth=False, num_features=0)
         feats = wp.zeros((1, 1), dtype=float, requires_grad=True)
-        with timed("blend forward", device, t):
-            fwd = pipeline.blend_forward(proj, bins, args[3], feats, s, want)
+        fwd = pipeline.blend_forward(proj, bins, args[3], feats, s, want)
+        clock("blend forward")
         npix = W * H
         gc = wp.full(npix, wp.vec3(1.0, 1.0, 1.0), dtype=wp.vec3)
         ga, gd = wp.zeros(npix, dtype=float), wp.ones(npix, dtype=float)
-        with timed("blend backward", device, t):
-            pipeline.blend_backward(proj, bins, args[3], feats, s, want, fwd, gc, ga, gd, wp.zeros(1, dtype=float),
-                                    wp.zeros((1, 1), dtype=float))
-        with timed("project adjoint", device, t):
-            tape.backward()
+        clock("upstream gradients")
+        pipeline.blend_backward(proj, bins, args[3], feats, s, want, fwd, gc, ga, gd, wp.zeros(1, dtype=float),
+                                wp.zeros((1, 1), dtype=float))
+        clock("blend backward")
+        tape.backward()
+        clock("project adjoint")
+        t = clock.table
     return t, bins.num_intersections
 
 
 def main():
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--n", type=int, default=100000)
     ap.add_argument("--resolution", default="800x600")
+    ap.add_argument("--tile", type=int, default=int(os.environ.get("TILE", DEFAULT_TILE_SIZE)))
+    ap.add_argument("--variants", default="default", help="comma-separated (benchmarks/variants.py)")
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--kernel-timing", action="store_true", help="CUDA: also print Warp's per-kernel GPU times")
+    ap.add_argument("--out-name", default=None)
     args = ap.parse_args()
     W, H = (int(v) for v in args.resolution.split("x"))
     scene = standard_scenes_module().random_scene(args.n, width=W, height=H, device=args.device)[:7]
-    profile_once(scene, W, H, args.device)  # compile + warm up
-    runs = 5
-    total = {}
-    for _ in range(runs):
-        t, pairs = profile_once(scene, W, H, args.device)
-        for k, v in t.items():
-            total[k] = total.get(k, 0.0) + v / runs
-    rows = [dict(stage=k, ms=v) for k, v in total.items()]
-    print(f"n={args.n} {W}x{H} on {args.device}: {pairs} Gaussian-tile pairs")
-    print_table(rows, ["stage", "ms"])
+    specs = args.variants.split(",")
+    stage_rows, op_rows, pairs = [], [], None
+    for spec in specs:
+        with variant(spec) as opts:
+            name = describe()
+            profile = profile_legacy if opts.path == "legacy" else profile_fast
+            profile(scene, W, H, args.device, args.tile)  # compile + warm up
+            total = {}
+            for _ in range(args.runs):
+                t, pairs = profile(scene, W, H, args.device, args.tile)
+                for k, v in t.items():
+                    total[k] = total.get(k, 0.0) + v / args.runs
+            stage_rows += [dict(variant=name, stage=k, ms=v) for k, v in total.items()]
 
-    def op():
-        leaves = [x.detach().requires_grad_(True) for x in scene[:5]]
-        out = rasterize(*leaves, scene[5], scene[6], W, H, outputs=("rgb", "alpha", "depth"), check_inputs=False)
-        (out.rgb.sum() + out.depth.sum()).backward()
+            means, quats, scales, opacities, colors, viewmat, K = scene
 
-    from common import time_call
+            def fwd():
+                return rasterize(means, quats, scales, opacities, colors, viewmat, K, W, H, outputs=OUTPUTS,
+                                 tile_size=args.tile, check_inputs=False)
 
-    print(f"whole op forward+backward: {time_call(op, args.device, warmup=2, repeats=runs):.3f} ms")
-    if args.device.startswith("cuda"):  # per-kernel GPU times of one op call (Warp's CUDA activity timing)
-        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
-        op()
-        wp.timing_print(wp.timing_end())
+            def fwd_bwd():
+                leaves = [x.detach().requires_grad_(True) for x in scene[:5]]
+                out = rasterize(*leaves, viewmat, K, W, H, outputs=OUTPUTS, tile_size=args.tile, check_inputs=False)
+                (out.rgb.sum() + out.depth.sum()).backward()
+
+            op_rows.append(dict(variant=name, fwd_ms=time_call(fwd, args.device, 2, args.runs),
+                                fwd_bwd_ms=time_call(fwd_bwd, args.device, 2, args.runs)))
+            if args.kernel_timing and args.device.startswith("cuda"):
+                print(f"--- per-kernel GPU times, {name}: one forward+backward")
+                wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+                fwd_bwd()
+                wp.timing_print(wp.timing_end())
+    print(f"n={args.n} {W}x{H} tile {args.tile} on {args.device}: {pairs} Gaussian-tile pairs; stage times with a sync "
+          f"after each stage (mean of {args.runs})")
+    print_table(stage_rows, ["variant", "stage", "ms"])
+    print("\nwhole op, no stage syncs (median):")
+    print_table(op_rows, ["variant", "fwd_ms", "fwd_bwd_ms"])
+    meta = dict(device=args.device, gpu=torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
+                n=args.n, resolution=f"{W}x{H}", tile_size=args.tile, tile_pairs=pairs, runs=args.runs,
+                torch=torch.__version__, warp=wp.__version__)
+    path = write_json(args.out_name or f"profile_stages_{args.device.split(':')[0]}",
+                      dict(meta=meta, stages=stage_rows, op=op_rows))
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

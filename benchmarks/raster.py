@@ -5,6 +5,9 @@
     python benchmarks/raster.py --device cuda --gsplat --sizes 100000,1000000 --resolutions 1920x1080
     python benchmarks/raster.py --primitive surfels ...   # 2D surfels (gsplat: rasterization_2dgs)
     python benchmarks/raster.py --tile-sizes 8,16 ...     # one row per tile size (the image does not change)
+    python benchmarks/raster.py --variants legacy,fast,fast+sort=single64,fast+bwd=block ...
+                                                          # one row per renderer variant (benchmarks/variants.py),
+                                                          # timed in interleaved rounds in one process
 
 Prints a table and writes benchmarks/results/raster_<device>.json (or $OUT/raster_<device>.json).
 """
@@ -12,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import platform
+import statistics
 import sys
 import time
 
@@ -19,6 +23,7 @@ import torch
 import warp as wp
 
 from common import ROOT, print_table, standard_scenes_module, sync, time_call, write_json
+from variants import describe, variant
 
 sys.path.insert(0, str(ROOT / "tests"))
 from reference import render_reference  # noqa: E402  (the float64 oracles of the test suite)
@@ -28,7 +33,8 @@ from warpgs import rasterize, rasterize_surfels  # noqa: E402
 
 from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.surfels import surfel_work  # noqa: E402
-from warpgs.render.gaussians import DEFAULT_TILE_SIZE, _intrinsics_vector  # noqa: E402
+from warpgs.render.defaults import DEFAULT_TILE_SIZE  # noqa: E402
+from warpgs.render.gaussians import _intrinsics_vector  # noqa: E402
 
 OUTPUTS = ("rgb", "alpha", "depth")
 FLOPS_PER_EVALUATION = 20  # q (8), exp (~8 with range reduction), clamp/compare (2), blend 3 colours + depth (8) ~ 20-26
@@ -144,6 +150,10 @@ def main():
     ap.add_argument("--error-pixels", type=int, default=128)
     ap.add_argument("--primitive", choices=["gaussians", "surfels"], default="gaussians")
     ap.add_argument("--tile-sizes", default=str(DEFAULT_TILE_SIZE), help="comma-separated tile sizes to time")
+    ap.add_argument("--variants", default="default",
+                    help="comma-separated renderer variants (benchmarks/variants.py), e.g. legacy,fast")
+    ap.add_argument("--rounds", type=int, default=1, help="interleaved timing rounds per variant (median reported)")
+    ap.add_argument("--out-name", default=None, help="JSON name (default raster_<device>[_surfels])")
     args = ap.parse_args()
     scenes = standard_scenes_module()
     device = args.device
@@ -160,29 +170,45 @@ def main():
             if surfels:
                 scales = scales[:, :2].contiguous()
             scene = (means, quats, scales, opacities, colors, viewmat, K)
-            g_times = gsplat_times(scene, W, H, device, surfels) if args.gsplat else None
             max_err = max_error_vs_reference(scene, W, H, surfels, args.error_pixels)
             for tile in (int(v) for v in args.tile_sizes.split(",")):
-                fwd_ms, fb_ms = warpgs_times(scene, W, H, device, repeats, surfels, tile)
+                specs = args.variants.split(",")
+                times = {spec: ([], []) for spec in specs + (["gsplat"] if args.gsplat else [])}
+                for _ in range(args.rounds):  # interleaved, so that a busy moment hits every variant alike
+                    for spec in times:
+                        if spec == "gsplat":
+                            f, fb = gsplat_times(scene, W, H, device, surfels)
+                        else:
+                            with variant(spec):
+                                f, fb = warpgs_times(scene, W, H, device, repeats, surfels, tile)
+                        times[spec][0].append(f)
+                        times[spec][1].append(fb)
+                g_times = tuple(statistics.median(v) for v in times["gsplat"]) if args.gsplat else None
                 if surfels:
                     work = surfel_work(means, quats, scales, opacities, viewmat, K, W, H, tile_size=tile)
                     evals, pairs = work["evaluations"], work["tile_pairs"]
                 else:
                     evals, pairs = evaluations(scene, W, H, tile)
-                row = dict(primitive=args.primitive, device=device, n=n, resolution=f"{W}x{H}", tile_size=tile,
-                           fwd_ms=fwd_ms, fwd_bwd_ms=fb_ms, max_err=max_err, tile_pairs=pairs,
-                           evals_per_s=evals / (fwd_ms / 1e3))
-                if peak:
-                    row["frac_of_core_peak"] = row["evals_per_s"] * FLOPS_PER_EVALUATION / (peak * 1e9)
-                if g_times:
-                    g_fwd, g_fb = g_times
-                    row.update(gsplat_fwd_ms=g_fwd, gsplat_fwd_bwd_ms=g_fb, ratio_fwd=fwd_ms / g_fwd,
-                               ratio_fwd_bwd=fb_ms / g_fb)
-                rows.append(row)
-                print_table([row], list(row))  # progress, one row at a time
+                for spec in specs:
+                    fwd_ms, fb_ms = (statistics.median(v) for v in times[spec])
+                    with variant(spec):
+                        name = describe()
+                    row = dict(primitive=args.primitive, device=device, n=n, resolution=f"{W}x{H}", tile_size=tile,
+                               variant=name, fwd_ms=fwd_ms, fwd_bwd_ms=fb_ms, max_err=max_err, tile_pairs=pairs,
+                               evals_per_s=evals / (fwd_ms / 1e3))
+                    if args.rounds > 1:
+                        row.update(fwd_ms_rounds=times[spec][0], fwd_bwd_ms_rounds=times[spec][1])
+                    if peak:
+                        row["frac_of_core_peak"] = row["evals_per_s"] * FLOPS_PER_EVALUATION / (peak * 1e9)
+                    if g_times:
+                        g_fwd, g_fb = g_times
+                        row.update(gsplat_fwd_ms=g_fwd, gsplat_fwd_bwd_ms=g_fb, ratio_fwd=fwd_ms / g_fwd,
+                                   ratio_fwd_bwd=fb_ms / g_fb)
+                    rows.append(row)
+                    print_table([row], [c for c in row if not c.endswith("_rounds")])  # progress, one row at a time
                 sync(device)
     print()
-    columns = ["n", "resolution", "tile_size", "fwd_ms", "fwd_bwd_ms", "max_err", "evals_per_s"]
+    columns = ["n", "resolution", "tile_size", "variant", "fwd_ms", "fwd_bwd_ms", "max_err", "evals_per_s"]
     columns += ["frac_of_core_peak"] if peak else []
     columns += ["gsplat_fwd_ms", "gsplat_fwd_bwd_ms", "ratio_fwd", "ratio_fwd_bwd"] if args.gsplat else []
     print_table(rows, columns)
@@ -191,7 +217,7 @@ def main():
                 single_core_gflops=peak, flops_per_evaluation=FLOPS_PER_EVALUATION, outputs=OUTPUTS,
                 repeats=repeats, scenes="shared/bench/scenes.py random_scene")
     suffix = "" if args.primitive == "gaussians" else "_surfels"
-    path = write_json(f"raster_{device.split(':')[0]}{suffix}", dict(meta=meta, rows=rows))
+    path = write_json(args.out_name or f"raster_{device.split(':')[0]}{suffix}", dict(meta=meta, rows=rows))
     print(f"wrote {path}")
 
 

@@ -160,3 +160,131 @@ def tile_ranges(
         tile_end[tile] = count
     elif keys[k + 1] != tile:
         tile_end[tile] = k + 1
+
+
+# --- Kernels of the lean host path (warpgs/render/fast_pipeline.py) ---------------------------------------------
+# Same keys and order as above; these avoid host-side work: float depth keys need no reinterpreting view, and the
+# tile ranges are written for every tile (no zero-fill first).
+
+
+@wp.kernel
+def depth_sort_init(
+    depths: wp.array(dtype=float),  # positive camera depths: float radix keys order them
+    keys: wp.array(dtype=float),  # [2N] (the sort's room)
+    order: wp.array(dtype=wp.int32),  # [2N]
+):
+    i = wp.tid()
+    keys[i] = depths[i]
+    order[i] = i
+
+
+@wp.func
+def write_tile_ranges(k: int, tile: int, prev: int, count: int, num_tiles: int,
+                      tile_start: wp.array(dtype=wp.int32), tile_end: wp.array(dtype=wp.int32)):
+    """Entry k of the sorted keys is in `tile`, entry k-1 in `prev` (-1 for k = 0): k starts `tile` and ends `prev`;
+    the empty tiles in between start and end at k; the last entry ends its tile and empties the tiles after it.
+    So every tile is written exactly once."""
+    if tile != prev:
+        for t in range(prev + 1, tile + 1):
+            tile_start[t] = k
+        for t in range(prev + 1, tile):
+            tile_end[t] = k
+        if prev >= 0:
+            tile_end[prev] = k
+    if k == count - 1:
+        tile_end[tile] = count
+        for t in range(tile + 1, num_tiles):
+            tile_start[t] = count
+            tile_end[t] = count
+
+
+@wp.kernel
+def tile_ranges_dense(
+    keys: wp.array(dtype=wp.int32),  # sorted tile indices
+    count: int,
+    num_tiles: int,
+    tile_start: wp.array(dtype=wp.int32),  # [num_tiles], every entry written
+    tile_end: wp.array(dtype=wp.int32),
+):
+    k = wp.tid()
+    prev = int(-1)
+    if k > 0:
+        prev = keys[k - 1]
+    write_tile_ranges(k, keys[k], prev, count, num_tiles, tile_start, tile_end)
+
+
+# One sort of 64-bit keys (tile << 32 | depth bits) instead of the two sorts above: the pairs are emitted in primitive
+# order and a single stable radix sort over 32 + tile bits orders them by tile, then depth, then primitive index.
+
+
+@wp.func
+def tile_depth_key(tile: int, depth_bits: int) -> wp.uint64:
+    return (wp.uint64(tile) << wp.uint64(32)) | wp.uint64(depth_bits)
+
+
+@wp.kernel
+def emit_tile_depth_keys(
+    rects: wp.array(dtype=wp.vec4i),
+    offsets: wp.array(dtype=wp.int32),  # inclusive prefix sum of the counts, primitive order
+    counts: wp.array(dtype=wp.int32),
+    depth_bits: wp.array(dtype=wp.int32),  # float32 depths reinterpreted (positive: order-preserving)
+    tiles_x: int,
+    keys: wp.array(dtype=wp.uint64),
+    values: wp.array(dtype=wp.int32),
+):
+    """One thread per primitive (the CPU's version)."""
+    i = wp.tid()
+    n = counts[i]
+    if n == 0:
+        return
+    r = rects[i]
+    d = depth_bits[i]
+    k = offsets[i] - n
+    for ty in range(r[1], r[3] + 1):
+        for tx in range(r[0], r[2] + 1):
+            keys[k] = tile_depth_key(ty * tiles_x + tx, d)
+            values[k] = i
+            k += 1
+
+
+@wp.kernel
+def emit_tile_depth_keys_per_pair(
+    rects: wp.array(dtype=wp.vec4i),
+    offsets: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32),
+    depth_bits: wp.array(dtype=wp.int32),
+    tiles_x: int,
+    num_primitives: int,
+    keys: wp.array(dtype=wp.uint64),
+    values: wp.array(dtype=wp.int32),
+):
+    """One thread per (primitive, tile) pair, finding its primitive by binary search (GPUs)."""
+    k = wp.tid()
+    lo = int(0)
+    hi = num_primitives - 1
+    while lo < hi:
+        mid = (lo + hi) / 2
+        if offsets[mid] > k:
+            hi = mid
+        else:
+            lo = mid + 1
+    r = rects[lo]
+    local = k - (offsets[lo] - counts[lo])
+    width = r[2] - r[0] + 1
+    keys[k] = tile_depth_key((r[1] + local / width) * tiles_x + r[0] + local % width, depth_bits[lo])
+    values[k] = lo
+
+
+@wp.kernel
+def tile_ranges_dense64(
+    keys: wp.array(dtype=wp.uint64),  # sorted (tile << 32 | depth) keys
+    count: int,
+    num_tiles: int,
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+):
+    k = wp.tid()
+    prev = int(-1)
+    if k > 0:
+        prev = int(keys[k - 1] >> wp.uint64(32))
+    write_tile_ranges(k, int(keys[k] >> wp.uint64(32)), prev, count, num_tiles, tile_start, tile_end)

@@ -70,3 +70,62 @@ def test_sorted_pairs_follow_tile_then_depth_then_index(seed):
             assert (start[tile], end[tile]) == (in_tile[0], in_tile[-1] + 1)
         else:
             assert start[tile] == end[tile]
+
+
+def _reference_pairs(rects, counts, depths, tiles_x):
+    """Every (tile, primitive) pair, ordered by tile, then depth, then primitive index."""
+    pairs = [(ty * tiles_x + tx, depths[i], i) for i in range(len(counts)) if counts[i]
+             for ty in range(rects[i, 1], rects[i, 3] + 1) for tx in range(rects[i, 0], rects[i, 2] + 1)]
+    pairs.sort()
+    return pairs
+
+
+@pytest.mark.parametrize("mode", ["two_pass", "single64"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_lean_path_sorts_match_the_reference(mode, seed):
+    """render/fast_pipeline.sort_into_tiles (both sort modes): same pairs, same order, and every tile's range
+    written (no zero-fill beforehand: the workspace buffers start with garbage here)."""
+    from warpgs.render import fast_pipeline
+    from warpgs.render.workspace import Workspace
+
+    tiles_x, tiles_y = 13, 9
+    rects, counts, depths = random_rects(seed, tiles_x=tiles_x, tiles_y=tiles_y)
+    s = pipeline.Settings(width=tiles_x * 8, height=tiles_y * 8, tile_size=8)
+    ws = Workspace("cpu")
+    ws.array("tile_start", s.num_tiles, wp.int32).fill_(-7)  # garbage where a kernel must write
+    ws.array("tile_end", s.num_tiles, wp.int32).fill_(-7)
+    pairs = _reference_pairs(rects, counts, depths, tiles_x)
+    for _ in range(2):  # the second call reuses every buffer
+        total, start, end, ids = fast_pipeline.sort_into_tiles(ws, cpu(rects, wp.vec4i), cpu(counts, wp.int32),
+                                                               cpu(depths, wp.float32), s, ws.array, mode)
+        assert total == len(pairs)
+        np.testing.assert_array_equal(ids.numpy()[:total], [p[2] for p in pairs])
+        start, end = start.numpy(), end.numpy()
+        for tile in range(tiles_x * tiles_y):
+            in_tile = [k for k, p in enumerate(pairs) if p[0] == tile]
+            expected = (in_tile[0], in_tile[-1] + 1) if in_tile else None
+            if expected:
+                assert (start[tile], end[tile]) == expected
+            else:
+                assert start[tile] == end[tile]
+
+
+def test_64_bit_key_emission_per_pair_matches_the_per_primitive_loop():
+    rects, counts, depths = random_rects(3)
+    offsets = np.cumsum(counts).astype(np.int32)
+    total = int(offsets[-1])
+    bits = depths.view(np.int32)
+    out = []
+    for kernel in (binning.emit_tile_depth_keys, binning.emit_tile_depth_keys_per_pair):
+        keys = wp.zeros(total, dtype=wp.uint64, device="cpu")
+        values = wp.zeros(total, dtype=wp.int32, device="cpu")
+        inputs = [cpu(rects, wp.vec4i), cpu(offsets, wp.int32), cpu(counts, wp.int32), cpu(bits, wp.int32), 13]
+        if kernel is binning.emit_tile_depth_keys:
+            wp.launch(kernel, dim=len(counts), inputs=inputs, outputs=[keys, values], device="cpu")
+        else:
+            wp.launch(kernel, dim=total, inputs=inputs + [len(counts)], outputs=[keys, values], device="cpu")
+        out.append((keys.numpy(), values.numpy()))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    np.testing.assert_array_equal(out[0][1], out[1][1])
+    tiles = (out[0][0] >> np.uint64(32)).astype(np.int64)
+    assert tiles.max() < 13 * 9 and (out[0][0] & np.uint64(0xFFFFFFFF)).astype(np.uint32).view(np.float32).min() > 0

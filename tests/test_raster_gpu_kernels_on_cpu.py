@@ -1,5 +1,7 @@
 """The block-cooperative GPU kernels (kernels/blend_gpu.py), run on the CPU through Warp's CPU blocks, must
-pass the same forward and gradient checks: CI has no GPU, and these are the kernels GPUs run."""
+pass the same forward and gradient checks: CI has no GPU, and these are the kernels GPUs run. Every GPU adjoint
+(`backward_kernel_warp_sums`, the default, and `backward_kernel` with and without its block sums) is checked
+against the float64 reference, and the lean host path against the legacy one."""
 import os
 import subprocess
 import sys
@@ -9,14 +11,25 @@ import pytest
 
 HERE = Path(__file__).parent
 
+VARIANTS = {  # name: (environment, test files)
+    "warp_sums": ({"WARPGS_BWD_KERNEL": "warp_sums"},
+                  ["test_raster_forward.py", "test_raster_gradients.py",
+                   "test_raster_knobs.py",  # covers the surfel kernels at other thresholds too
+                   "test_raster_degenerate.py", "test_raster_fast_path.py"]),
+    "block": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "1"},
+              ["test_raster_gradients.py",
+               "test_raster_knobs.py::test_gaussians_gradients_follow_reference_at_other_thresholds"]),
+    "block-no-reduce": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "0"},
+                        ["test_raster_gradients.py::test_gradients_of_all_inputs_match_reference"]),
+}  # the legacy host path runs in test_raster_fast_path.py, as the reference of the lean one
 
-@pytest.mark.parametrize("block_reduce", ["1", "0"])
-def test_cooperative_kernels_match_the_reference(block_reduce):
-    env = dict(os.environ, WARPGS_CPU_COOPERATIVE="1", WARPGS_BLOCK_REDUCE=block_reduce)
-    tests = [str(HERE / "test_raster_forward.py"), str(HERE / "test_raster_gradients.py"),
-             str(HERE / "test_raster_knobs.py")]  # the knobs file covers the surfel kernels at other thresholds too
-    if block_reduce == "0":
-        tests = [str(HERE / "test_raster_gradients.py") + "::test_gradients_of_all_inputs_match_reference"]
+
+@pytest.mark.skipif(os.environ.get("WARPGS_CPU_COOPERATIVE") == "1", reason="this run is cooperative already")
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_cooperative_kernels_match_the_reference(variant):
+    extra, files = VARIANTS[variant]
+    env = dict(os.environ, WARPGS_CPU_COOPERATIVE="1", **extra)
+    tests = [str(HERE / f) for f in files]
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *tests],
                           env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

@@ -4,6 +4,10 @@ image does not depend on them); the defaults are the fastest measured by benchma
 on an H100 and on the CPU. 8 on the CPU (up to 2x faster than 16, forward and backward) and on GPUs when a
 backward pass follows (fwd+bwd faster or within 2%); 16 for forward-only GPU renders (as fast at 100k
 Gaussians, 25-35% faster at 1M, where sorting 2.5x more tile keys costs)."""
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+
 DEFAULT_TILE_SIZE = 8  # the CPU, and GPU renders that will be differentiated (training)
 GPU_FORWARD_ONLY_TILE_SIZE = 16  # GPU renders nobody differentiates (evaluation, viewers)
 DEFAULT_ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
@@ -18,3 +22,40 @@ def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool) -> int:
     if tile_size is not None:
         return tile_size
     return GPU_FORWARD_ONLY_TILE_SIZE if on_gpu and not needs_grad else DEFAULT_TILE_SIZE
+
+
+# How the 3D Gaussian op runs (speed only: every choice gives the same images and gradients, which the tests check).
+# Benchmarks switch them in one process with `raster_options(...)`; the WARPGS_* variables set the defaults.
+RASTER_PATHS = ("fast", "legacy")  # fast: workspace + recorded launches (render/fast_pipeline.py); legacy: per-call
+SORT_MODES = ("two_pass", "single64")  # depth sort then stable tile sort / one sort of 64-bit (tile | depth) keys
+BACKWARD_KERNELS = ("warp_sums", "block")  # GPU blend adjoint: blend_gpu.backward_kernel_warp_sums / backward_kernel
+
+
+@dataclass(frozen=True)
+class RasterOptions:
+    path: str = os.environ.get("WARPGS_RASTER_PATH", "fast")
+    sort: str = os.environ.get("WARPGS_SORT", "two_pass")
+    backward_kernel: str = os.environ.get("WARPGS_BWD_KERNEL", "warp_sums")
+
+    def __post_init__(self):
+        for f, allowed in (("path", RASTER_PATHS), ("sort", SORT_MODES), ("backward_kernel", BACKWARD_KERNELS)):
+            if getattr(self, f) not in allowed:
+                raise ValueError(f"raster option {f}: expected one of {allowed}, got {getattr(self, f)!r}")
+
+
+_options = [RasterOptions()]
+
+
+def current_raster_options() -> RasterOptions:
+    return _options[-1]
+
+
+@contextmanager
+def raster_options(**changes):
+    """Within the block, renders use these options (e.g. raster_options(path="legacy", sort="single64")). One stack
+    for the process: meant for benchmarks and tests, not for threads that render concurrently."""
+    _options.append(replace(_options[-1], **changes))
+    try:
+        yield _options[-1]
+    finally:
+        _options.pop()

@@ -14,7 +14,8 @@ import warp as wp
 
 from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.defaults import (DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, LOWEST_TRANSMITTANCE_MIN,
-                                    choose_tile_size)
+                                    choose_tile_size, current_raster_options)
+from warpgs.render.gaussians_fast import FastRasterizeFunction
 from warpgs.render.validation import check_finite, check_same_device, check_tensor
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
@@ -207,11 +208,18 @@ def rasterize(
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1])
     device = means.device
-    with wp.ScopedDevice(_wp_device(device)):
-        stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
-        with stream:
-            color, alpha, zacc, inv, fout, visible, count = _RasterizeFunction.apply(
-                settings, wanted, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K), probe)
+    options = current_raster_options()
+    if options.path == "fast" and n > 0:
+        color, alpha, zacc, inv, fout, visible, count = FastRasterizeFunction.apply(
+            settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
+            probe)
+    else:
+        with wp.ScopedDevice(_wp_device(device)):
+            stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
+            with stream:
+                color, alpha, zacc, inv, fout, visible, count = _RasterizeFunction.apply(
+                    settings, wanted, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
+                    probe)
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible,
                        num_intersections=int(count), means2d=probe)
     if wanted.color:

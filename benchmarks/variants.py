@@ -1,0 +1,40 @@
+"""Renderer variants to time side by side in one process (benchmarks/raster.py, profile_stages.py).
+
+A variant is a path name and optional options joined by '+': `legacy`, `fast`, `fast+sort=single64`,
+`fast+bwd=block`, `fast+sort=single64+bwd=block`. `default` is whatever the WARPGS_* variables select.
+Keys: sort (two_pass, single64), bwd (warp_sums, block); see warpgs/render/defaults.py.
+"""
+from __future__ import annotations
+
+from contextlib import contextmanager
+
+from warpgs.render.defaults import current_raster_options, raster_options
+
+KEYS = {"sort": "sort", "bwd": "backward_kernel"}
+
+
+def parse(spec: str) -> dict:
+    parts = [p for p in spec.strip().split("+") if p]
+    if not parts:
+        raise SystemExit("empty variant")
+    options = {}
+    if parts[0] != "default":
+        options["path"] = parts[0]
+    for part in parts[1:]:
+        key, _, value = part.partition("=")
+        if key not in KEYS or not value:
+            raise SystemExit(f"variant {spec!r}: expected key=value with key in {sorted(KEYS)}")
+        options[KEYS[key]] = value
+    return options
+
+
+@contextmanager
+def variant(spec: str):
+    """Renders inside use the variant's options; yields the options in force."""
+    with raster_options(**parse(spec)) as opts:
+        yield opts
+
+
+def describe() -> str:
+    o = current_raster_options()
+    return "legacy" if o.path == "legacy" else f"{o.path}+sort={o.sort}+bwd={o.backward_kernel}"

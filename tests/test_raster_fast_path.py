@@ -1,0 +1,180 @@
+"""The lean host path (render/fast_pipeline.py: workspace, recorded launches, one sort of 64-bit keys or two sorts,
+the per-warp GPU adjoint) renders and differentiates as the legacy per-call path does, and reusing scratch memory
+across calls never corrupts a render whose backward is still pending."""
+import os
+
+import pytest
+import torch
+
+from random_scenes import look_at, random_scene
+from raster_helpers import DEVICE
+from warpgs import rasterize
+from warpgs.render.defaults import raster_options
+
+INPUTS = ("means", "quats", "scales", "opacities", "colors", "features", "viewmat", "K")
+COOPERATIVE = DEVICE != "cpu" or os.environ.get("WARPGS_CPU_COOPERATIVE") == "1"
+
+
+def _exact(options) -> bool:
+    """The same kernels run on both paths, so on the CPU the results agree to the last bit; GPU atomics (their order
+    differs between runs) and the per-warp adjoint (it sums in another order) agree to float rounding."""
+    return DEVICE == "cpu" and not (COOPERATIVE and options.get("backward_kernel", "block") != "block")
+
+
+def _leaves(scene, requires_grad=True):
+    return {k: (scene[k].detach().float().to(DEVICE).requires_grad_(requires_grad)
+                if scene.get(k) is not None else None) for k in INPUTS}
+
+
+def _render(scene, leaves, outputs, **kw):
+    return rasterize(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
+                     leaves["viewmat"], leaves["K"], scene["width"], scene["height"], sh_degree=scene["sh_degree"],
+                     features=leaves["features"], outputs=outputs, **kw)
+
+
+def _loss(out, weights):
+    return sum((getattr(out, name) * w).sum() for name, w in weights.items())
+
+
+def _weights(scene, outputs, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    channels = {"rgb": 3, "alpha": 1, "depth": 1, "inv_depth": 1, "features": 0 if scene["features"] is None
+                else scene["features"].shape[1]}
+    return {o: torch.randn(scene["height"], scene["width"], channels[o], generator=g).to(DEVICE) for o in outputs}
+
+
+def _run(scene, outputs, options, track_means2d=False, **kw):
+    leaves = _leaves(scene)
+    with raster_options(**options):
+        out = _render(scene, leaves, outputs, track_means2d=track_means2d, **kw)
+    _loss(out, _weights(scene, outputs)).backward()
+    grads = {k: v.grad for k, v in leaves.items() if v is not None}
+    if track_means2d:
+        grads["means2d"] = out.means2d.grad
+    return out, grads
+
+
+def _assert_same(a, b, name, exact=True):
+    assert a.shape == b.shape, name
+    a, b = a.detach().cpu(), b.detach().cpu()
+    if a.dtype == torch.bool:
+        assert torch.equal(a, b), name
+        return
+    diff = (a - b).abs().max().item() if a.numel() else 0.0
+    if exact and DEVICE == "cpu":
+        assert torch.equal(a, b), f"{name}: max diff {diff:.3g}"
+    else:
+        scale = max(1.0, b.abs().max().item()) if b.numel() else 1.0
+        assert torch.allclose(a.double(), b.double(), atol=2e-6 * scale, rtol=1e-4), f"{name}: max diff {diff:.3g}"
+
+
+PATHS = [dict(path="fast", sort="two_pass", backward_kernel="warp_sums"),
+         dict(path="fast", sort="single64", backward_kernel="warp_sums"),
+         dict(path="fast", sort="two_pass", backward_kernel="block")]
+
+
+@pytest.mark.parametrize("options", PATHS, ids=lambda o: f"{o['sort']}-{o['backward_kernel']}")
+@pytest.mark.parametrize("sh_degree,num_features,tile", [(None, 0, 8), (2, 3, 8), (None, 2, 16), (1, 0, 4),
+                                                         (None, 1, 32)])
+def test_fast_path_matches_legacy_path(options, sh_degree, num_features, tile):
+    scene = random_scene(n=60, seed=3, sh_degree=sh_degree, num_features=num_features)
+    outputs = ("rgb", "alpha", "depth", "inv_depth") + (("features",) if num_features else ())
+    ref, ref_grads = _run(scene, outputs, dict(path="legacy"), track_means2d=True, tile_size=tile)
+    out, grads = _run(scene, outputs, options, track_means2d=True, tile_size=tile)
+    for name in outputs + ("visible",):
+        _assert_same(getattr(out, name), getattr(ref, name), name)
+    assert out.num_intersections == ref.num_intersections
+    for name, g in ref_grads.items():
+        _assert_same(grads[name], g, f"grad {name}", _exact(options))
+
+
+@pytest.mark.parametrize("options", PATHS[:2], ids=lambda o: o["sort"])
+def test_forward_only_renders_match(options):
+    scene = random_scene(n=60, seed=5, num_features=2)
+    outputs = ("rgb", "alpha", "depth", "features")
+    with torch.no_grad():
+        with raster_options(path="legacy"):
+            ref = _render(scene, _leaves(scene, False), outputs, tile_size=8)
+        with raster_options(**options):
+            out = _render(scene, _leaves(scene, False), outputs, tile_size=8)
+    for name in outputs:
+        _assert_same(getattr(out, name), getattr(ref, name), name)
+
+
+def test_interleaved_renders_keep_their_own_buffers():
+    """Two forwards, then their backwards in reverse order (and a forward-only render and a render of another
+    size in between, which reuse and grow the scratch memory): every gradient equals that of a render
+    differentiated on its own."""
+    scenes = [random_scene(n=50, seed=s, num_features=2) for s in (11, 12)]
+    outputs = ("rgb", "alpha", "depth", "features")
+    alone = [_run(s, outputs, dict(path="fast"))[1] for s in scenes]
+
+    leaves = [_leaves(s) for s in scenes]
+    outs = [_render(s, lv, outputs) for s, lv in zip(scenes, leaves)]
+    with torch.no_grad():  # reuses the workspace a forward-only render gets
+        big = random_scene(n=120, seed=13, width=64, height=48)
+        _render(big, _leaves(big, False), ("rgb", "alpha"))
+    _run(random_scene(n=200, seed=14, width=72, height=40), ("rgb",), dict(path="fast"))  # grows every buffer
+    for i in (1, 0):
+        _loss(outs[i], _weights(scenes[i], outputs)).backward()
+    for i in (0, 1):
+        for name, g in alone[i].items():
+            _assert_same(leaves[i][name].grad, g, f"scene {i} grad {name}")
+
+
+def test_growing_and_shrinking_scenes_between_calls():
+    """The workspace grows and hands out smaller views again; each render equals the legacy one."""
+    for n, (w, h) in [(30, (40, 30)), (120, (64, 48)), (10, (16, 16)), (80, (40, 30))]:
+        scene = random_scene(n=n, seed=n, width=w, height=h)
+        ref, ref_grads = _run(scene, ("rgb", "alpha"), dict(path="legacy"))
+        out, grads = _run(scene, ("rgb", "alpha"), dict(path="fast"))
+        _assert_same(out.rgb.detach(), ref.rgb.detach(), f"rgb n={n}")
+        for name, g in ref_grads.items():
+            _assert_same(grads[name], g, f"grad {name} n={n}")
+
+
+def test_empty_and_fully_culled_scenes():
+    for n, behind in ((0, False), (5, True)):
+        scene = random_scene(n=max(n, 1), seed=1)
+        scene = {k: (v[:n] if isinstance(v, torch.Tensor) and k not in ("viewmat", "K") else v)
+                 for k, v in scene.items()}
+        if behind:
+            scene["means"] = scene["means"].clone()
+            scene["means"][:, 2] = -10.0  # all behind the camera: no tile pairs
+        out, grads = _run(scene, ("rgb", "alpha"), dict(path="fast"))
+        assert out.num_intersections == 0
+        assert torch.all(out.alpha == 0)
+        for name, g in grads.items():
+            assert torch.all(g == 0), name
+
+
+def test_batch_of_cameras_on_the_fast_path():
+    scene = random_scene(n=40, seed=6)
+    lv = _leaves(scene)
+    views = torch.stack([lv["viewmat"], look_at((1.0, 0.0, -4.0), (0.0, 0.0, 0.0)).float().to(DEVICE)])
+    Ks = torch.stack([lv["K"], lv["K"]])
+    for path in ("legacy", "fast"):
+        with raster_options(path=path):
+            out = rasterize(lv["means"], lv["quats"], lv["scales"], lv["opacities"], lv["colors"], views, Ks,
+                            scene["width"], scene["height"], outputs=("rgb", "depth"))
+        if path == "legacy":
+            ref = out
+    _assert_same(out.rgb, ref.rgb, "rgb")
+    _assert_same(out.depth, ref.depth, "depth")
+
+
+def test_expanded_and_unused_upstream_gradients():
+    """`out.rgb.sum()` hands the backward a broadcast (stride-0) gradient that must be copied to a contiguous one,
+    and outputs the loss ignores (alpha here) get zeros: the copies must stay alive while the adjoint reads them.
+    The image is large enough that a freed copy is returned to the system (reading it crashed before)."""
+    scene = random_scene(n=200, seed=21, width=400, height=300, num_features=2)
+    outputs = ("rgb", "alpha", "depth", "features")
+    results = []
+    for path in ("legacy", "fast"):
+        leaves = _leaves(scene)
+        with raster_options(path=path):
+            out = _render(scene, leaves, outputs)
+        (out.rgb.sum() + out.depth.sum() + out.features[..., 1].sum()).backward()  # alpha unused
+        results.append({k: v.grad for k, v in leaves.items() if v is not None})
+    for name, g in results[0].items():
+        _assert_same(results[1][name], g, f"grad {name}")

@@ -1,0 +1,271 @@
+"""The 3D Gaussian pipeline of `pipeline_gaussians`, driven with as little host work per call as possible.
+
+Same kernels, same maths, same results (tests compare both paths); what differs is the host side:
+- scratch memory comes from a `Workspace` reused across calls, and nothing is zero-filled that a kernel overwrites
+  (tile ranges are written for every tile, projected outputs for every Gaussian);
+- what a backward pass reads comes from `keep`: the torch op passes a buffer set lent from the workspace's pool
+  until its autograd context lets go of it (`FrameLease`), so a later call never overwrites a buffer that a
+  pending backward needs, and steady training reuses one set;
+- every launch is a recorded `wp.Launch` replayed with only its changed parameters (`LaunchCache`);
+- one host synchronisation per call (the number of tile pairs sizes the sort), through a pinned buffer;
+- no wp.Tape: the backward launches the blend adjoint and then the projection's generated adjoint itself.
+
+Torch-free: arrays come in as Warp arrays or array descriptors (`wp.from_torch(..., return_ctype=True)`).
+`SORT_MODES`: "two_pass" sorts the primitives by depth, then their tile pairs by tile index (stable); "single64"
+sorts 64-bit (tile << 32 | depth) keys once. Both give the same order (tile, depth, primitive index).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import warp as wp
+
+from warpgs.kernels import binning, blend, blend_gpu, project
+from warpgs.render.cpu_threads import run_threads
+from warpgs.render.defaults import SORT_MODES
+from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
+                                              _tile_launches, blend_params)
+from warpgs.render.workspace import Workspace
+
+Keep = Callable[[str, int, object], wp.array]  # (name, length, dtype) -> a per-call array
+# Called with a stage name after each stage when set (benchmarks/profile_stages.py synchronises and times there).
+stage_hook: Optional[Callable[[str], None]] = None
+
+
+@dataclass
+class Frame:
+    """What a forward pass leaves for its backward (in the `keep` buffers when given) and for the op's outputs."""
+    n: int
+    total: int  # Gaussian-tile pairs
+    means2d: wp.array
+    conics: wp.array
+    depths: wp.array
+    colors: wp.array
+    q_cut: wp.array
+    tile_start: wp.array
+    sorted_ids: wp.array
+    transmittance: wp.array
+    last: wp.array
+    counts: wp.array  # workspace: valid until the next call on this workspace
+
+
+def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, features, outputs, keep: Optional[Keep],
+            sort_mode: str = "two_pass", on_stage: Optional[Callable[[str], None]] = None) -> Frame:
+    """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
+    projection kernel takes them; outputs: (color, alpha, depth, inv_depth, features) arrays the blend writes
+    (1-element dummies for outputs not asked for; features zeroed beforehand for the per-thread CPU kernel);
+    features in the layout of `feature_layout`. keep=None: everything in the workspace (no backward follows).
+    on_stage(name), if given, is called after each stage (benchmarks/profile_stages.py times them)."""
+    dev = ws.device
+    n = int(inputs[0].shape[0])
+    L = ws.launches
+
+    def per_call(name, count, dtype):
+        return keep(name, count, dtype) if keep is not None else ws.array(name, count, dtype)
+
+    means2d = per_call("means2d", n, wp.vec2)
+    conics = per_call("conics", n, wp.vec3)
+    depths = per_call("depths", n, float)
+    colors = per_call("colors", n, wp.vec3)
+    cov2d = ws.array("cov2d", n, wp.vec3)
+    valid = ws.array("valid", n, wp.int32)
+    color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
+    L.launch("project", project.project_gaussians, n,
+             list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0),
+                             means2d, conics, cov2d, depths, colors, valid])
+    _stage(on_stage, "project")
+    rects = ws.array("rects", n, wp.vec4i)
+    counts = ws.array("counts", n, wp.int32)
+    q_cut = per_call("q_cut", n, float)
+    L.launch("footprints", binning.tile_footprints, n,
+             [means2d, cov2d, opacities, valid, s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
+              rects, counts, q_cut])
+    _stage(on_stage, "footprints")
+    total, tile_start, tile_end, sorted_ids = sort_into_tiles(ws, rects, counts, depths, s, per_call, sort_mode,
+                                                              on_stage)
+
+    npix = s.width * s.height
+    transmittance = per_call("transmittance", npix, float)
+    last = per_call("last", npix, wp.int32)
+    color, alpha, depth, inv_depth, out_features = outputs
+    kernel, block_dim = _blend_kernel(dev, s, want, backward=False)
+    head = [tile_start, tile_end, sorted_ids, means2d, conics, opacities, colors, depths, features, q_cut]
+    tail = [color, transmittance, alpha, depth, inv_depth, out_features, last]
+
+    def work(thread, chunks):  # each chunk writes only its own pixels
+        for c, (first, count) in enumerate(chunks):
+            L.launch(("blend_fwd", thread, c), kernel, count * s.tile_size**2,
+                     head + [_params(ws, s, want, first)] + tail, block_dim)
+
+    run_threads(work, _tile_launches(s, dev))
+    _stage(on_stage, "blend forward")
+    return Frame(n=n, total=total, means2d=means2d, conics=conics, depths=depths, colors=colors, q_cut=q_cut,
+                 tile_start=tile_start, sorted_ids=sorted_ids, transmittance=transmittance, last=last,
+                 counts=counts)
+
+
+def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call, mode: str = "two_pass",
+                    on_stage: Optional[Callable[[str], None]] = None):
+    """(total, tile_start, tile_end, sorted_ids): the (tile, primitive) pairs sorted by tile, then depth, then
+    primitive index, and every tile's [start, end) range. tile_start and sorted_ids come from `per_call`."""
+    if mode not in SORT_MODES:
+        raise ValueError(f"sort mode: expected one of {SORT_MODES}, got {mode!r}")
+    dev = ws.device
+    L = ws.launches
+    n = int(counts.shape[0])
+    tile_start = per_call("tile_start", s.num_tiles, wp.int32)
+    tile_end = ws.array("tile_end", s.num_tiles, wp.int32)
+    offsets = ws.array("offsets", n, wp.int32)
+    if mode == "two_pass":
+        depth_keys = ws.array("depth_keys", 2 * n, float)
+        order = ws.array("order", 2 * n, wp.int32)
+        L.launch("depth_init", binning.depth_sort_init, n, [depths, depth_keys, order])
+        wp.utils.radix_sort_pairs(depth_keys, order, n)
+        ordered = ws.array("ordered_counts", n, wp.int32)
+        L.launch("counts_in_order", binning.counts_in_order, n, [order, counts, ordered])
+        _stage(on_stage, "sort: depth sort")
+        wp.utils.array_scan(ordered, offsets, inclusive=True)
+    else:
+        wp.utils.array_scan(counts, offsets, inclusive=True)
+    total = ws.read_int(offsets, n - 1)  # the one host sync: sizes the pair buffers
+    _stage(on_stage, "sort: prefix sum + sync")
+    sorted_ids = per_call("sorted_ids", 2 * max(total, 1), wp.int32)  # radix sorts need 2x room
+    if total == 0:
+        tile_start.zero_()
+        tile_end.zero_()
+        return 0, tile_start, tile_end, sorted_ids
+    tile_bits = max(1, (s.num_tiles - 1).bit_length())
+    if mode == "two_pass":
+        keys = ws.array("tile_keys", 2 * total, wp.int32)
+        if dev.is_cpu:  # a loop per primitive: few threads, no search
+            L.launch("emit", binning.emit_tile_keys, n, [rects, order, offsets, counts, s.tiles_x, keys, sorted_ids])
+        else:  # a thread per (primitive, tile) pair: balanced across the GPU
+            L.launch("emit", binning.emit_tile_keys_per_pair, total,
+                     [rects, order, offsets, counts, s.tiles_x, n, keys, sorted_ids])
+        _stage(on_stage, "sort: emit keys")
+        wp.utils.radix_sort_pairs(keys, sorted_ids, total, begin_bit=0, end_bit=tile_bits)
+        _stage(on_stage, "sort: pair sort")
+        L.launch("ranges", binning.tile_ranges_dense, total, [keys, total, s.num_tiles, tile_start, tile_end])
+    else:
+        keys = ws.array("tile_depth_keys", 2 * total, wp.uint64)
+        depth_bits = ws.view("depth_bits", depths, 0, n, wp.int32)
+        if dev.is_cpu:
+            L.launch("emit64", binning.emit_tile_depth_keys, n,
+                     [rects, offsets, counts, depth_bits, s.tiles_x, keys, sorted_ids])
+        else:
+            L.launch("emit64", binning.emit_tile_depth_keys_per_pair, total,
+                     [rects, offsets, counts, depth_bits, s.tiles_x, n, keys, sorted_ids])
+        _stage(on_stage, "sort: emit keys")
+        wp.utils.radix_sort_pairs(keys, sorted_ids, total, begin_bit=0, end_bit=32 + tile_bits)
+        _stage(on_stage, "sort: pair sort")
+        L.launch("ranges64", binning.tile_ranges_dense64, total, [keys, total, s.num_tiles, tile_start, tile_end])
+    _stage(on_stage, "sort: tile ranges")
+    return total, tile_start, tile_end, sorted_ids
+
+
+def _stage(on_stage, name: str) -> None:
+    hook = on_stage or stage_hook
+    if hook is not None:
+        hook(name)
+
+
+def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opacities, features, upstream,
+                   adj_opacities, adj_features, num_features_rows: int, backward_kernel: str = "warp_sums"):
+    """The blending adjoint. upstream: (grad color, alpha, depth, inv_depth, features) in the kernels' layouts
+    (dummies for outputs not rendered). adj_opacities / adj_features: where the opacity and feature gradients
+    accumulate (zeroed by the caller). Returns the projected gradients (means2d, conics, colors, depths), in the
+    workspace: valid until the next backward on it.
+
+    CPU threads would race on the sums (Warp's CPU atomics are plain adds), so threads other than the first
+    accumulate into private workspace buffers that are added in afterwards."""
+    dev = ws.device
+    L = ws.launches
+    n = frame.n
+    block = ws.array("grad_projected", 9 * n, float)
+    block.zero_()
+    g_means2d = ws.view("g_means2d", block, 0, n, wp.vec2)
+    g_conics = ws.view("g_conics", block, 2 * n, n, wp.vec3)
+    g_colors = ws.view("g_colors", block, 5 * n, n, wp.vec3)
+    g_depths = ws.view("g_depths", block, 8 * n, n, float)
+    kernel, block_dim = _blend_kernel(dev, s, want, backward=True, variant=backward_kernel)
+    head = [frame.tile_start, frame.sorted_ids, frame.means2d, frame.conics, opacities, frame.colors, frame.depths,
+            features, frame.q_cut]
+    tail = [frame.transmittance, frame.last] + list(upstream)
+    per_thread = _tile_launches(s, dev)
+    nf = want.num_features
+    targets = [[g_means2d, g_conics, adj_opacities, g_colors, g_depths, adj_features]]
+    for t in range(1, len(per_thread)):  # private sums: [projected (9n) | opacities (n) | features (rows x C)]
+        private = ws.array(f"grad_private{t}", 10 * n + num_features_rows * max(nf, 1), float)
+        private.zero_()
+        feats = (ws.view(f"gp{t}_f", private, 10 * n, (num_features_rows, nf), float) if nf
+                 else ws.dummy(float, 2))
+        targets.append([ws.view(f"gp{t}_m", private, 0, n, wp.vec2), ws.view(f"gp{t}_c", private, 2 * n, n, wp.vec3),
+                        ws.view(f"gp{t}_o", private, 9 * n, n, float), ws.view(f"gp{t}_r", private, 5 * n, n, wp.vec3),
+                        ws.view(f"gp{t}_d", private, 8 * n, n, float), feats])
+
+    def work(thread, chunks):
+        for c, (first, count) in enumerate(chunks):
+            L.launch(("blend_bwd", thread, c), kernel, count * s.tile_size**2,
+                     head + [_params(ws, s, want, first)] + tail + targets[thread], block_dim)
+
+    run_threads(work, per_thread)
+    for t in range(1, len(per_thread)):
+        private = ws.array(f"grad_private{t}", 10 * n + num_features_rows * max(nf, 1), float)
+        L.launch(("merge_projected", t), blend.accumulate, 9 * n, [private, block])
+        L.launch(("merge_opacities", t), blend.accumulate, n,
+                 [ws.view(f"gp{t}_o", private, 9 * n, n, float), _flat(ws, "adj_opacities_flat", adj_opacities)])
+        if nf:
+            L.launch(("merge_features", t), blend.accumulate, num_features_rows * nf,
+                     [ws.view(f"gp{t}_ff", private, 10 * n, num_features_rows * nf, float),
+                      _flat(ws, "adj_features_flat", adj_features)])
+    _stage(None, "blend backward")
+    return g_means2d, g_conics, g_colors, g_depths
+
+
+def project_backward(ws: Workspace, frame: Frame, s: Settings, inputs, input_grads, projected_grads) -> None:
+    """The projection's generated adjoint (what wp.Tape.backward would run). input_grads: the gradient arrays of
+    `inputs` (None where not wanted); projected_grads: (means2d, conics, colors, depths) from `blend_backward`."""
+    g_means2d, g_conics, g_colors, g_depths = projected_grads
+    color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
+    n = frame.n
+    cov2d = ws.array("cov2d", n, wp.vec3)
+    valid = ws.array("valid", n, wp.int32)
+    args = list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0),
+                           frame.means2d, frame.conics, cov2d, frame.depths, frame.colors, valid]
+    adj = list(input_grads) + [0, 0, 0.0, 0.0, 0, 0, g_means2d, g_conics, None, g_depths, g_colors, None]
+    ws.launches.launch_adjoint("project_adjoint", project.project_gaussians, n, args, adj)
+    _stage(None, "project adjoint")
+
+
+def _flat(ws: Workspace, name: str, a):
+    """A float32 array `a` (Warp array) seen as one flat run of floats."""
+    if isinstance(a, wp.array):
+        return ws.view(name, a, 0, a.size * (wp.types.type_size_in_bytes(a.dtype) // 4), float)
+    raise TypeError("expected a Warp array")
+
+
+def _params(ws: Workspace, s: Settings, want: Wanted, first: int):
+    key = ("blend_params", s.width, s.height, s.tile_size, s.alpha_min, s.transmittance_min, want.color, want.depth,
+           want.inv_depth, want.num_features, first)
+    return ws.memo(key, lambda: blend_params(s, want, first))
+
+
+def _blend_kernel(dev, s: Settings, want: Wanted, backward: bool, variant: str = "warp_sums"):
+    """(kernel, block_dim): the per-thread CPU kernels, or the cooperative GPU ones (blend_gpu.py). variant: the GPU
+    adjoint, "warp_sums" (backward_kernel_warp_sums, tiles of 8x8 and up) or "block" (backward_kernel)."""
+    if not _cooperative(dev):
+        return (blend.blend_backward if backward else blend.blend_forward), 0
+    fwd_block, bwd_block = _block_dims(s)
+    if not backward:
+        return blend_gpu.forward_kernel(fwd_block, want.num_features), fwd_block
+    if variant == "warp_sums" and blend_gpu.warp_sums_supported(s.tile_size):
+        block = min(s.tile_size**2, 256)
+        return blend_gpu.backward_kernel_warp_sums(block, want.num_features), block
+    return blend_gpu.backward_kernel(bwd_block, _block_reduce(), want.num_features), bwd_block
+
+
+def feature_layout(dev) -> str:
+    """How the blend kernels take features: 'vectors' (length-C vectors, cooperative GPU kernels) or 'rows'
+    ([rows, C] floats, per-thread CPU kernels)."""
+    return "vectors" if _cooperative(dev) else "rows"

@@ -1,0 +1,252 @@
+"""The torch side of the lean 3D path (`fast_pipeline`): tensors cross as bare array descriptors; what a backward
+reads lives in buffers lent to the render (`Workspace.lease_frame`) for exactly as long as its autograd graph.
+
+Lifetimes, which is what makes reusing scratch memory safe:
+- outputs returned to the caller are fresh torch tensors; everything the backward reads (projected Gaussians,
+  footprint cut-offs, tile ranges, sorted ids, final transmittance and stopping index) is in a leased buffer set
+  when autograd will differentiate the render; `ctx` holds the lease until the backward has run (or the graph is
+  freed), and only then can another render get that set;
+- the workspace (`warpgs.render.workspace`) holds only what a call uses and forgets before it returns (sort keys,
+  prefix sums, tile rectangles, the visible counts, the projected gradients of one backward), per thread and stream.
+So two renders in flight (two forwards, then their backwards in any order) share no buffer a backward reads
+(tests/test_raster_fast_path.py checks it).
+"""
+from __future__ import annotations
+
+import threading
+from typing import Dict
+
+import torch
+import warp as wp
+
+from warpgs.render import fast_pipeline as fast
+from warpgs.render.workspace import Workspace
+
+class _DeviceState:
+    """Per (thread, device, torch stream): the Warp device, the Warp view of torch's stream, the workspace."""
+
+    def __init__(self, device: torch.device, torch_stream):
+        self.wdev = wp.get_device("cpu" if device.type == "cpu" else f"cuda:{device.index}")
+        self.stream = None
+        if torch_stream is not None:
+            self.stream = wp.Stream(self.wdev, cuda_stream=torch_stream.cuda_stream)
+            self.stream._torch_stream = torch_stream  # keeps torch's stream (and so its handle) alive
+        self.ws = Workspace(self.wdev)
+        self._descs: Dict = {}
+        self._arrays: Dict = {}
+
+    def desc(self, t: torch.Tensor, dtype):
+        """`_desc(t, dtype)`, memoised by address, shape and strides (all a descriptor holds): the same memory seen
+        again (parameters updated in place, torch's allocator handing back a block) gives the same object, which
+        a recorded launch then does not re-pack."""
+        key = (t.data_ptr(), t.shape, t.stride(), dtype)
+        d = self._descs.get(key)
+        if d is None:
+            if len(self._descs) > _MEMO_SIZE:
+                self._descs.clear()
+            d = self._descs[key] = _desc(t, dtype)
+        return d
+
+    def tensor(self, a: wp.array) -> torch.Tensor:
+        """wp.to_torch(a), memoised like `desc` (for workspace views read every call)."""
+        key = ("tensor", a.ptr, a.shape, a.dtype)
+        t = self._descs.get(key)
+        if t is None:
+            if len(self._descs) > _MEMO_SIZE:
+                self._descs.clear()
+            t = self._descs[key] = wp.to_torch(a, requires_grad=False)
+        return t
+
+    def array(self, t: torch.Tensor, n: int, dtype) -> wp.array:
+        """A Warp array of n elements over a tensor's memory, memoised like `desc`."""
+        key = (t.data_ptr(), n, dtype)
+        a = self._arrays.get(key)
+        if a is None:
+            if len(self._arrays) > _MEMO_SIZE:
+                self._arrays.clear()
+            a = self._arrays[key] = wp.array(ptr=key[0], dtype=dtype, shape=(n,), device=self.wdev)
+        return a
+
+    def scope(self):
+        """Makes torch's stream Warp's current one (no cross-stream sync: all our work is on torch's stream)."""
+        if self.stream is None:
+            return _NULL_SCOPE
+        return wp.ScopedStream(self.stream, sync_enter=False)
+
+
+class _NullScope:
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *exc):
+        return False
+
+
+_NULL_SCOPE = _NullScope()
+_MEMO_SIZE = 256  # descriptors and array views kept per device state
+_local = threading.local()
+
+
+def device_state(device: torch.device) -> _DeviceState:
+    table: Dict = getattr(_local, "table", None)
+    if table is None:
+        table = _local.table = {}
+    stream = None
+    if device.type == "cuda":
+        if device.index is None:
+            device = torch.device("cuda", torch.cuda.current_device())
+        stream = torch.cuda.current_stream(device)
+        key = (device.index, stream.cuda_stream)
+    else:
+        key = None
+    state = table.get(key)
+    if state is None:
+        state = table[key] = _DeviceState(device, stream)
+    return state
+
+
+def release_workspaces() -> None:
+    """Frees this thread's workspaces: scratch memory, lent buffer sets not in use, recorded launches. The next
+    render allocates them again."""
+    _local.table = {}
+
+
+def _desc(t: torch.Tensor, dtype):
+    """A bare Warp array descriptor of a contiguous tensor, holding no reference to it (torch keeps the memory
+    alive for the call; a recorded launch must not keep it alive afterwards)."""
+    d = wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
+    d._ref = None
+    d._gradref = None
+    return d
+
+
+def _features_arg(t, num_features: int, layout: str, state: "_DeviceState"):
+    """Features (or their gradients) for the blend kernels: [rows, C] floats on the CPU, length-C vectors on GPUs."""
+    if num_features == 0:
+        ws = state.ws
+        return ws.dummy(float, 2) if layout == "rows" else ws.dummy(fast.blend_gpu.feature_vector_type(0))
+    if layout == "rows":
+        return state.desc(t, wp.float32)
+    return state.desc(t, fast.blend_gpu.feature_vector_type(num_features))
+
+
+class FastRasterizeFunction(torch.autograd.Function):
+    """Same signature and outputs as gaussians._RasterizeFunction (plus the options), through `fast_pipeline`."""
+
+    @staticmethod
+    def forward(ctx, settings, wanted, options, means, quats, scales, opacities, coeffs, features, viewmat,
+                intrinsics, means2d_probe):
+        needs = ctx.needs_input_grad[3:11]
+        any_grad = any(ctx.needs_input_grad[3:])
+        device = means.device
+        state = device_state(device)
+        ws = state.ws
+        H, W = settings.height, settings.width
+        npix = H * W
+        nf = wanted.num_features
+        layout = fast.feature_layout(state.wdev)
+        means, quats, scales, opacities, coeffs, features = (
+            t.detach().contiguous() for t in (means, quats, scales, opacities, coeffs, features))
+        ctx.camera_shapes = (viewmat.shape, intrinsics.shape)
+        viewmat = viewmat.detach().reshape(1, 4, 4).contiguous()
+        intrinsics = intrinsics.detach().reshape(1, 4).contiguous()
+        desc = state.desc
+        inputs = [desc(means, wp.vec3), desc(quats, wp.vec4), desc(scales, wp.vec3), desc(coeffs, wp.vec3),
+                  desc(viewmat, wp.mat44), desc(intrinsics, wp.vec4)]
+        w_opac = desc(opacities, wp.float32)
+        w_feat = _features_arg(features, nf, layout, state)
+
+        empty = means.new_zeros(0)
+        color = means.new_empty(H, W, 3) if wanted.color else empty
+        alpha = means.new_empty(H, W, 1)
+        depth = means.new_empty(H, W, 1) if wanted.depth else empty
+        inv_depth = means.new_empty(H, W, 1) if wanted.inv_depth else empty
+        # the per-thread CPU kernels accumulate features in place; the cooperative ones write every pixel
+        feats = ((means.new_zeros if layout == "rows" else means.new_empty)(H, W, nf)) if nf else empty
+        outputs = [desc(color.view(npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3),
+                   desc(alpha.view(npix), wp.float32),
+                   desc(depth.view(npix), wp.float32) if wanted.depth else ws.dummy(float),
+                   desc(inv_depth.view(npix), wp.float32) if wanted.inv_depth else ws.dummy(float),
+                   _features_arg(feats.view(npix, nf), nf, layout, state)]
+
+        keep = ws.lease_frame() if any_grad else None  # back to the pool with ctx.state
+        with state.scope():
+            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, options.sort)
+            visible = state.tensor(frame.counts) > 0
+            if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
+                means2d_probe.data.copy_(state.tensor(frame.means2d).view(-1, 2))
+            fast._stage(None, "outputs (torch)")
+        count = torch.tensor(frame.total)
+        ctx.mark_non_differentiable(visible, count)
+        if any_grad:
+            ctx.state = (frame, keep, settings, wanted, options, needs, layout)
+            ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
+        ctx.device = device
+        return color, alpha, depth, inv_depth, feats, visible, count
+
+    @staticmethod
+    def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count):
+        fast._stage(None, "between (loss, autograd)")
+        frame, keep, settings, wanted, options, needs, layout = ctx.state
+        means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors
+        device = ctx.device
+        state = device_state(device)
+        ws = state.ws
+        npix = settings.width * settings.height
+        nf = wanted.num_features
+
+        shapes = [t.shape for t in (means, quats, scales, opacities, coeffs, features)] + list(ctx.camera_shapes)
+        grads = [means.new_zeros(shape) if need else None for shape, need in zip(shapes, needs)]
+        # the blend adjoint always writes the opacity and feature gradients
+        g_opac = grads[3] if grads[3] is not None else torch.zeros_like(opacities)
+        g_features = grads[5] if grads[5] is not None else torch.zeros_like(features)
+
+        desc = state.desc
+        alive = []  # descriptors hold no reference: contiguous copies must outlive the launches
+
+        def upstream(g, name, shape, dtype, rows_dtype=None):
+            """The upstream gradient of an output in the kernels' layout; a shared zero buffer when autograd has
+            none (the loss did not use that output)."""
+            if g is None:
+                if rows_dtype is not None and layout == "rows":
+                    return ws.zeros(name, shape, float)
+                return ws.zeros(name, shape[0], dtype)
+            g = g.contiguous().view(shape)
+            alive.append(g)
+            return desc(g, rows_dtype if (rows_dtype is not None and layout == "rows") else dtype)
+
+        gc = upstream(g_color, "up_color", (npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3)
+        ga = upstream(g_alpha, "up_alpha", (npix,), wp.float32)
+        gd = upstream(g_depth, "up_depth", (npix,), wp.float32) if wanted.depth else ws.dummy(float)
+        gi = upstream(g_inv, "up_inv_depth", (npix,), wp.float32) if wanted.inv_depth else ws.dummy(float)
+        gf = (upstream(g_feat, "up_features", (npix, nf), fast.blend_gpu.feature_vector_type(nf), wp.float32)
+              if nf else _features_arg(None, 0, layout, state))
+        w_opac = desc(opacities, wp.float32)
+        w_feat = _features_arg(features, nf, layout, state)
+        adj_opac = state.array(g_opac, g_opac.shape[0], wp.float32)
+        if nf and layout == "rows":
+            adj_feat = wp.array(ptr=g_features.data_ptr(), dtype=wp.float32, shape=tuple(g_features.shape),
+                                device=state.wdev)
+        elif nf:
+            adj_feat = state.array(g_features, g_features.shape[0], fast.blend_gpu.feature_vector_type(nf))
+        else:
+            adj_feat = _features_arg(None, 0, layout, state)
+        probe_grad = None
+        with state.scope():
+            projected = fast.blend_backward(ws, frame, settings, wanted, w_opac, w_feat, (gc, ga, gd, gi, gf),
+                                            adj_opac, adj_feat, features.shape[0], options.backward_kernel)
+            if ctx.needs_input_grad[11]:  # dL/dmeans2d, read before the projection adjoint
+                probe_grad = state.tensor(projected[0]).view(-1, 2).clone()
+            if any(needs[i] for i in (0, 1, 2, 4, 6, 7)):
+                inputs = [desc(means, wp.vec3), desc(quats, wp.vec4), desc(scales, wp.vec3),
+                          desc(coeffs, wp.vec3), desc(viewmat, wp.mat44), desc(intrinsics, wp.vec4)]
+                dtypes = (wp.vec3, wp.vec4, wp.vec3, wp.vec3, wp.mat44, wp.vec4)
+                views = (None, None, None, None, (1, 4, 4), (1, 4))
+                input_grads = [None if g is None else desc(g if v is None else g.view(v), dt)
+                               for g, dt, v in zip((grads[0], grads[1], grads[2], grads[4], grads[6], grads[7]),
+                                                   dtypes, views)]
+                fast.project_backward(ws, frame, settings, inputs, input_grads, projected)
+        ctx.state = None
+        grads[3] = g_opac if needs[3] else None
+        grads[5] = g_features if needs[5] else None
+        return (None, None, None) + tuple(grads) + (probe_grad,)

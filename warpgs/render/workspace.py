@@ -1,0 +1,206 @@
+"""What a render call keeps between calls, to cut its fixed host cost (torch-free).
+
+At 100k Gaussians a GPU render is mostly host work: every `wp.launch` re-packs its arguments, every `wp.zeros`
+allocates and clears memory, every wrapper builds a descriptor. Two things here avoid most of that:
+
+- `Workspace`: scratch arrays kept per (device, stream, thread) and grown geometrically, handed out as views of
+  the size a call needs, for buffers that live within one call (sort keys, prefix sums, tile rectangles, ...).
+  What a backward pass reads later comes from a `FrameLease`: a set of buffers lent to one render and returned
+  to the pool only when that render's autograd context lets go of it, so a buffer is never overwritten while a
+  graph still needs it.
+- `LaunchCache`: one recorded `wp.Launch` per launch site; a call updates only the parameters that changed since
+  the last one (workspace views keep their descriptor objects, so they are skipped by identity) and replays it.
+
+`benchmarks/micro_overhead.py` measures the pieces (CPU, this machine): `wp.launch` with 23 arguments 22 us
+against 5 us for a replay, `set_param_at_index` 0.7 us, `wp.from_torch` 4.5 us (1.8 us as a bare descriptor).
+"""
+from __future__ import annotations
+
+import threading
+from typing import Dict, Tuple
+
+import warp as wp
+
+GROWTH = 1.25  # capacity grows to this multiple of the first size that does not fit
+# Recording a launch loads the kernel's module on first use. Two threads loading a module at once crashed Warp 1.19
+# on the CPU (reproduced with two threads each recording a launch of one kernel for the first time), so recording is
+# serialised; replays run concurrently (the CPU blend runs one replay per thread).
+_RECORD_LOCK = threading.Lock()
+
+
+class LaunchCache:
+    """Recorded launches keyed by launch site. `launch` takes the same arguments as `wp.launch` (inputs and outputs
+    as one list) and re-packs only the parameters that differ from the previous call at that site.
+
+    Parameters are compared by identity (arrays, descriptors, structs) or value (Python scalars). The cache keeps
+    the previous arguments' descriptors (never the arrays' memory), so a freed descriptor can never be mistaken
+    for a live one."""
+
+    def __init__(self, device):
+        self.device = device
+        self._entries: Dict[object, list] = {}
+
+    def launch(self, key, kernel, dim: int, args, block_dim: int = 0) -> None:
+        if dim <= 0:
+            return
+        args = [_param(a) for a in args]
+        entry = self._entries.get(key)
+        if entry is None or entry[0] is not kernel:
+            with _RECORD_LOCK:
+                cmd = wp.launch(kernel, dim=dim, inputs=args, device=self.device, block_dim=block_dim or None,
+                                record_cmd=True)
+            entry = self._entries[key] = [kernel, cmd, args, dim]
+        else:
+            _, cmd, prev, old_dim = entry
+            for i, a in enumerate(args):
+                if _same(a, prev[i]):
+                    continue
+                cmd.set_param_at_index(i, a)
+                prev[i] = a
+            if dim != old_dim:
+                cmd.set_dim(dim)
+                entry[3] = dim
+        entry[1].launch()
+
+    def launch_adjoint(self, key, kernel, dim: int, args, adj_args, block_dim: int = 0) -> None:
+        """The generated adjoint of `kernel` (what wp.Tape.backward would launch): `adj_args` are the gradient
+        arrays of `args` (None where there is none, 0 for scalars)."""
+        if dim <= 0:
+            return
+        args = [_param(a) for a in args]
+        adj_args = [_param(a) for a in adj_args]
+        entry = self._entries.get(key)
+        if entry is None or entry[0] is not kernel:
+            with _RECORD_LOCK:
+                cmd = wp.launch(kernel, dim=dim, inputs=args, adj_inputs=adj_args, device=self.device, adjoint=True,
+                                block_dim=block_dim or None, record_cmd=True)
+            entry = self._entries[key] = [kernel, cmd, args, dim, adj_args]
+        else:
+            _, cmd, prev, old_dim, prev_adj = entry
+            for i, a in enumerate(args):
+                if not _same(a, prev[i]):
+                    cmd.set_param_at_index(i, a)
+                    prev[i] = a
+            for i, a in enumerate(adj_args):
+                if not _same(a, prev_adj[i]):
+                    cmd.set_param_at_index(i, a, adjoint=True)
+                    prev_adj[i] = a
+            if dim != old_dim:
+                cmd.set_dim(dim)
+                entry[3] = dim
+        entry[1].launch()
+
+
+def _param(a):
+    """Arrays travel as their (cached) descriptors: identity then means 'same array view'."""
+    return a.__ctype__() if isinstance(a, wp.array) else a
+
+
+def _same(a, b) -> bool:
+    if a is b:
+        return True
+    t = type(a)
+    return (t is int or t is float) and type(b) is t and a == b
+
+
+class Buffers:
+    """Named arrays of one device, grown geometrically and handed out as views of the size a call needs. A view
+    object (and so its descriptor) is reused while the size stays the same, which is what lets `LaunchCache` skip
+    re-packing it."""
+
+    def __init__(self, device):
+        self.device = wp.get_device(device)
+        self._buffers: Dict[str, wp.array] = {}
+        self._views: Dict[str, Tuple[object, wp.array]] = {}
+
+    def array(self, name: str, n: int, dtype) -> wp.array:
+        """A view of n elements (at least 1) of the named buffer. Contents are whatever the last user left."""
+        n = max(int(n), 1)
+        view = self._views.get(name)
+        if view is not None and view[0] == (n, dtype):
+            return view[1]
+        buf = self._buffers.get(name)
+        if buf is None or buf.dtype != dtype or buf.shape[0] < n:
+            old = 0 if buf is None or buf.dtype != dtype else buf.shape[0]
+            cap = n if old == 0 else max(n, int(old * GROWTH) + 1)
+            buf = self._buffers[name] = wp.empty(cap, dtype=dtype, device=self.device)
+        v = buf if buf.shape[0] == n else buf[:n]
+        self._views[name] = ((n, dtype), v)
+        return v
+
+    __call__ = array  # a Buffers object is a `keep` allocator
+
+    def view(self, name: str, base: wp.array, offset: int, shape, dtype) -> wp.array:
+        """A typed view of `base` (a float32 buffer) from element `offset` on, reused while nothing changes."""
+        shape = (shape,) if isinstance(shape, int) else tuple(shape)
+        key = (base.ptr, offset, shape, dtype)
+        hit = self._views.get(name)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        v = wp.array(ptr=base.ptr + 4 * offset, dtype=dtype, shape=shape, device=self.device)
+        self._views[name] = (key, v)
+        return v
+
+
+class FrameLease:
+    """A set of `Buffers` lent to one render for what its backward reads. The set goes back to the workspace's pool
+    when the lease is dropped (the torch op holds it in its autograd context, so: after the backward, or when the
+    graph is freed unused); only then can another render get it. So a buffer is never reused while a graph that
+    needs it is alive, and steady training (render, backward, render, ...) gets the same buffers every step."""
+
+    def __init__(self, pool: list, buffers: Buffers):
+        self._pool = pool
+        self.buffers = buffers
+
+    def __call__(self, name: str, n: int, dtype) -> wp.array:
+        return self.buffers.array(name, n, dtype)
+
+    def __del__(self):
+        try:
+            self._pool.append(self.buffers)
+        except Exception:  # interpreter shutdown
+            pass
+
+
+class Workspace(Buffers):
+    """Scratch arrays of one device (and stream and thread), reused by every call, plus the recorded launches and
+    the pool of per-render buffer sets (`lease_frame`)."""
+
+    def __init__(self, device):
+        super().__init__(device)
+        self.launches = LaunchCache(self.device)
+        self._cache: Dict[object, object] = {}  # small per-workspace memo (structs, dummies, host buffers)
+        self._free_frames: list = []
+
+    def lease_frame(self) -> FrameLease:
+        """Buffers for one render whose backward will follow (see FrameLease)."""
+        buffers = self._free_frames.pop() if self._free_frames else Buffers(self.device)
+        return FrameLease(self._free_frames, buffers)
+
+    def memo(self, key, make):
+        """A value made once per workspace (e.g. a 1-element dummy array, a pinned host buffer)."""
+        value = self._cache.get(key)
+        if value is None:
+            value = self._cache[key] = make()
+        return value
+
+    def zeros(self, name: str, shape, dtype) -> wp.array:
+        """A zero-filled array that nobody writes (e.g. the upstream gradient of an output the loss did not use),
+        filled once per size."""
+        shape = (shape,) if isinstance(shape, int) else tuple(shape)
+        return self.memo(("zeros", name, shape, dtype), lambda: wp.zeros(shape, dtype=dtype, device=self.device))
+
+    def dummy(self, dtype, ndim: int = 1) -> wp.array:
+        """A zeroed 1-element array for arguments a kernel never reads (outputs not asked for)."""
+        return self.memo(("dummy", dtype, ndim),
+                         lambda: wp.zeros((1,) * ndim, dtype=dtype, device=self.device))
+
+    def read_int(self, a: wp.array, index: int) -> int:
+        """a[index] on the host: the one synchronisation of a render call (GPU: through a pinned buffer)."""
+        if self.device.is_cpu:
+            return int(a.numpy()[index])  # a zero-copy view of host memory
+        host = self.memo("pinned_int", lambda: wp.empty(1, dtype=wp.int32, device="cpu", pinned=True))
+        host_np = self.memo("pinned_int_np", host.numpy)
+        wp.copy(host, a, dest_offset=0, src_offset=index, count=1)
+        wp.synchronize_stream(self.device.stream)
+        return int(host_np[0])
