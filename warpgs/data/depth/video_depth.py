@@ -108,7 +108,7 @@ class VideoDepthAnything(PseudoVideoDepth):
 
         device = self.device or ("cuda" if torch.cuda.is_available() else "cpu")
         net = Net(encoder=self.encoder, **_ENCODERS[self.encoder])
-        net.load_state_dict(torch.load(self.checkpoint, map_location="cpu"), strict=True)
+        net.load_state_dict(torch.load(self.checkpoint, map_location="cpu", weights_only=True), strict=True)
         self._model, self.device = net.to(device).eval(), device
         return self._model
 
