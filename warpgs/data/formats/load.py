@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 from warpgs.data.formats import colmap
 
 from warpgs.data.formats import lightfield
+from warpgs.data.formats import llff
 
 from warpgs.data.formats import transforms
 from warpgs.data.errors import MissingSceneFile, PathLike, SceneError
@@ -13,8 +15,15 @@ from warpgs.data.formats.image_io import list_images
 from warpgs.data.scene import Scene
 
 
+FORMATS = ("lightfield", "transforms", "llff", "colmap", "images")
+
+
 def detect_format(root: PathLike) -> str:
-    """"lightfield", "transforms", "colmap", "images" (needs SfM); raises for a missing or empty folder."""
+    """"lightfield", "transforms", "llff", "colmap", "images" (needs SfM); raises for a missing or empty folder.
+
+    poses_bounds.npy wins over a COLMAP model in the same folder: it is what LLFF benchmarks evaluate with (and
+    the LLFF loader still takes the model's points when its poses agree). load_scene(..., format="colmap")
+    reads the model instead."""
     root = Path(root)
     if not root.exists():
         raise MissingSceneFile(root, "scene folder")
@@ -24,6 +33,8 @@ def detect_format(root: PathLike) -> str:
         return "lightfield"
     if transforms.find_transforms(root):
         return "transforms"
+    if llff.find_poses(root) is not None:
+        return "llff"
     if colmap.find_model(root) is not None:
         return "colmap"
     images = root / "images"
@@ -31,20 +42,24 @@ def detect_format(root: PathLike) -> str:
         return "images"
     if list_images(root):
         return "images"
-    raise SceneError(root, "no scene found: expected lightfield.json, transforms.json, a COLMAP model "
-                           "(sparse/0) or an images/ folder with images")
+    raise SceneError(root, "no scene found: expected lightfield.json, transforms.json, poses_bounds.npy (LLFF), "
+                           "a COLMAP model (sparse/0) or an images/ folder with images")
 
 
 def load_scene(path: PathLike, *, split=None, n_train=None, downscale: int = 1, undistort: bool = True,
-               run_sfm_if_needed: bool = True, **kwargs) -> Scene:
-    """Load any supported scene folder. Light-field folders use the grid protocol unless split="file"/"all".
+               run_sfm_if_needed: bool = True, format: Optional[str] = None, **kwargs) -> Scene:
+    """Load any supported scene folder. Light-field folders use the grid protocol unless split="file"/"all";
+    LLFF folders (poses_bounds.npy) hold out every 8th view unless split.json or `split` says otherwise.
+    format: one of FORMATS to skip detection (e.g. "colmap" for a folder that also has poses_bounds.npy).
 
     A folder holding only images (in images/ or at its top level) is reconstructed with pycolmap first
     (written to <folder>/sparse/0 and <folder>/database.db) when run_sfm_if_needed is True.
     Extra keyword arguments go to the specific loader (e.g. background=... for transforms.json).
     """
     root = Path(path)
-    kind = detect_format(root)
+    if format is not None and format not in FORMATS:
+        raise ValueError(f"load_scene: format must be one of {FORMATS} or None, got {format!r}")
+    kind = format or detect_format(root)
     if kind == "lightfield":
         if n_train is not None:
             raise ValueError(f"{root}: a light field's training views are its k x k grid; n_train does not apply "
@@ -55,6 +70,8 @@ def load_scene(path: PathLike, *, split=None, n_train=None, downscale: int = 1, 
     if kind == "transforms":
         return transforms.load_transforms(root, split=split, n_train=n_train, downscale=downscale,
                                           undistort=undistort, **kwargs)
+    if kind == "llff":
+        return llff.load_llff(root, split=split, n_train=n_train, downscale=downscale, undistort=undistort, **kwargs)
     if kind == "images":
         if not run_sfm_if_needed:
             raise SceneError(root, "images but no camera poses; run warpgs.data.run_sfm or pass run_sfm_if_needed")

@@ -1,10 +1,13 @@
 """Initial points for 3D Gaussians when a scene has no SfM points (e.g. transforms.json datasets).
 
 Order of preference in `initial_points`: the scene's SfM points; points lifted from depth priors (or reference
-depth) of the training views, coloured by their pixels; uniform random points inside the training frusta.
+depth) of the training views, coloured by their pixels; points triangulated from the training views' known
+poses (when given a folder to cache them in); uniform random points inside the training frusta.
 """
 from __future__ import annotations
 
+import sys
+from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
@@ -63,7 +66,12 @@ def random_points(scene: Scene, n: int = 100_000, near: Optional[float] = None, 
     (default: 0.25x and 2x the distance from the cameras to the point their optical axes pass closest to).
     Colours are random."""
     rng = np.random.default_rng(seed)
-    cams = [scene.cameras[v] for v in (scene.train or range(len(scene)))]
+    views = list(scene.train or range(len(scene)))
+    cams = [scene.cameras[v] for v in views]
+    bounds = scene.metadata.get("near_far")  # LLFF scenes: per-view near/far depths of the SfM points
+    if (near is None or far is None) and bounds is not None:
+        bounds = np.asarray(bounds, dtype=np.float64)[views]
+        near, far = near or float(bounds[:, 0].min()), far or float(bounds[:, 1].max())
     if near is None or far is None:
         dist = _distance_to_focus(cams)
         near, far = near or 0.25 * dist, far or 2.0 * dist
@@ -88,10 +96,40 @@ def _distance_to_focus(cams) -> float:
     return float(np.median([np.linalg.norm(c.center - focus) for c in cams]))
 
 
-def initial_points(scene: Scene, n: int = 100_000, seed: int = 0) -> tuple[PointCloud, str]:
-    """(points, where they came from): "sfm", "depth_prior" or "random"."""
+MIN_TRIANGULATED_POINTS = 100  # fewer than this (a textureless or badly posed scene): random points instead
+
+
+def triangulated_points(scene: Scene, cache_dir: Path, *, strict: bool = False,
+                        **kwargs) -> Optional[tuple[PointCloud, str]]:
+    """(points, "triangulated (...)") from the training views' known poses (warpgs.data.sfm.triangulate), cached
+    in cache_dir. When that fails or finds under MIN_TRIANGULATED_POINTS points: None after saying why on
+    stderr, or the error when strict."""
+    from warpgs.data.errors import SceneError
+    from warpgs.data.sfm.triangulate import triangulate_scene
+
+    try:
+        tri = triangulate_scene(scene, cache_dir, **kwargs)
+        if len(tri.points) < MIN_TRIANGULATED_POINTS:
+            raise SceneError(cache_dir, f"triangulation found only {len(tri.points)} points "
+                                        f"(fewer than {MIN_TRIANGULATED_POINTS})")
+    except (SceneError, RuntimeError, ValueError) as exc:  # pycolmap raises RuntimeError/ValueError
+        if strict:
+            raise
+        print(f"triangulate: {exc}; using random points", file=sys.stderr)
+        return None
+    return tri.points, f"triangulated ({len(tri.points)} points, {tri.mean_error:.2f} px)"
+
+
+def initial_points(scene: Scene, n: int = 100_000, seed: int = 0,
+                   triangulate_dir: Optional[Path] = None) -> tuple[PointCloud, str]:
+    """(points, where they came from): "sfm", "depth_prior", "triangulated (...)" (only with triangulate_dir, the
+    folder that caches them) or "random"."""
     if scene.points is not None and len(scene.points) > 0:
         return scene.points, "sfm"
     if any(scene.files[v].depth_prior is not None for v in scene.train):
         return points_from_depth(scene, n, source="prior", seed=seed), "depth_prior"
+    if triangulate_dir is not None:
+        got = triangulated_points(scene, Path(triangulate_dir))
+        if got is not None:
+            return got
     return random_points(scene, n, seed=seed), "random"

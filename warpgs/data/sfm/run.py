@@ -1,66 +1,66 @@
 """Structure from motion through pycolmap for a folder of images without a model.
 
-feature extraction -> exhaustive or sequential matching -> incremental mapping, with a one-line progress
-display on stderr. Output follows the COLMAP layout: <out>/database.db and <out>/sparse/0 (the largest model).
+features (SIFT, images above 1600 px downscaled) -> matching (exhaustive for small sets; for larger ones each
+image with its most similar ones by visual words, plus a sequential window when the names are in video order;
+see data/sfm/pairs.py) -> incremental mapping. Every core is used by default. Per-stage progress lines on
+stderr (warpgs.utils.progress.Stages). Output follows the COLMAP layout: <out>/database.db and <out>/sparse/0
+(the largest model).
 """
 from __future__ import annotations
 
 import shutil
-import sys
-import time
 from pathlib import Path
 from typing import Optional, Sequence
 
 from warpgs.data.errors import MissingSceneFile, PathLike, SceneError
 from warpgs.data.formats.image_io import image_size, list_images
+from warpgs.data.sfm import features
+from warpgs.data.sfm.features import MATCHERS, MAX_IMAGE_SIZE
+from warpgs.utils.progress import Stages
 
-MATCHERS = ("exhaustive", "sequential")
-SMALL_IMAGE_SIDE = 1000
-SMALL_IMAGE_PEAK_THRESHOLD = 0.002
-
-
-class Progress:
-    """Progress on stderr: one rewritten line on a terminal, one line per stage (and the result) in a log."""
-
-    def __init__(self, enabled: bool = True, stream=None):
-        self.enabled = enabled
-        self.stream = stream or sys.stderr
-        self.live = enabled and hasattr(self.stream, "isatty") and self.stream.isatty()
-        self.start = time.perf_counter()
-        self.stage = ""
-
-    def _line(self, detail: str) -> str:
-        return f"[sfm {self.stage}] {detail}, {time.perf_counter() - self.start:.1f} s"
-
-    def step(self, stage: str, detail: str = ""):
-        self.stage = stage
-        if self.enabled and not self.live:
-            self.stream.write(self._line(detail) + "\n")
-            self.stream.flush()
-        self.update(detail)
-
-    def update(self, detail: str = ""):
-        if self.live:
-            self.stream.write("\r" + self._line(detail).ljust(72))
-            self.stream.flush()
-
-    def done(self, detail: str):
-        if self.enabled:
-            self.stream.write(("\r" if self.live else "") + self._line(detail).ljust(72) + "\n")
-            self.stream.flush()
+STAGES = ("features", "matching", "mapping")
 
 
-def run_sfm(image_dir: PathLike, out_dir: PathLike, *, matcher: str = "exhaustive", camera_model: str = "SIMPLE_RADIAL",
+def _mapping_options(num_threads: int, seed: int, refine_intrinsics: bool):
+    import pycolmap
+
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = num_threads
+    options.random_seed = seed
+    options.ba_refine_focal_length = refine_intrinsics
+    options.ba_refine_principal_point = False
+    options.ba_refine_extra_params = refine_intrinsics
+    return options
+
+
+def _largest_first(sparse: Path, models: dict) -> int:
+    """Put the model with the most registered images at sparse/0 (what the loaders read); returns its key."""
+    best = max(models, key=lambda k: models[k].num_reg_images())
+    if best != 0:
+        tmp = sparse / "largest"
+        (sparse / str(best)).rename(tmp)
+        (sparse / "0").rename(sparse / str(best))
+        tmp.rename(sparse / "0")
+    return best
+
+
+def run_sfm(image_dir: PathLike, out_dir: PathLike, *, matcher: str = "auto", camera_model: str = "SIMPLE_RADIAL",
             camera_params: Optional[Sequence[float]] = None, single_camera: bool = True, refine_intrinsics: bool = True,
             image_names: Optional[Sequence[str]] = None, peak_threshold: Optional[float] = None,
-            num_threads: int = -1, seed: int = 0, progress: bool = True, quiet: bool = True) -> Path:
+            max_image_size: int = MAX_IMAGE_SIZE, max_features: int = 8192, num_threads: int = -1, seed: int = 0,
+            progress: bool = True, quiet: bool = True) -> Path:
     """Reconstruct cameras and sparse points for the images in `image_dir`; returns <out_dir>/sparse/0.
 
+    matcher: "auto" (exhaustive up to 60 images, else "retrieval"), "exhaustive", "sequential" (COLMAP's, for
+    video frames; no loop detection, which needs a vocabulary-tree file) or "retrieval" (visual words built from
+    the set's own features, plus a sequential window when the file names are in video order).
     camera_params: known intrinsics in `camera_model`'s COLMAP order (e.g. PINHOLE fx, fy, cx, cy); with
     refine_intrinsics=False they stay fixed, which makes small or low-texture sets far more reliable.
-    num_threads: -1 uses every core; 1 makes runs reproducible (with `seed`), which multi-threaded ones are not.
-    peak_threshold: SIFT detection threshold; default COLMAP's 0.0067, or 0.002 for images under 1000 px,
+    max_image_size: larger images are downscaled for feature extraction (poses and intrinsics stay in pixels of
+    the original images). num_threads: -1 uses every core; 1 makes runs reproducible (with `seed`).
+    peak_threshold: SIFT detection threshold; default COLMAP's 0.0067, or 0.002 for images under 640 px,
     where the default finds too few features to register every view.
+    stage times end up in run_sfm.last_times (seconds per stage) for benchmarks.
     """
     import pycolmap
 
@@ -79,56 +79,56 @@ def run_sfm(image_dir: PathLike, out_dir: PathLike, *, matcher: str = "exhaustiv
     shutil.rmtree(sparse, ignore_errors=True)
     sparse.mkdir(parents=True)
     if quiet:
-        pycolmap.logging.minloglevel = 2  # warnings and errors only; our progress line says what is happening
+        pycolmap.logging.minloglevel = 2  # warnings and errors only; our progress lines say what is happening
     pycolmap.set_random_seed(seed)
-    bar = Progress(progress)
+    stages = Stages(STAGES, prefix="sfm", enabled=progress)
+    side = max(image_size(image_dir / images[0]))
+    threads = num_threads if num_threads > 0 else pycolmap_threads()
 
-    bar.step("1/3 features", f"{len(images)} images")
-    reader = pycolmap.ImageReaderOptions(camera_model=camera_model)
-    if camera_params is not None:
-        reader.camera_params = ",".join(f"{p:.10g}" for p in camera_params)
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = num_threads
-    if peak_threshold is None and max(image_size(image_dir / images[0])) < SMALL_IMAGE_SIDE:
-        peak_threshold = SMALL_IMAGE_PEAK_THRESHOLD
-    if peak_threshold is not None:
-        extraction.sift.peak_threshold = peak_threshold
-    pycolmap.extract_features(database, image_dir, image_names=images,
-                              camera_mode=pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO,
-                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+    with stages.run("features", f"{len(images)} images, {side} px, max {max_image_size} px, {threads} threads"):
+        reader = pycolmap.ImageReaderOptions(camera_model=camera_model)
+        if camera_params is not None:
+            reader.camera_params = ",".join(f"{p:.10g}" for p in camera_params)
+        features.extract(database, image_dir, images, camera_mode="SINGLE" if single_camera else "AUTO",
+                         reader=reader, max_image_size=max_image_size, largest_side=side,
+                         peak_threshold=peak_threshold, max_features=max_features, num_threads=num_threads)
 
-    bar.step("2/3 matching", f"{matcher} over {len(images)} images")
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = num_threads
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
-    else:
-        pycolmap.match_sequential(database, matching_options=matching, device=pycolmap.Device.cpu)
+    used, names, pairs, detail = features.choose_pairs(database, matcher)
+    with stages.run("matching", detail):
+        features.match(database, used, names, pairs, out_dir, num_threads=num_threads)
+    stages.report(f"{features.verified_pairs(database)} verified image pairs")
 
-    bar.step("3/3 mapping", "initialising")
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = num_threads
-    options.random_seed = seed
-    options.ba_refine_focal_length = refine_intrinsics
-    options.ba_refine_principal_point = False
-    options.ba_refine_extra_params = refine_intrinsics
     registered = [2]  # the callback fires once per image added after the initial pair
+    step = max(1, len(images) // 10)
 
     def on_next_image():
         registered[0] += 1
-        bar.update(f"registering image {min(registered[0], len(images))}/{len(images)}")
+        if registered[0] % step == 0:
+            stages.report(f"mapping: registered {min(registered[0], len(images))}/{len(images)}")
 
-    models = pycolmap.incremental_mapping(database, image_dir, sparse, options, next_image_callback=on_next_image)
+    with stages.run("mapping", "incremental"):
+        models = pycolmap.incremental_mapping(database, image_dir, sparse,
+                                              _mapping_options(num_threads, seed, refine_intrinsics),
+                                              next_image_callback=on_next_image)
+    run_sfm.last_times = dict(stages.times)
     if not models:
         raise SceneError(image_dir, "SfM failed: no images could be registered (too little texture or overlap?)")
-    best = max(models, key=lambda k: models[k].num_reg_images())
-    if best != 0:  # the trainer reads sparse/0: put the largest model there
-        tmp = sparse / "largest"
-        (sparse / str(best)).rename(tmp)
-        (sparse / "0").rename(sparse / str(best))
-        tmp.rename(sparse / "0")
-    n_reg = models[best].num_reg_images()
-    bar.done(f"{n_reg}/{len(images)} images registered, {models[best].num_points3D()} points")
+    best = models[_largest_first(sparse, models)]
+    n_reg = best.num_reg_images()
+    error = best.compute_mean_reprojection_error()
+    stages.report(f"{n_reg}/{len(images)} images registered ({100 * n_reg / len(images):.1f}%), "
+                  f"{best.num_points3D()} points, mean reprojection error {error:.2f} px"
+                  + (f"; {len(models)} models, the largest is sparse/0" if len(models) > 1 else ""))
     if n_reg < 2:
         raise SceneError(image_dir, f"SfM registered only {n_reg} image(s)")
     return sparse / "0"
+
+
+def pycolmap_threads() -> int:
+    """What num_threads=-1 means to COLMAP: every core this process may use."""
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+run_sfm.last_times = {}

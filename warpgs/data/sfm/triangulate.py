@@ -1,0 +1,226 @@
+"""Sparse points from known poses: SIFT features, matching and pycolmap's triangulation with every pose and
+intrinsic held fixed. For scenes that come with cameras but no points (transforms.json, LLFF, COLMAP models
+without points3D), so that training can start from real surface points instead of random ones.
+
+Only the views given (the training views by default: held-out views must not shape the model) are used.
+The result is cached in `out_dir` (points.npz + triangulation.json); the cache key covers the image files
+(path, size, modification time), the cameras and the settings, so changed images or poses triangulate again.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from warpgs.data.errors import PathLike, SceneError
+from warpgs.data.points import PointCloud
+from warpgs.data.sfm import features
+from warpgs.data.sfm.pairs import pose_similarity
+from warpgs.utils.progress import Stages
+
+CACHE_VERSION = 1
+POINTS_FILE = "points.npz"
+INFO_FILE = "triangulation.json"
+KEEP_TWO_VIEW_TRACKS_UP_TO = 4  # views; with so few, most points are seen twice only
+
+
+@dataclass
+class Triangulation:
+    points: PointCloud  # observed_by indexes the scene's views (views not used observe nothing)
+    mean_error: float  # mean reprojection error in pixels of the native images
+    seconds: float  # time it took (the original run's, for a cached result)
+    cached: bool
+    info: dict
+
+
+def _image_root(paths: Sequence[Path]) -> tuple[Path, list[str]]:
+    resolved = [Path(p).resolve() for p in paths]
+    root = Path(os.path.commonpath([str(p.parent) for p in resolved]))
+    return root, [p.relative_to(root).as_posix() for p in resolved]
+
+
+def cache_key(cameras, paths: Sequence[Path], settings: dict) -> str:
+    """Changes when any image file is replaced or edited, any camera changes, or the settings change."""
+    h = hashlib.sha1(json.dumps({"version": CACHE_VERSION, **settings}, sort_keys=True).encode())
+    for cam, path in zip(cameras, paths):
+        stat = Path(path).stat()
+        h.update(f"{Path(path).resolve()}|{stat.st_size}|{stat.st_mtime_ns}|{cam.width}x{cam.height}|{cam.model}|"
+                 f"{cam.distortion}".encode())
+        h.update(np.ascontiguousarray(cam.K, np.float64).tobytes())
+        h.update(np.ascontiguousarray(cam.viewmat, np.float64).tobytes())
+    return h.hexdigest()[:24]
+
+
+def _load_cached(out_dir: Path, key: str, n_views: int) -> Optional[Triangulation]:
+    info_path, points_path = out_dir / INFO_FILE, out_dir / POINTS_FILE
+    if not (info_path.is_file() and points_path.is_file()):
+        return None
+    try:
+        info = json.loads(info_path.read_text())
+        data = np.load(points_path, allow_pickle=False)
+        if info.get("key") != key or str(data["key"]) != key:
+            return None
+        offsets, flat = data["obs_offsets"], data["obs_flat"]
+        observed = [flat[offsets[i]:offsets[i + 1]] for i in range(n_views)]
+        points = PointCloud(data["xyz"], data["rgb"], observed)
+    except (OSError, ValueError, KeyError, json.JSONDecodeError):
+        return None  # unreadable cache: triangulate again
+    return Triangulation(points, float(info["mean_error"]), float(info["seconds"]), True, info)
+
+
+def _save(out_dir: Path, key: str, tri: Triangulation) -> None:
+    observed = tri.points.observed_by
+    offsets = np.concatenate([[0], np.cumsum([len(o) for o in observed])]).astype(np.int64)
+    flat = np.concatenate(observed).astype(np.int64) if observed else np.zeros(0, np.int64)
+    (out_dir / INFO_FILE).write_text(json.dumps({**tri.info, "key": key}, indent=1))
+    tmp = out_dir / f".{POINTS_FILE}.{os.getpid()}.tmp.npz"
+    np.savez(tmp, key=np.array(key), xyz=tri.points.xyz, rgb=tri.points.rgb, obs_offsets=offsets, obs_flat=flat)
+    os.replace(tmp, out_dir / POINTS_FILE)  # last: its presence with the right key means the entry is complete
+
+
+def _set_known_cameras(database: Path, names: list[str], cameras) -> dict:
+    """Give every database image our intrinsics (flagged as known, so verification is calibrated); returns
+    {database image name: image id}."""
+    import pycolmap
+
+    by_name = dict(zip(names, cameras))
+    with pycolmap.Database.open(str(database)) as db:
+        images = {im.name: im for im in db.read_all_images()}
+        missing = sorted(set(names) - set(images))
+        if missing:
+            raise SceneError(None, f"triangulation: feature extraction skipped {missing[:3]} (unreadable images?)")
+        for name, im in images.items():
+            cam = by_name[name].to_pycolmap(im.camera_id)
+            cam.has_prior_focal_length = True
+            stored = db.read_camera(im.camera_id)
+            if (stored.width, stored.height) != (cam.width, cam.height):
+                raise SceneError(None, f"triangulation: image {name} is {stored.width}x{stored.height} but its camera "
+                                       f"says {cam.width}x{cam.height}")
+            db.update_camera(cam)
+    return {n: images[n].image_id for n in names}
+
+
+def _reconstruction_with_poses(database: Path, names: list[str], cameras):
+    """A pycolmap Reconstruction holding the database's rigs, cameras, frames and images (same ids, as the
+    triangulator requires) with our poses, every frame registered, no points."""
+    import pycolmap
+
+    pose = {n: c.viewmat[:3, :4] for n, c in zip(names, cameras)}
+    rec = pycolmap.Reconstruction()
+    with pycolmap.Database.open(str(database)) as db:
+        images = db.read_all_images()
+        frame_pose = {im.frame_id: pose[im.name] for im in images}
+        for cam in db.read_all_cameras():
+            rec.add_camera(cam)
+        for rig in db.read_all_rigs():
+            rec.add_rig(rig)
+        for frame in db.read_all_frames():
+            frame.rig_from_world = pycolmap.Rigid3d(frame_pose[frame.frame_id])  # trivial rigs: rig = camera
+            rec.add_frame(frame)
+        for im in images:
+            rec.add_image(im)
+        for frame_id in frame_pose:
+            rec.register_frame(frame_id)
+    return rec
+
+
+def triangulate_from_poses(cameras, image_paths: Sequence[PathLike], out_dir: PathLike, *,
+                           view_ids: Optional[Sequence[int]] = None, n_views: Optional[int] = None,
+                           matcher: str = "auto", max_image_size: int = features.MAX_IMAGE_SIZE,
+                           num_threads: int = -1, progress: bool = True, quiet: bool = True) -> Triangulation:
+    """Triangulate points seen by `cameras` (native cameras of the given image files, poses and intrinsics kept
+    fixed). view_ids: the scene index of each camera (for PointCloud.observed_by over n_views scene views);
+    default 0..len-1. Cached in out_dir (see the module docstring)."""
+    import pycolmap
+
+    cameras, paths = list(cameras), [Path(p) for p in image_paths]
+    if len(cameras) != len(paths) or len(cameras) < 2:
+        raise ValueError(f"triangulate_from_poses: need >= 2 cameras with one image each, got {len(cameras)} "
+                         f"cameras and {len(paths)} images")
+    view_ids = list(range(len(cameras))) if view_ids is None else [int(v) for v in view_ids]
+    n_views = len(cameras) if n_views is None else int(n_views)
+    out_dir = Path(out_dir)
+    settings = {"matcher": matcher, "max_image_size": max_image_size}
+    key = cache_key(cameras, paths, settings)
+    stages = Stages(["features", "matching", "triangulation"], prefix="triangulate", enabled=progress)
+    cached = _load_cached(out_dir, key, n_views)
+    if cached is not None:
+        stages.report(f"{len(cached.points)} points from {out_dir / POINTS_FILE} (cached), mean reprojection "
+                      f"error {cached.mean_error:.2f} px")
+        return cached
+
+    start = time.perf_counter()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    database = out_dir / "database.db"
+    database.unlink(missing_ok=True)
+    model_dir = out_dir / "model"
+    shutil.rmtree(model_dir, ignore_errors=True)
+    model_dir.mkdir()
+    if quiet:
+        pycolmap.logging.minloglevel = 2
+    image_root, names = _image_root(paths)
+    side = max(max(c.width, c.height) for c in cameras)
+    with stages.run("features", f"{len(names)} views with known poses, {side} px"):
+        features.extract(database, image_root, names, camera_mode="PER_IMAGE", max_image_size=max_image_size,
+                         largest_side=side, num_threads=num_threads)
+        _set_known_cameras(database, names, cameras)
+
+    row = {n: i for i, n in enumerate(names)}
+
+    def similarity(sorted_names):
+        order = [row[n] for n in sorted_names]
+        return pose_similarity(np.stack([cameras[i].center for i in order]),
+                               np.stack([cameras[i].forward for i in order]))
+
+    used, pair_names, pairs, detail = features.choose_pairs(database, matcher, similarity=similarity)
+    with stages.run("matching", detail):
+        features.match(database, used, pair_names, pairs, out_dir, num_threads=num_threads)
+
+    with stages.run("triangulation", "poses and intrinsics fixed"):
+        rec = _reconstruction_with_poses(database, names, cameras)
+        options = pycolmap.IncrementalPipelineOptions()
+        options.num_threads = num_threads
+        options.triangulation.ignore_two_view_tracks = len(names) > KEEP_TWO_VIEW_TRACKS_UP_TO
+        rec = pycolmap.triangulate_points(rec, database, image_root, model_dir, clear_points=True, options=options,
+                                          refine_intrinsics=False)
+    points = _point_cloud(rec, names, view_ids, n_views)
+    if len(points) == 0:
+        raise SceneError(out_dir, f"triangulation from {len(names)} known poses found no points "
+                                  f"({features.verified_pairs(database)} verified image pairs)")
+    mean_error = float(rec.compute_mean_reprojection_error())
+    seconds = time.perf_counter() - start
+    info = {"points": len(points), "mean_error": mean_error, "seconds": seconds, "views": len(names),
+            "pairs": detail, "stage_seconds": dict(stages.times), "image_root": str(image_root)}
+    tri = Triangulation(points, mean_error, seconds, False, info)
+    _save(out_dir, key, tri)
+    database.unlink(missing_ok=True)  # hundreds of MB for large sets; the points and the model stay
+    stages.report(f"{len(points)} points, mean reprojection error {mean_error:.2f} px, {seconds:.1f} s")
+    return tri
+
+
+def _point_cloud(rec, names: list[str], view_ids: list[int], n_views: int) -> PointCloud:
+    ids = sorted(rec.point3D_ids())
+    row = {pid: r for r, pid in enumerate(ids)}
+    xyz = np.array([rec.points3D[p].xyz for p in ids], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([rec.points3D[p].color for p in ids], dtype=np.float32).reshape(-1, 3) / 255.0
+    observed = [np.zeros(0, np.int64) for _ in range(n_views)]
+    view_of = dict(zip(names, view_ids))
+    for im in rec.images.values():
+        pts = im.points2D
+        seen = [row[pts[k].point3D_id] for k in im.get_observation_point2D_idxs()]
+        observed[view_of[im.name]] = np.unique(np.asarray(seen, np.int64))
+    return PointCloud(xyz, rgb, observed)
+
+
+def triangulate_scene(scene, out_dir: PathLike, *, views: Optional[Sequence[int]] = None, **kwargs) -> Triangulation:
+    """Points for a Scene from its own poses, using its training views (or `views`). Cached in out_dir."""
+    views = list(scene.train if views is None else views) or list(range(len(scene)))
+    return triangulate_from_poses([scene.native_cameras[v] for v in views], [scene.files[v].image for v in views],
+                                  out_dir, view_ids=views, n_views=len(scene), **kwargs)
