@@ -55,7 +55,8 @@ def test_clone_split_prune_and_adam_alignment():
     s.initialize(m)
     assert feed(s, m, opt, 599, [HIGH, HIGH, LOW, HIGH, LOW]) is None  # not a refine step
     report = feed(s, m, opt, 600, [HIGH, HIGH, LOW, HIGH, LOW])
-    assert report == {"step": 600, "cloned": 1, "split": 1, "pruned": 1, "budget_dropped": 0, "num_primitives": 6}
+    assert report == {"step": 600, "cloned": 1, "split": 1, "pruned": 1, "budget_dropped": 0, "num_primitives": 6,
+                      "pruned_by": {"opacity": 1, "invisible": 0, "world_size": 0, "screen_size": 0}}
     keep = [0, 2, 4]
     for name, p in m.params.items():
         old, old_avg = before[name]
@@ -139,12 +140,29 @@ def test_screen_size_pruning():
     with torch.no_grad():
         m.params["means"][0] = torch.tensor([0.0, 0.0, 0.05])
     opt = adam_with_state(m)
-    s = DensifyStrategy(StrategyConfig(prune_world_scale=0, prune_screen_radius=20.0))
+    s = DensifyStrategy(StrategyConfig(prune_world_scale=0, prune_screen_size=0.15))
     s.initialize(m)
     feed(s, m, opt, 3050, [LOW, LOW])
-    assert s.max_radii[0] > 20 > s.max_radii[1]
-    assert feed(s, m, opt, 3100, [LOW, LOW])["pruned"] == 1
+    assert s.max_radii[0] > 15 > s.max_radii[1]  # px, on a 100 px image
+    torch.testing.assert_close(s.max_screen, s.max_radii / 100)
+    report = feed(s, m, opt, 3100, [LOW, LOW])
+    assert report["pruned"] == 1 and report["pruned_by"]["screen_size"] == 1
     assert m.means[0, 2] > 1.0  # the near one went
+
+
+def test_screen_size_is_a_fraction_of_the_larger_side_over_all_views():
+    # Radius 30 px: 15% of a 200x100 image, 30% of 100x100; the largest fraction since the last refine counts.
+    m = make([0.005], [0.5])
+    s = DensifyStrategy(StrategyConfig(prune_screen_size=0.2))
+    s.initialize(m)
+    vis = torch.ones(1, 1, dtype=torch.bool)
+    s.accumulate(torch.zeros(1, 1, 2), vis, torch.tensor([[30.0]]), 200, 100)
+    assert s.max_screen.item() == pytest.approx(0.15) and not s.prune_rules(m, 3100)["screen_size"].any()
+    s.accumulate(torch.zeros(1, 1, 2), vis, torch.tensor([[30.0]]), 100, 100)
+    assert s.max_screen.item() == pytest.approx(0.3) and s.prune_rules(m, 3100)["screen_size"].all()
+    assert not s.prune_rules(m, 3000)["screen_size"].any()  # only after size_prune_start
+    s.accumulate(torch.zeros(1, 1, 2), ~vis, torch.tensor([[90.0]]), 100, 100)  # not visible: not counted
+    assert s.max_screen.item() == pytest.approx(0.3)
 
 
 def test_budget_keeps_highest_gradients():
@@ -265,6 +283,14 @@ def test_screen_radius_on_axis():
     with torch.no_grad():
         m.params["means"][0, 2] = -1.0
     assert screen_radii(m, VIEW, K, W, H).item() == 0.0  # behind the camera
+
+
+def test_state_dict_without_max_screen_loads():
+    s = DensifyStrategy()
+    s.initialize(make([0.005] * 3, [0.5] * 3))
+    state = {k: v for k, v in s.state_dict().items() if k != "max_screen"}  # a checkpoint from before the key
+    s.load_state_dict(state)
+    assert torch.equal(s.max_screen, torch.zeros(3))
 
 
 def test_state_dict_resume_reproduces_splits():

@@ -88,7 +88,9 @@ def train_main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--resume", action="store_true", help="continue from the checkpoint in the output folder")
     ap.add_argument("--quiet", action="store_true", help="no progress line")
     ap.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
-    args = ap.parse_args(argv)
+    # Intermixed: CONFIG, options and key=value overrides in any order (plain parse_args stops collecting the
+    # positionals at the first option, so `gaussians --data X steps=10` failed on steps=10).
+    args = ap.parse_intermixed_args(argv)
     config_name, overrides = _split_args(args.args)
 
     from warpgs.config.loader import ConfigError, load_config

@@ -30,10 +30,19 @@ matches 3DGS for a loss on the same scale (0.8 L1 + 0.2 (1 - SSIM), means over p
 Screen radii (for screen-size pruning) are computed here from the camera: 3 sqrt(largest eigenvalue) of the
 projected covariance with the 0.3 px^2 low-pass, as the projection kernel does (3D scales; surfels get 0 for
 the third axis).
+
+Size pruning is scale-aware (issue 12: a fixed 20 px screen rule deleted a 1080x1920 phone capture at the first
+size-pruning step; a world rule against the cameras' radius does the same to captures whose cameras barely
+move): the screen rule compares the radius with the image's larger side (`prune_screen_size`, a fraction, off by default as in gsplat; 3DGS's 20 px rule never fired, its
+radii were zeroed before the test), and the world rule compares the largest scale with `world_extent`, which the
+trainer computes from what the cameras see (warpgs/data/extent.py), not only from how far they move.
+A refine step that removes more than half of the primitives issues a `PruningWarning` naming how many each rule
+removed; every refine's report carries the same counts under "pruned_by".
 """
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, fields
 from typing import Optional
 
@@ -43,6 +52,11 @@ from warpgs.model.gaussians import GaussianModel, quat_to_rotmat
 from warpgs.train.optim import Optimizers, set_param_values, update_rows
 
 LOW_PASS = 0.3  # px^2, as kernels/project.py
+WARN_PRUNED_FRACTION = 0.5  # a refine removing more than this share of the primitives warns
+
+
+class PruningWarning(UserWarning):
+    """A refine step removed most of the model (see DensifyStrategy.refine)."""
 
 
 @dataclass
@@ -55,8 +69,11 @@ class StrategyConfig:
     reset_opacity: float = 0.01
     prune_opacity: float = 0.005  # prune below this opacity
     size_prune_start: int = 3000  # world/screen-size pruning only after this step (3DGS: after the first reset)
-    prune_world_scale: float = 0.1  # prune if max scale > this x scene extent; 0 disables
-    prune_screen_radius: float = 20.0  # prune if the max screen radius (px) since the last refine exceeds it; 0 off
+    prune_world_scale: float = 0.1  # prune if max scale > this x world_extent (see the module doc); 0 disables
+    # Prune if the largest screen radius since the last refine exceeds this fraction of the image's larger side
+    # (gsplat's prune_scale2d, 0.15 when enabled); 0 off, as in gsplat and, in effect, 3DGS.
+    prune_screen_size: float = 0.0
+    prune_screen_radius: float = 0.0  # the same in pixels whatever the resolution (older configs; warns); 0 off
     dense_scale: float = 0.01  # max scale <= this x extent -> clone, else split (3DGS's percent_dense)
     split_count: int = 2  # children per split primitive
     split_shrink: float = 1.6  # child scale = parent scale / split_shrink (3DGS: 0.8 x split_count)
@@ -77,6 +94,9 @@ class StrategyConfig:
             raise ValueError(f"split_shrink: expected > 0, got {self.split_shrink}")
         if not 0 < self.reset_opacity < 1:
             raise ValueError(f"reset_opacity: expected a value in (0, 1), got {self.reset_opacity}")
+        if self.prune_screen_size > 1:
+            raise ValueError(f"prune_screen_size: a fraction of the image's larger side (e.g. 0.15), got "
+                             f"{self.prune_screen_size}; a threshold in pixels is prune_screen_radius")
 
 
 def _camera_frame(means: torch.Tensor, viewmat: torch.Tensor):
@@ -133,16 +153,26 @@ class DensifyStrategy:
     all under `max_primitives`. State (`state_dict`) is per-primitive statistics plus the RNG."""
 
     def __init__(self, config: Optional[StrategyConfig] = None, scene_extent: float = 1.0,
-                 invisible_below: float = 0.0):
-        """invisible_below: the renderer's alpha_min. Primitives with a lower opacity never reach a tile, so they
-        get no gradient and would hold budget for good: they are pruned like those under prune_opacity."""
+                 invisible_below: float = 0.0, world_extent: Optional[float] = None):
+        """scene_extent: 3DGS's camera extent, the unit of dense_scale (clone or split).
+        invisible_below: the renderer's alpha_min. Primitives with a lower opacity never reach a tile, so they
+        get no gradient and would hold budget for good: they are pruned like those under prune_opacity.
+        world_extent: the scene size the world-size rule measures against (default scene_extent); the trainer
+        passes warpgs.data.extent.scene_content_extent, which stays valid when the cameras barely move."""
         self.config = config or StrategyConfig()
         self.invisible_below = float(invisible_below)
-        if not (math.isfinite(float(scene_extent)) and scene_extent > 0):
-            raise ValueError(f"scene_extent: expected a finite positive number, got {scene_extent}")
+        for name, value in (("scene_extent", scene_extent), ("world_extent", world_extent)):
+            if value is not None and not (math.isfinite(float(value)) and value > 0):
+                raise ValueError(f"{name}: expected a finite positive number, got {value}")
         self.scene_extent = float(scene_extent)
+        self.world_extent = float(scene_extent if world_extent is None else world_extent)
+        if self.config.prune_screen_radius > 0:
+            warnings.warn(f"strategy.prune_screen_radius={self.config.prune_screen_radius:g} px is not scale-aware "
+                          f"(20 px is 13% of a 156 px image but 2% of a 960 px one); use prune_screen_size, a "
+                          f"fraction of the image's larger side (gsplat: 0.15)", PruningWarning, stacklevel=2)
         self.generator = torch.Generator().manual_seed(int(self.config.seed))
-        self.grad_accum = self.count = self.max_radii = None
+        self.grad_accum = self.count = self.max_radii = self.max_screen = None
+        self.last_refine: Optional[dict] = None  # the latest refine's report (with "pruned_by")
 
     # ----- hooks -----
     def initialize(self, model: GaussianModel) -> None:
@@ -208,26 +238,29 @@ class DensifyStrategy:
         vis = visible.to(torch.bool)
         self.grad_accum += torch.where(vis, norms, torch.zeros_like(norms)).sum(0)
         self.count += vis.sum(0)
-        self.max_radii = torch.maximum(self.max_radii, torch.where(vis, radii, torch.zeros_like(radii)).amax(0))
+        seen = torch.where(vis, radii, torch.zeros_like(radii)).amax(0)
+        self.max_radii = torch.maximum(self.max_radii, seen)
+        self.max_screen = torch.maximum(self.max_screen, seen / max(width, height))
 
     def average_grads(self) -> torch.Tensor:
         return self.grad_accum / self.count.clamp_min(1)
 
     @torch.no_grad()
     def refine(self, model: GaussianModel, optimizers: Optimizers, step: int) -> dict:
-        """One densify-and-prune pass; resets the statistics."""
+        """One densify-and-prune pass; resets the statistics. The report's "pruned_by" counts, per rule, the
+        primitives that rule alone would remove (a primitive can fail several); more than half of the model
+        pruned in one pass issues a PruningWarning with those counts."""
         cfg, extent = self.config, self.scene_extent
         self._check_model(model)
         n = model.num_primitives
         grads = self.average_grads()
         max_scale = model.scales.amax(1)
 
-        prune = model.opacities < max(cfg.prune_opacity, self.invisible_below)
-        if step > cfg.size_prune_start:
-            if cfg.prune_world_scale > 0:
-                prune |= max_scale > cfg.prune_world_scale * extent
-            if cfg.prune_screen_radius > 0:
-                prune |= self.max_radii > cfg.prune_screen_radius
+        rules = self.prune_rules(model, step)
+        prune = torch.zeros(n, dtype=torch.bool, device=max_scale.device)
+        for mask in rules.values():
+            prune |= mask
+        pruned_by = {name: int(mask.sum()) for name, mask in rules.items()}
         # Pruned primitives are not densified: their copies would be pruned too (or waste budget).
         cand = (grads >= cfg.grad_threshold) & ~prune
         small = max_scale <= cfg.dense_scale * extent
@@ -254,8 +287,47 @@ class DensifyStrategy:
         append = {name: torch.cat([new_rows[name], split_rows[name]]) for name in model.params}
         update_rows(model, optimizers, keep=~prune & ~split, append=append)
         self._reset_stats(model.num_primitives, model.device)
-        return {"step": step, "cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(prune.sum()),
-                "budget_dropped": budget_dropped, "num_primitives": model.num_primitives}
+        report = {"step": step, "cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(prune.sum()),
+                  "budget_dropped": budget_dropped, "num_primitives": model.num_primitives, "pruned_by": pruned_by}
+        self.last_refine = report
+        if report["pruned"] > WARN_PRUNED_FRACTION * n:
+            warnings.warn(self._describe_pruning(report, n), PruningWarning, stacklevel=2)
+        return report
+
+    @torch.no_grad()
+    def prune_rules(self, model: GaussianModel, step: int) -> dict:
+        """{rule: [N] bool} of the primitives each pruning rule would remove at this step: "opacity" (below
+        prune_opacity), "invisible" (below the renderer's alpha_min, not already under prune_opacity),
+        "world_size" (largest scale over prune_world_scale x world_extent) and "screen_size" (largest screen
+        radius since the last refine over prune_screen_size x the image's larger side, or prune_screen_radius
+        px); the size rules only after size_prune_start."""
+        cfg = self.config
+        opacities = model.opacities
+        none = torch.zeros_like(opacities, dtype=torch.bool)
+        low = opacities < cfg.prune_opacity
+        rules = {"opacity": low, "invisible": (opacities < self.invisible_below) & ~low,
+                 "world_size": none, "screen_size": none}
+        if step > cfg.size_prune_start:
+            if cfg.prune_world_scale > 0:
+                rules["world_size"] = model.scales.amax(1) > cfg.prune_world_scale * self.world_extent
+            screen = none
+            if cfg.prune_screen_size > 0:
+                screen = screen | (self.max_screen > cfg.prune_screen_size)
+            if cfg.prune_screen_radius > 0:
+                screen = screen | (self.max_radii > cfg.prune_screen_radius)
+            rules["screen_size"] = screen
+        return rules
+
+    def _describe_pruning(self, report: dict, n: int) -> str:
+        cfg, by = self.config, report["pruned_by"]
+        screen = [f"> {cfg.prune_screen_size:g} x image size"] if cfg.prune_screen_size > 0 else []
+        screen += [f"> {cfg.prune_screen_radius:g} px"] if cfg.prune_screen_radius > 0 else []
+        return (f"strategy: the refine at step {report['step']} pruned {report['pruned']} of {n} primitives "
+                f"({100.0 * report['pruned'] / max(n, 1):.0f}%); by rule (overlapping): "
+                f"opacity < {cfg.prune_opacity:g}: {by['opacity']}, "
+                f"invisible (opacity < alpha_min {self.invisible_below:.3g}): {by['invisible']}, "
+                f"world size > {cfg.prune_world_scale:g} x extent {self.world_extent:.3g}: {by['world_size']}, "
+                f"screen size {' or '.join(screen) or '(off)'}: {by['screen_size']}")
 
     @torch.no_grad()
     def reset_opacities(self, model: GaussianModel, optimizers: Optimizers) -> None:
@@ -267,10 +339,14 @@ class DensifyStrategy:
     # ----- checkpoints -----
     def state_dict(self) -> dict:
         return {"grad_accum": self.grad_accum, "count": self.count, "max_radii": self.max_radii,
-                "generator": self.generator.get_state()}
+                "max_screen": self.max_screen, "generator": self.generator.get_state()}
 
     def load_state_dict(self, state: dict) -> None:
         self.grad_accum, self.count, self.max_radii = state["grad_accum"], state["count"], state["max_radii"]
+        # Checkpoints from before max_screen: the relative radii restart from 0 (until the next refine only).
+        self.max_screen = state.get("max_screen")
+        if self.max_screen is None:
+            self.max_screen = torch.zeros_like(self.max_radii)
         self.generator.set_state(state["generator"])
 
     # ----- internals -----
@@ -278,6 +354,7 @@ class DensifyStrategy:
         self.grad_accum = torch.zeros(n, device=device)
         self.count = torch.zeros(n, dtype=torch.int64, device=device)
         self.max_radii = torch.zeros(n, device=device)
+        self.max_screen = torch.zeros(n, device=device)
 
     def _check_model(self, model: GaussianModel) -> None:
         if self.grad_accum is None:
