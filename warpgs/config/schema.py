@@ -41,7 +41,8 @@ class ModelConfig:
     kind: str = "gaussians"  # "gaussians" (3DGS) or "surfels" (2DGS)
     sh_degree: int = 3  # highest SH degree
     sh_interval: int = 1000  # raise the active SH degree by one every this many steps (0: all bands from the start)
-    init: str = "auto"  # "auto" (SfM points, else depth priors, else random), "sfm", "depth", "random"
+    init: str = "auto"  # "auto" (SfM points, else depth priors, else triangulated from the known poses, else
+    #                     random), "sfm", "depth", "triangulate", "random"
     init_points: int = 100_000  # points drawn for depth/random initialisation
     init_opacity: float = 0.1
     background_points: int = 0  # extra points on a far sphere, where sky/background can live (0: none, as 3DGS)
@@ -68,6 +69,7 @@ class TrainConfig:
     scene_extent: Optional[float] = None  # None: from the cameras (3DGS); scales means_lr and densify sizes
     checkpoint_every: int = 1000  # 0: only at the end (and on Ctrl-C)
     log_every: int = 100  # progress line period when the output is not a terminal
+    log: str = "jsonl"  # <out>/log.jsonl every log_every steps; "tensorboard": also <out>/tensorboard; "none"
     progress: bool = True
     nan_guard: bool = True  # stop at the first non-finite loss, gradient or parameter
     threads: int = 0  # torch CPU threads during fit (0: 1 on CPU, where Warp's own thread pool uses the cores;
@@ -130,8 +132,9 @@ CHOICES = {
     "data.synthetic": ("orbit", "lightfield"),
     "data.split": ("file", "llff", "all", "grid"),  # "grid": light-field folders (their default)
     "model.kind": ("gaussians", "surfels"),
-    "model.init": ("auto", "sfm", "depth", "random"),
+    "model.init": ("auto", "sfm", "depth", "triangulate", "random"),
     "eval.split": ("test", "train"),
+    "train.log": ("jsonl", "tensorboard", "none"),
     "eval.lpips_net": ("alex", "vgg", "squeeze"),
 }
 POSITIVE = {"data.width", "data.height", "data.downscale", "data.n_train", "model.init_points", "model.init_knn",

@@ -1,42 +1,88 @@
-"""The trainer's held-out evaluation: which views, the LPIPS net (built without shifting the RNG), metrics."""
+"""Held-out evaluation of a run: which views, the LPIPS net (built without shifting the training RNG), the metrics,
+the PNG renders, and the history of the periodic evaluations."""
 from __future__ import annotations
 
-from typing import Optional
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable, List, Optional
 
 import torch
 
-from warpgs.metrics.views import evaluate_views
 from warpgs.metrics.image import LPIPSMetric
+from warpgs.metrics.views import evaluate_views
+
+if TYPE_CHECKING:
+    from warpgs.config.schema import EvalConfig
 
 
-class TrainerEvaluationMixin:
-    """Part of `warpgs.train.trainer.Trainer` (uses its config, scene, views, device and render)."""
+class Evaluator:
+    """Owns the evaluation views (chosen once), the LPIPS net and `history`, one entry per periodic evaluation.
 
-    # ----- evaluation -----------------------------------------------------------------------------------------
+    `render(view) -> rgb [H, W, 3]` renders the current model (the trainer's render with its extensions);
+    `views`, when given, is a TrainViews whose kept device copies are reused instead of loading a view again."""
+
+    def __init__(self, scene, config: EvalConfig, device, out_dir, *, render: Callable, views=None):
+        if not callable(render):
+            raise ValueError(f"render: expected a callable view -> rgb, got {render!r}")
+        self.scene, self.config, self.device = scene, config, torch.device(device)
+        self.out_dir = Path(out_dir)
+        self.render = render
+        self.views = views
+        self.history: List[dict] = []
+        self._chosen: Optional[tuple] = None  # (split, views) of evaluate()
+        self._lpips: Optional[LPIPSMetric] = None
+
     def eval_views(self, split: Optional[str] = None) -> tuple:
         """(split actually used, views): the test views, or the training views when there are none."""
-        split = split or self.config.eval.split
+        split = split or self.config.split
         idx = self.scene.test if split == "test" else self.scene.train
         if not idx:
             split, idx = "train", self.scene.train
-        return split, [self.view(i) if i in self._views else self.scene.view(i, self.device) for i in idx]
+        load = self.views.kept_or_new if self.views is not None else (lambda i: self.scene.view(i, self.device))
+        return split, [load(i) for i in idx]
 
     def lpips(self) -> Optional[LPIPSMetric]:
-        if not self.config.eval.lpips:
+        if not self.config.lpips:
             return None
         if self._lpips is None:
             with torch.random.fork_rng(devices=[]):  # building the net must not shift the training RNG
-                self._lpips = LPIPSMetric(self.config.eval.lpips_net, device=self.device)
+                self._lpips = LPIPSMetric(self.config.lpips_net, device=self.device)
         return self._lpips
 
-    def evaluate(self, *, save_images: bool = False, max_views: int = 0) -> dict:
-        if self._eval_views is None:
-            self._eval_views = self.eval_views()
-        split, views = self._eval_views
+    def evaluate(self, *, save_images: bool = False, max_views: int = 0, keep_images: int = 0) -> dict:
+        """Metrics of evaluate_views plus "split"; keep_images > 0 adds "images" {name: rgb [H,W,3] on the CPU,
+        clamped to [0, 1]} of the first that many views (for TensorBoard), from the same renders."""
+        if self._chosen is None:
+            self._chosen = self.eval_views()
+        split, views = self._chosen
         if max_views:
             views = views[:max_views]
         save_dir = self.out_dir / "renders" / split if save_images else None
-        metrics = evaluate_views(lambda v: self.render(v, ("rgb",)).rgb, views, lpips=self.lpips(),
-                                 save_dir=save_dir)
+        images = {}
+
+        def render(view):
+            rgb = self.render(view)
+            if len(images) < keep_images:
+                images[view.name] = rgb.detach().clamp(0.0, 1.0).cpu()
+            return rgb
+
+        metrics = evaluate_views(render, views, lpips=self.lpips(), save_dir=save_dir)
         metrics["split"] = split
+        if keep_images:
+            metrics["images"] = images
         return metrics
+
+    def periodic(self, step: int, num_primitives: int, train_seconds: float, *, keep_images: int = 0) -> tuple:
+        """Evaluate at most eval.max_views views during training and append the entry to `history`;
+        returns (entry, the metrics evaluate() gave)."""
+        m = self.evaluate(max_views=self.config.max_views, keep_images=keep_images)
+        entry = {"step": step, "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
+                 "num_primitives": num_primitives, "train_seconds": round(train_seconds, 3)}
+        self.history.append(entry)
+        return entry, m
+
+    # The checkpoint key of checkpoints written before this class existed.
+    def state_dict(self) -> dict:
+        return {"history": self.history}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.history = list(state.get("history", []))

@@ -1,9 +1,12 @@
-"""The trainer's NaN guard: `NonFiniteError` and the check naming the first non-finite loss, gradient or parameter."""
+"""The NaN guard: `NonFiniteError` and `NonFiniteGuard`, which names the first non-finite loss, gradient or
+parameter among the tensors it is given."""
 from __future__ import annotations
 
-from typing import Optional
+from typing import Callable, Iterable, Optional, Tuple
 
 import torch
+
+NamedTensors = Callable[[], Iterable[Tuple[str, torch.Tensor]]]
 
 
 class NonFiniteError(FloatingPointError):
@@ -14,21 +17,20 @@ class NonFiniteError(FloatingPointError):
         super().__init__(f"step {step}: {problem}")
 
 
-class NonFiniteGuardMixin:
-    """Part of `warpgs.train.trainer.Trainer` (uses its model and modules)."""
+class NonFiniteGuard:
+    """Checks the parameters `named_parameters()` yields (asked anew at every check, so primitives added or pruned
+    since are seen) and their gradients. Holds no other state."""
 
-    # ----- NaN guard ------------------------------------------------------------------------------------------
-    def named_parameters(self):
-        for name, p in self.model.params.items():
-            yield name, p
-        for name, p in self.modules.named_parameters():
-            yield f"modules.{name}", p
+    def __init__(self, named_parameters: NamedTensors):
+        if not callable(named_parameters):
+            raise ValueError(f"named_parameters: expected a callable yielding (name, tensor), got {named_parameters!r}")
+        self.named_parameters = named_parameters
 
-    def check_finite(self, step: int, result=None) -> None:
-        """Raise NonFiniteError unless the loss, every gradient and every parameter are finite. Cheap on the
-        good path: one sum per tensor (NaN and Inf propagate through it) and one device sync; the names come
-        from a second, exact pass only when a sum is not finite. Parameters are checked too because an
-        invisible NaN primitive has zero gradient and would otherwise reach a checkpoint unnoticed."""
+    def check(self, step: int, result=None) -> None:
+        """Raise NonFiniteError unless the loss (`result.total`, a LossResult), every gradient and every parameter
+        are finite. Cheap on the good path: one sum per tensor (NaN and Inf propagate through it) and one device
+        sync; the names come from a second, exact pass only when a sum is not finite. Parameters are checked too
+        because an invisible NaN primitive has zero gradient and would otherwise reach a checkpoint unnoticed."""
         named = list(self.named_parameters())
         sums = [p.detach().sum().float() for _, p in named if p.numel()]
         sums += [p.grad.sum().float() for _, p in named if p.grad is not None and p.grad.numel()]
@@ -36,7 +38,7 @@ class NonFiniteGuardMixin:
             sums.append(result.total.detach().reshape(()).float())
         if not sums or bool(torch.isfinite(torch.stack(sums)).all()):
             return
-        name = self._first_nonfinite(grads=False)
+        name = self.first_nonfinite(grads=False)
         if name is not None:
             raise NonFiniteError(step, name, f"parameter {name!r} is not finite")
         if result is not None and not bool(torch.isfinite(result.total.detach())):
@@ -44,12 +46,13 @@ class NonFiniteGuardMixin:
             label = "/".join(terms) or "total"
             raise NonFiniteError(step, terms[0] if terms else "loss",
                                  f"loss {label} is not finite (all parameters are finite)")
-        name = self._first_nonfinite(grads=True)
+        name = self.first_nonfinite(grads=True)
         if name is not None:
             raise NonFiniteError(step, name, f"gradient of {name!r} is not finite")
         # Only a sum overflowed (finite values beyond float range in total): nothing is actually non-finite.
 
-    def _first_nonfinite(self, grads: bool) -> Optional[str]:
+    def first_nonfinite(self, grads: bool) -> Optional[str]:
+        """The first parameter (grads=False) or gradient (grads=True) holding a NaN or Inf, or None."""
         for name, p in self.named_parameters():
             t = p.grad if grads else p.detach()
             if t is not None and not bool(torch.isfinite(t).all()):

@@ -1,4 +1,6 @@
-"""The training loop: progress, periodic evaluation and checkpoints, Ctrl-C and NaN stops, the final outputs."""
+"""The training loop: when things happen around Trainer.train_step (progress line, periodic evaluation and
+checkpoints, the log, Ctrl-C and NaN stops) and the final outputs. What a step is and the state it changes
+belong to the Trainer and its collaborators; the loop owns only its progress line and running means."""
 from __future__ import annotations
 
 import signal
@@ -8,12 +10,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, List, Optional
 
-import torch
-
-from warpgs.utils.atomic_file import atomic_write_bytes
 from warpgs.metrics.views import write_json
-from warpgs.utils.progress import Progress
 from warpgs.train.guard import NonFiniteError
+from warpgs.utils.atomic_file import atomic_write_bytes
+from warpgs.utils.progress import Progress
 
 
 @dataclass
@@ -27,120 +27,143 @@ class TrainResult:
     history: List[dict] = field(default_factory=list)
 
 
-class TrainingLoopMixin:
-    """Part of `warpgs.train.trainer.Trainer` (runs its train_step, evaluate and save_checkpoint)."""
+class RunningMean:
+    """Exponential moving average for the progress line: starts at the first value, then gives each new one
+    `weight`; None values are skipped."""
 
-    # ----- the loop -------------------------------------------------------------------------------------------
-    def _say(self, progress: Optional[Progress], message: str) -> None:
-        if self.quiet:
+    def __init__(self, weight: float = 0.1):
+        if not 0.0 < weight <= 1.0:
+            raise ValueError(f"weight: expected a value in (0, 1], got {weight!r}")
+        self.weight = weight
+        self.value: Optional[float] = None
+
+    def update(self, x: Optional[float]) -> Optional[float]:
+        if x is not None:
+            self.value = x if self.value is None else (1.0 - self.weight) * self.value + self.weight * x
+        return self.value
+
+
+class TrainingLoop:
+    """Runs one Trainer from its step to max_steps through its public parts (train_step, extensions, evaluator,
+    checkpointer, log), then writes the final outputs. Built per fit(); owns the progress line and the running
+    means shown on it."""
+
+    def __init__(self, trainer):
+        self.trainer = trainer
+        self.progress: Optional[Progress] = None
+        self.loss_mean, self.psnr_mean = RunningMean(), RunningMean()
+
+    def say(self, message: str) -> None:
+        """A console line (above the progress line while it is shown); nothing when the trainer is quiet."""
+        if self.trainer.quiet:
             return
-        if progress is not None:
-            progress.write(message)
+        if self.progress is not None:
+            self.progress.write(message)
         else:
             print(message, file=sys.stderr)
 
-    def fit(self) -> TrainResult:
-        threads = self.config.train.threads or (1 if self.device.type == "cpu" else 0)
-        previous = torch.get_num_threads()
-        if threads:
-            # On CPU the Warp kernels spread over their own thread pool; torch's OpenMP workers spinning next to
-            # them (and next to any other process) cost far more than they save on these small per-image ops:
-            # measured on the 2-core machine with another job running, 0.06-0.15 s a step with 1 thread against
-            # 0.7 s with 2 (128x96, 3k Gaussians).
-            torch.set_num_threads(threads)
-        try:
-            return self._fit()
-        finally:
-            torch.set_num_threads(previous)
-
-    def _fit(self) -> TrainResult:
-        cfg = self.config
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(self.out_dir / "config.yaml", cfg.to_yaml().encode())
-        progress = Progress(self.max_steps, self.step, enabled=cfg.train.progress and not self.quiet,
-                            log_every=cfg.train.log_every)
-        if self.step == 0 or self.init_source != "checkpoint":
-            self._say(progress, f"warpgs: {self.scene.summary()}")
-            self._say(progress, f"warpgs: {self.model.num_primitives} {self.model.kind} from {self.init_source}; "
-                                f"losses {[t.name for t in self.terms]} render {list(self.outputs)}; "
-                                f"{self.max_steps} steps on {self.device}; output {self.out_dir}")
+    def run(self) -> "TrainResult":
+        tr, cfg = self.trainer, self.trainer.config
+        tr.out_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(tr.out_dir / "config.yaml", cfg.to_yaml().encode())
+        self.progress = Progress(tr.max_steps, tr.step, enabled=cfg.train.progress and not tr.quiet,
+                                 log_every=cfg.train.log_every)
+        if tr.step == 0 or tr.init_source != "checkpoint":
+            self.say(f"warpgs: {tr.scene.summary()}")
+            self.say(f"warpgs: {tr.model.num_primitives} {tr.model.kind} from {tr.init_source}; "
+                     f"losses {tr.loss_set.names} render {list(tr.outputs)}; "
+                     f"{tr.max_steps} steps on {tr.device}; output {tr.out_dir}")
         else:
-            self._say(progress, f"warpgs: resuming at step {self.step} from {self.checkpoint_path}")
-        ema_loss = ema_psnr = None
+            self.say(f"warpgs: resuming at step {tr.step} from {tr.checkpoint_path}")
         try:
-            with _StopOnSigint(lambda m: self._say(progress, m)) as sigint:
-                while self.step < self.max_steps:
+            with StopOnSigint(self.say) as sigint:
+                while tr.step < tr.max_steps:
                     if sigint.requested:
                         raise KeyboardInterrupt
-                    info = self.train_step()
-                    for ext in self.extensions:
-                        ext.after_step(self, info["step"], info)
-                    ema_loss = info["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * info["loss"]
-                    if info["psnr"] is not None:
-                        ema_psnr = info["psnr"] if ema_psnr is None else 0.9 * ema_psnr + 0.1 * info["psnr"]
-                    last = self.history[-1] if self.history else {}
-                    progress.update(self.step, loss=ema_loss, psnr=ema_psnr, n=self.model.num_primitives,
-                                    test=last.get("psnr"))
-                    if cfg.eval.every and self.step % cfg.eval.every == 0 and self.step < self.max_steps:
-                        self._periodic_eval(progress)
-                    if (cfg.train.checkpoint_every and self.step % cfg.train.checkpoint_every == 0
-                            and self.step < self.max_steps):
-                        self.save_checkpoint()
+                    self._one_step()
         except KeyboardInterrupt:
-            progress.close()
-            if self._at_boundary and self.step != self._checkpoint_step:
-                try:
-                    self.save_checkpoint()
-                    self._say(None, f"warpgs: interrupted; checkpoint at step {self.step} in "
-                                    f"{self.checkpoint_path} (continue with --resume)")
-                except KeyboardInterrupt:
-                    self._say(None, "warpgs: interrupted again while saving; the previous checkpoint is intact")
-            else:
-                kept = (f"the checkpoint of step {self._checkpoint_step} in {self.checkpoint_path} is intact"
-                        if self._checkpoint_step >= 0 else "no checkpoint was written yet")
-                self._say(None, f"warpgs: interrupted during step {self.step}; {kept}")
+            self._close_progress()
+            self._interrupted()
             raise
         except NonFiniteError as e:
-            progress.close()
-            kept = (f"last good checkpoint: step {self._checkpoint_step} in {self.checkpoint_path}"
-                    if self._checkpoint_step >= 0 else "no checkpoint was written")
-            self._say(None, f"warpgs: stopped, {e}; {kept}")
+            self._close_progress()
+            last = tr.checkpointer.last_step
+            kept = (f"last good checkpoint: step {last} in {tr.checkpoint_path}" if last >= 0
+                    else "no checkpoint was written")
+            self.say(f"warpgs: stopped, {e}; {kept}")
             raise
-        progress.close()
+        self._close_progress()
         return self.finish()
 
-    def _periodic_eval(self, progress: Progress) -> None:
-        m = self.evaluate(max_views=self.config.eval.max_views)
-        entry = {"step": self.step, "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
-                 "num_primitives": self.model.num_primitives, "train_seconds": round(self.train_seconds, 3)}
-        self.history.append(entry)
-        lp = f" lpips {m['lpips']:.4f}" if m["lpips"] is not None else ""
-        self._say(progress, f"[eval {m['split']} @ {self.step}] psnr {m['psnr']:.2f} ssim {m['ssim']:.4f}{lp} "
-                            f"n {self.model.num_primitives} ({self.train_seconds:.1f} s)")
+    def _one_step(self) -> None:
+        tr, cfg = self.trainer, self.trainer.config
+        info = tr.train_step()
+        for ext in tr.extensions:
+            ext.after_step(tr, info["step"], info)
+        last = tr.history[-1] if tr.history else {}
+        self.progress.update(tr.step, loss=self.loss_mean.update(info["loss"]),
+                             psnr=self.psnr_mean.update(info["psnr"]), n=tr.model.num_primitives,
+                             test=last.get("psnr"))
+        if tr.log.due(tr.step, tr.max_steps):
+            tr.log.train(tr.step, info, tr.learning_rates(), tr.train_seconds)
+        if cfg.eval.every and tr.step % cfg.eval.every == 0 and tr.step < tr.max_steps:
+            self._periodic_eval()
+        if cfg.train.checkpoint_every and tr.step % cfg.train.checkpoint_every == 0 and tr.step < tr.max_steps:
+            tr.save_checkpoint()
 
-    def finish(self) -> TrainResult:
-        """Final checkpoint, PLY, test renders and metrics.json."""
-        cfg = self.config
-        if self.step != self._checkpoint_step:
-            self.save_checkpoint()
-        self.model.save_ply(self.out_dir / cfg.output.ply)
-        m = self.evaluate(save_images=cfg.eval.save_images)
+    def _close_progress(self) -> None:
+        self.progress.close()
+        self.progress = None  # later messages go straight to stderr
+
+    def _interrupted(self) -> None:
+        """Ctrl-C: checkpoint at the step boundary unless that step is on disk already, or say what is kept."""
+        tr = self.trainer
+        last = tr.checkpointer.last_step
+        if tr.at_boundary and tr.step != last:
+            try:
+                tr.save_checkpoint()
+                self.say(f"warpgs: interrupted; checkpoint at step {tr.step} in {tr.checkpoint_path} "
+                         f"(continue with --resume)")
+            except KeyboardInterrupt:
+                self.say("warpgs: interrupted again while saving; the previous checkpoint is intact")
+        else:
+            kept = (f"the checkpoint of step {last} in {tr.checkpoint_path} is intact" if last >= 0
+                    else "no checkpoint was written yet")
+            self.say(f"warpgs: interrupted during step {tr.step}; {kept}")
+
+    def _periodic_eval(self) -> None:
+        tr = self.trainer
+        entry, m = tr.evaluator.periodic(tr.step, tr.model.num_primitives, tr.train_seconds,
+                                         keep_images=tr.log.images)
+        tr.log.eval(tr.step, m, num_primitives=entry["num_primitives"], train_seconds=tr.train_seconds)
+        lp = f" lpips {m['lpips']:.4f}" if m["lpips"] is not None else ""
+        self.say(f"[eval {m['split']} @ {tr.step}] psnr {m['psnr']:.2f} ssim {m['ssim']:.4f}{lp} "
+                 f"n {tr.model.num_primitives} ({tr.train_seconds:.1f} s)")
+
+    def finish(self) -> "TrainResult":
+        """Final checkpoint, PLY, test renders, metrics.json and the final log entry."""
+        tr, cfg = self.trainer, self.trainer.config
+        if tr.step != tr.checkpointer.last_step:
+            tr.save_checkpoint()
+        tr.model.save_ply(tr.out_dir / cfg.output.ply)
+        m = tr.evaluator.evaluate(save_images=cfg.eval.save_images, keep_images=tr.log.images)
+        tr.log.eval(tr.step, m, num_primitives=tr.model.num_primitives, train_seconds=tr.train_seconds, final=True)
         metrics = {"split": m["split"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"]}
         if "lpips_unavailable" in m:
             metrics["lpips_unavailable"] = m["lpips_unavailable"]
-        metrics.update({"num_primitives": self.model.num_primitives, "steps": self.step,
-                        "train_seconds": round(self.train_seconds, 3), "num_views": m["num_views"],
-                        "model_kind": self.model.kind, "device": str(self.device), "scene": str(self.scene.root),
-                        "final_loss": self.last_loss, "history": self.history, "per_view": m["per_view"]})
-        write_json(self.out_dir / cfg.output.metrics, metrics)
+        metrics.update({"num_primitives": tr.model.num_primitives, "steps": tr.step,
+                        "train_seconds": round(tr.train_seconds, 3), "num_views": m["num_views"],
+                        "model_kind": tr.model.kind, "device": str(tr.device), "scene": str(tr.scene.root),
+                        "final_loss": tr.last_loss, "history": tr.history, "per_view": m["per_view"]})
+        write_json(tr.out_dir / cfg.output.metrics, metrics)
         lp = f" lpips {m['lpips']:.4f}" if m["lpips"] is not None else " lpips unavailable"
-        self._say(None, f"warpgs: {m['split']} psnr {m['psnr']:.2f} ssim {m['ssim']:.4f}{lp}; "
-                        f"{self.model.num_primitives} primitives; {self.step} steps in {self.train_seconds:.1f} s")
-        return TrainResult(self.out_dir, self.step, self.last_loss, metrics, self.train_seconds,
-                           self.model.num_primitives, list(self.history))
+        self.say(f"warpgs: {m['split']} psnr {m['psnr']:.2f} ssim {m['ssim']:.4f}{lp}; "
+                 f"{tr.model.num_primitives} primitives; {tr.step} steps in {tr.train_seconds:.1f} s")
+        return TrainResult(tr.out_dir, tr.step, tr.last_loss, metrics, tr.train_seconds,
+                           tr.model.num_primitives, list(tr.history))
 
 
-class _StopOnSigint:
+class StopOnSigint:
     """First Ctrl-C: finish the current step, then stop (the trainer checkpoints there). Second: abort now."""
 
     def __init__(self, say: Callable[[str], None]):

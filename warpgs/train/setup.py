@@ -90,8 +90,14 @@ def initial_points(scene, config: Config):
     from warpgs.data.sfm import init_points as ip
 
     how, n, seed = config.model.init, config.model.init_points, config.train.seed
+    # Points triangulated from known poses are cached in the output folder (a resumed or repeated run reuses them).
+    tri_dir = Path(config.output.dir) / "triangulation" if config.output.dir else None
     if how == "auto":
-        cloud, source = ip.initial_points(scene, n=n, seed=seed)
+        cloud, source = ip.initial_points(scene, n=n, seed=seed, triangulate_dir=tri_dir)
+    elif how == "triangulate":
+        if tri_dir is None:
+            raise ValueError("model.init: 'triangulate' needs an output folder to cache the points in")
+        cloud, source = ip.triangulated_points(scene, tri_dir, strict=True)
     elif how == "sfm":
         if scene.points is None or len(scene.points) == 0:
             raise ValueError(f"model.init: 'sfm' but the scene at {scene.root} has no SfM points (use auto/random)")

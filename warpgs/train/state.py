@@ -1,58 +1,104 @@
-"""The trainer's checkpoints: what one holds (model, optimizers, strategy, RNG, step) and how a resume restores it."""
+"""A run's checkpoint: which part owns each key (TrainingState), writing it and putting it back (Checkpointer).
+The file format itself (atomic write, RNG states) is train/checkpoint.py."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional, Sequence
 
 import torch
+from torch import nn
 
 from warpgs.train import checkpoint as ckpt
+from warpgs.model.gaussians import GaussianModel
 
 
-class TrainerCheckpointMixin:
-    """Part of `warpgs.train.trainer.Trainer` (uses its model, optimizers, modules, strategy, extensions and RNG state)."""
+@dataclass
+class RunCounters:
+    """Where a run is: steps done, seconds spent inside steps, the total loss of the last step."""
+    step: int = 0
+    train_seconds: float = 0.0
+    last_loss: Optional[float] = None
 
-    # ----- checkpoints ----------------------------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        return {"step": self.step, "model": self.model.to_dict(), "optimizer": self.optimizer.state_dict(),
-                "module_optimizer": None if self.module_optimizer is None else self.module_optimizer.state_dict(),
-                "modules": self.modules.state_dict(), "strategy": _to_cpu(self.strategy.state_dict()),
-                "extensions": {f"{i}:{e.name}": e.state_dict() for i, e in enumerate(self.extensions)},
-                "rng": ckpt.rng_state(), "view_generator": self.view_generator.get_state(),
-                "view_queue": list(self._queue), "train_seconds": self.train_seconds, "history": self.history,
-                "last_loss": self.last_loss, "config": self.config.to_dict()}
 
-    def save_checkpoint(self) -> Path:
-        if not self._at_boundary:
-            raise RuntimeError("save_checkpoint: only between steps")
-        if self.config.train.nan_guard:
-            self.check_finite(self.step)  # never replace a good checkpoint with a broken one
-        path = ckpt.save_checkpoint(self.checkpoint_path, self.state_dict())
-        self._checkpoint_step = self.step
+@dataclass
+class TrainingState:
+    """Everything a checkpoint holds, as the objects that own it (keys in brackets):
+    counters [step, train_seconds, last_loss], model [model], optimizer [optimizer] and module_optimizer
+    [module_optimizer] (None without modules), modules [modules], strategy [strategy], extensions [extensions],
+    views: a TrainViews [view_generator, view_queue], evaluator: an Evaluator [history], config [config];
+    plus the global RNG states [rng]."""
+    counters: RunCounters
+    model: GaussianModel
+    optimizer: torch.optim.Optimizer
+    module_optimizer: Optional[torch.optim.Optimizer]
+    modules: nn.ModuleDict
+    strategy: object  # DensifyStrategy, or anything with state_dict / load_state_dict
+    extensions: Sequence
+    views: object  # TrainViews
+    evaluator: object  # Evaluator
+    config: object  # Config
+
+
+class Checkpointer:
+    """checkpoint.pt of one run. Owns its path and `last_step`: the step of the checkpoint on disk that this run
+    wrote or resumed from (-1: none yet). `guard` (a NonFiniteGuard, or None with train.nan_guard off) checks the
+    parameters before a write, so a broken state never replaces a good checkpoint."""
+
+    def __init__(self, path, device, *, guard=None):
+        self.path = Path(path)
+        self.device = torch.device(device)
+        self.guard = guard
+        self.last_step = -1
+
+    def state_dict(self, parts: TrainingState) -> dict:
+        c = parts.counters
+        return {"step": c.step, "model": parts.model.to_dict(), "optimizer": parts.optimizer.state_dict(),
+                "module_optimizer": None if parts.module_optimizer is None else parts.module_optimizer.state_dict(),
+                "modules": parts.modules.state_dict(), "strategy": _to_cpu(parts.strategy.state_dict()),
+                "extensions": {f"{i}:{e.name}": e.state_dict() for i, e in enumerate(parts.extensions)},
+                "rng": ckpt.rng_state(), **parts.views.state_dict(), "train_seconds": c.train_seconds,
+                **parts.evaluator.state_dict(), "last_loss": c.last_loss, "config": parts.config.to_dict()}
+
+    def save(self, parts: TrainingState) -> Path:
+        step = parts.counters.step
+        if self.guard is not None:
+            self.guard.check(step)
+        path = ckpt.save_checkpoint(self.path, self.state_dict(parts))
+        self.last_step = step
         return path
 
-    def _load_state(self, state: dict) -> None:
-        self.step = int(state["step"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        names = [g.get("name") for g in self.optimizer.param_groups]
-        if names != list(self.model.params):
-            raise ValueError(f"checkpoint: optimizer groups {names} do not match the model {list(self.model.params)}")
+    def load(self) -> dict:
+        """The checkpoint at `path`, for a resume (a clear error when there is none)."""
+        if not self.path.is_file():
+            raise FileNotFoundError(f"--resume: no checkpoint at {self.path}")
+        return ckpt.load_checkpoint(self.path)
+
+    def model_from(self, state: dict) -> GaussianModel:
+        return GaussianModel.from_dict(state["model"], device=self.device)
+
+    def restore(self, state: dict, parts: TrainingState) -> None:
+        """Put a loaded checkpoint back into the parts (the model itself was built from it by model_from)."""
+        parts.counters.step = int(state["step"])
+        parts.optimizer.load_state_dict(state["optimizer"])
+        names = [g.get("name") for g in parts.optimizer.param_groups]
+        if names != list(parts.model.params):
+            raise ValueError(f"checkpoint: optimizer groups {names} do not match the model {list(parts.model.params)}")
         if state.get("modules"):
-            self.modules.load_state_dict(state["modules"])
-        if state.get("module_optimizer") is not None and self.module_optimizer is not None:
-            self.module_optimizer.load_state_dict(state["module_optimizer"])
+            parts.modules.load_state_dict(state["modules"])
+        if state.get("module_optimizer") is not None and parts.module_optimizer is not None:
+            parts.module_optimizer.load_state_dict(state["module_optimizer"])
         strat = {k: (v.to(self.device) if torch.is_tensor(v) and k != "generator" else v)
                  for k, v in state["strategy"].items()}
-        self.strategy.load_state_dict(strat)
-        saved_ext = list(state.get("extensions", {}).values())
-        for ext, s in zip(self.extensions, saved_ext):
-            ext.load_state_dict(s)
+        parts.strategy.load_state_dict(strat)
+        for ext, saved in zip(parts.extensions, state.get("extensions", {}).values()):
+            ext.load_state_dict(saved)
         ckpt.set_rng_state(state["rng"])
-        self.view_generator.set_state(state["view_generator"])
-        self._queue = list(state["view_queue"])
-        self.train_seconds = float(state.get("train_seconds", 0.0))
-        self.history = list(state.get("history", []))
-        self.last_loss = state.get("last_loss")
-        self._checkpoint_step = self.step
+        parts.views.load_state_dict(state)
+        parts.counters.train_seconds = float(state.get("train_seconds", 0.0))
+        parts.evaluator.load_state_dict(state)
+        parts.counters.last_loss = state.get("last_loss")
+        self.last_step = parts.counters.step
 
 
 def _to_cpu(state: dict) -> dict:

@@ -9,12 +9,17 @@ and the position learning rate, render exactly the outputs the active losses (an
 weighted losses, backward, step Adam, let the densification strategy clone/split/prune under its hard budget.
 
 Output folder: config.yaml (the resolved config), checkpoint.pt (atomic; model, optimizer, strategy, RNG
-states, step), point_cloud.ply (3DGS layout; surfels in the 2DGS layout), renders/<split>/*.png and
-metrics.json. `Trainer(config, resume=True)` continues from the checkpoint to the same result as an
-uninterrupted run (bit-exact on CPU). Ctrl-C stops at the end of the current step and writes a checkpoint
-there (a second Ctrl-C aborts at once; the previous checkpoint is then kept as it was). A non-finite loss,
-gradient or parameter stops training with `NonFiniteError` naming the first offender; the last checkpoint is
-left as it was.
+states, step), point_cloud.ply (3DGS layout; surfels in the 2DGS layout), renders/<split>/*.png,
+metrics.json and log.jsonl (+ tensorboard/ with train.log=tensorboard). `Trainer(config, resume=True)`
+continues from the checkpoint to the same result as an uninterrupted run (bit-exact on CPU). Ctrl-C stops at
+the end of the current step and writes a checkpoint there (a second Ctrl-C aborts at once; the previous
+checkpoint is then kept as it was). A non-finite loss, gradient or parameter stops training with
+`NonFiniteError` naming the first offender; the last checkpoint is left as it was.
+
+The Trainer composes collaborators that each own their state (docs/architecture.md has the table): LossSet
+(train/loss_set.py), TrainViews (views.py), DensifyStrategy (strategy.py), Evaluator (evaluation.py),
+NonFiniteGuard (guard.py), Checkpointer (state.py), TrainLog (log.py). It owns the model, what extensions add
+(rendered feature names, modules and their optimizer), the optimizers, the background and the run counters.
 """
 from __future__ import annotations
 
@@ -30,23 +35,26 @@ from warpgs.train import checkpoint as ckpt
 from warpgs.config.loader import Config, load_config
 from warpgs.train.extensions import CallbackExtension, Extension, build_extension
 from warpgs.model.gaussians import GaussianModel
-from warpgs.losses import compute_losses, registered_losses, required_outputs, resolve_losses
-from warpgs.metrics.image import LPIPSMetric
 from warpgs.model.rendering import check_outputs, render_model
 from warpgs.train.optim import build_optimizer, update_learning_rates
 from warpgs.train.strategy import DensifyStrategy
+from warpgs.data.extent import scene_content_extent
 from warpgs.model import environment  # noqa: F401  (registers the built-in "environment" extension)
 from warpgs.train import setup as train_setup
-from warpgs.train.evaluation import TrainerEvaluationMixin
-from warpgs.train.guard import NonFiniteError, NonFiniteGuardMixin  # noqa: F401  (NonFiniteError re-exported)
-from warpgs.train.loop import TrainingLoopMixin, TrainResult
-from warpgs.train.state import TrainerCheckpointMixin
+from warpgs.train.evaluation import Evaluator
+from warpgs.train.guard import NonFiniteError, NonFiniteGuard
+from warpgs.train.log import TrainLog
+from warpgs.train.loop import TrainingLoop, TrainResult
+from warpgs.train.loss_set import LossSet, resolve_terms
+from warpgs.train.state import Checkpointer, RunCounters, TrainingState
+from warpgs.train.views import TrainViews
 from warpgs.config.user_imports import import_user_module
 
 VIEW_FIELDS = ("mask", "inv_depth_prior", "inv_depth_valid", "depth", "labels", "features")
+__all__ = ["Trainer", "TrainResult", "NonFiniteError", "train"]
 
 
-class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin, NonFiniteGuardMixin):
+class Trainer:
     """See the module docstring. `scene`/`model` override what the config would build; `extensions` are
     Extension objects (added to those the config names); `callbacks` are `fn(trainer, step, info)` called
     after every step."""
@@ -60,28 +68,26 @@ class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin,
         for module in cfg.imports:  # e.g. modules that register custom losses or extensions
             import_user_module(module)
         self.device = train_setup.resolve_device(cfg.train.device)
-        self.terms = _resolve_terms(cfg.losses)
+        terms = resolve_terms(cfg.losses)
 
         if out_dir is not None:
             cfg.output.dir = str(out_dir)
         if cfg.output.dir is None:
             cfg.output.dir = str(Path("outputs") / train_setup.scene_label(cfg.data))
         self.out_dir = Path(cfg.output.dir)
+        self.log = TrainLog(self.out_dir, kind=cfg.train.log, every=cfg.train.log_every)  # files open in fit()
         self.scene = scene if scene is not None else train_setup.load_training_scene(cfg.data, self.out_dir)
-        self.checkpoint_path = self.out_dir / cfg.output.checkpoint
         self.extent = train_setup.scene_extent(self.scene, cfg.train.scene_extent)
         self.background = train_setup.resolve_background(cfg.train.background, self.scene, self.device)
         self.max_steps = cfg.train.steps
+        self.guard = NonFiniteGuard(self.named_parameters)
+        self.checkpointer = Checkpointer(self.out_dir / cfg.output.checkpoint, self.device,
+                                         guard=self.guard if cfg.train.nan_guard else None)
 
-        state = None
-        if resume:
-            if not self.checkpoint_path.is_file():
-                raise FileNotFoundError(f"--resume: no checkpoint at {self.checkpoint_path}")
-            state = ckpt.load_checkpoint(self.checkpoint_path)
+        state = self.checkpointer.load() if resume else None
         ckpt.seed_everything(cfg.train.seed)
         if state is not None:
-            self.model = GaussianModel.from_dict(state["model"], device=self.device)
-            self.init_source = "checkpoint"
+            self.model, self.init_source = self.checkpointer.model_from(state), "checkpoint"
         elif model is not None:
             self.model, self.init_source = model.to(self.device), "given"
         else:
@@ -98,7 +104,7 @@ class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin,
         for ext in self.extensions:
             ext.setup(self)
 
-        self.outputs = required_outputs(self.terms, always=[o for e in self.extensions for o in e.outputs()])
+        self.loss_set = LossSet(terms, always=[o for e in self.extensions for o in e.outputs()])
         check_outputs(self.model.kind, self.outputs, "losses")
         if "features" in self.outputs and not self.feature_names and not self.extensions:
             raise ValueError("losses: a term needs the 'features' output but the model renders no features "
@@ -110,23 +116,60 @@ class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin,
             groups = [{"params": list(m.parameters()), "lr": self._module_lrs[n], "name": n}
                       for n, m in self.modules.items()]
             self.module_optimizer = torch.optim.Adam(groups, lr=0.0)
-        self.strategy = DensifyStrategy(cfg.strategy, self.extent, invisible_below=cfg.train.alpha_min)
+        self.strategy = DensifyStrategy(cfg.strategy, self.extent, invisible_below=cfg.train.alpha_min,
+                                        world_extent=cfg.train.scene_extent or scene_content_extent(self.scene))
         self.strategy.initialize(self.model)
 
-        self.train_indices = list(self.scene.train)
-        self.view_generator = torch.Generator().manual_seed(int(cfg.train.seed))
-        self._queue: List[int] = []
-        self._views: Dict[int, object] = {}
-        self._eval_views: Optional[list] = None
-        self._lpips: Optional[LPIPSMetric] = None
-        self.step = 0
-        self.train_seconds = 0.0
-        self.history: List[dict] = []
-        self.last_loss: Optional[float] = None
+        self.views = TrainViews(self.scene, self.device, seed=cfg.train.seed, preload=cfg.data.preload)
+        self.evaluator = Evaluator(self.scene, cfg.eval, self.device, self.out_dir,
+                                   render=lambda v: self.render(v, ("rgb",)).rgb, views=self.views)
+        self.counters = RunCounters()
         self._at_boundary = True
-        self._checkpoint_step = -1
         if state is not None:
-            self._load_state(state)
+            self.checkpointer.restore(state, self.training_state())
+
+    # ----- the run's position (RunCounters) and its collaborators' views of it --------------------------------
+    @property
+    def step(self) -> int:
+        return self.counters.step
+
+    @step.setter
+    def step(self, value: int) -> None:
+        self.counters.step = int(value)
+
+    @property
+    def train_seconds(self) -> float:
+        return self.counters.train_seconds
+
+    @property
+    def last_loss(self) -> Optional[float]:
+        return self.counters.last_loss
+
+    @property
+    def at_boundary(self) -> bool:
+        """False while a step is running (a checkpoint then would hold half a step)."""
+        return self._at_boundary
+
+    @property
+    def history(self) -> List[dict]:
+        return self.evaluator.history
+
+    @property
+    def terms(self) -> list:
+        return self.loss_set.terms
+
+    @property
+    def outputs(self) -> tuple:
+        """The outputs rendered over the whole run (the active terms' and the extensions')."""
+        return self.loss_set.outputs
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.checkpointer.path
+
+    @property
+    def train_indices(self) -> List[int]:
+        return self.views.indices
 
     # ----- extension API --------------------------------------------------------------------------------------
     def add_extra(self, name: str, values: torch.Tensor, *, lr: Optional[float] = None, render: bool = True) -> None:
@@ -162,19 +205,26 @@ class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin,
             start += c
         return out
 
+    def learning_rates(self) -> Dict[str, float]:
+        """{param group or module name: its current learning rate}."""
+        return {g.get("name", str(i)): g["lr"] for opt in self.optimizers for i, g in enumerate(opt.param_groups)}
+
+    def named_parameters(self):
+        """(name, tensor) of every trained parameter: the model's, then the modules' as modules.<name>."""
+        for name, p in self.model.params.items():
+            yield name, p
+        for name, p in self.modules.named_parameters():
+            yield f"modules.{name}", p
+
+    def check_finite(self, step: int, result=None) -> None:
+        self.guard.check(step, result)
+
     # ----- one step -------------------------------------------------------------------------------------------
     def view(self, index: int):
-        if index not in self._views:
-            v = self.scene.view(index, self.device)
-            if not self.config.data.preload:
-                return v
-            self._views[index] = v
-        return self._views[index]
+        return self.views.view(index)
 
     def next_view(self):
-        if not self._queue:
-            self._queue = torch.randperm(len(self.train_indices), generator=self.view_generator).tolist()
-        return self.view(self.train_indices[self._queue.pop(0)])
+        return self.views.next()
 
     def make_batch(self, view, step: int) -> dict:
         """What losses read: image, camera, the view's optional maps (mask, inv_depth_prior + inv_depth_valid,
@@ -216,10 +266,7 @@ class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin,
     def outputs_at(self, step: int) -> tuple:
         """The outputs rendered at this step: those of the terms whose scheduled weight is not 0 now, plus the
         extensions' (self.outputs is the union over the whole run)."""
-        if all(t.schedule is None for t in self.terms):
-            return self.outputs
-        live = [t for t in self.terms if t.weight_at(step, self.max_steps) > 0]
-        return required_outputs(live, always=[o for e in self.extensions for o in e.outputs()])
+        return self.loss_set.outputs_at(step, self.max_steps)
 
     def train_step(self) -> dict:
         """One optimisation step at self.step; returns info for logging and hooks."""
@@ -232,7 +279,7 @@ class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin,
         update_learning_rates(self.optimizer, step, cfg.optim, self.extent, self.max_steps)
         densify = step < cfg.strategy.refine_stop
         out = self.render(view, self.outputs_at(step), batch, track_means2d=densify, step=step)
-        result = compute_losses(self.terms, out, batch, model, step, self.max_steps)
+        result = self.loss_set(out, batch, model, step, self.max_steps)
         self.strategy.step_pre_backward(model, step)
         result.total.backward()
         if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied
@@ -253,28 +300,57 @@ class Trainer(TrainingLoopMixin, TrainerCheckpointMixin, TrainerEvaluationMixin,
         if out.rgb is not None:
             mse = float(((out.rgb.detach() - view.image) ** 2).mean())
             train_psnr = 10.0 * math.log10(1.0 / max(mse, 1e-10))
-        self.train_seconds += time.perf_counter() - t0
-        self.step = step + 1
-        self.last_loss = loss
+        self.counters.train_seconds += time.perf_counter() - t0
+        self.counters.step = step + 1
+        self.counters.last_loss = loss
         self._at_boundary = True
         return {"step": step, "loss": loss, "values": {k: float(v) for k, v in result.values.items()},
                 "psnr": train_psnr, "num_primitives": model.num_primitives, "densify": report, "view": view.name}
 
+    # ----- evaluation and checkpoints (Evaluator, Checkpointer) -----------------------------------------------
+    def eval_views(self, split: Optional[str] = None) -> tuple:
+        """(split actually used, views): the test views, or the training views when there are none."""
+        return self.evaluator.eval_views(split)
 
-def _resolve_terms(losses: dict):
-    try:
-        return resolve_losses(losses)
-    except ValueError as e:
-        msg = str(e)
-        if "unknown loss" in msg:
-            import difflib
+    def lpips(self):
+        return self.evaluator.lpips()
 
-            name = msg.split(":", 1)[0].replace("losses.", "")
-            close = difflib.get_close_matches(name, registered_losses(), n=1, cutoff=0.5)
-            hint = f"; did you mean {close[0]!r}?" if close else ""
-            raise ValueError(f"losses.{name}: unknown loss; registered: {registered_losses()} (register your own "
-                             f"with warpgs.register_loss and list its module under `imports`){hint}") from None
-        raise
+    def evaluate(self, *, save_images: bool = False, max_views: int = 0) -> dict:
+        return self.evaluator.evaluate(save_images=save_images, max_views=max_views)
+
+    def training_state(self) -> TrainingState:
+        """The parts a checkpoint holds, as they are now."""
+        return TrainingState(self.counters, self.model, self.optimizer, self.module_optimizer, self.modules,
+                             self.strategy, self.extensions, self.views, self.evaluator, self.config)
+
+    def state_dict(self) -> dict:
+        return self.checkpointer.state_dict(self.training_state())
+
+    def save_checkpoint(self) -> Path:
+        if not self._at_boundary:
+            raise RuntimeError("save_checkpoint: only between steps")
+        return self.checkpointer.save(self.training_state())
+
+    # ----- the loop (TrainingLoop in loop.py) -----------------------------------------------------------------
+    def fit(self) -> TrainResult:
+        """Train from self.step to max_steps, then write the final outputs (see the module docstring)."""
+        threads = self.config.train.threads or (1 if self.device.type == "cpu" else 0)
+        previous = torch.get_num_threads()
+        if threads:
+            # On CPU the Warp kernels spread over their own thread pool; torch's OpenMP workers spinning next to
+            # them (and next to any other process) cost far more than they save on these small per-image ops:
+            # measured on the 2-core machine with another job running, 0.06-0.15 s a step with 1 thread against
+            # 0.7 s with 2 (128x96, 3k Gaussians).
+            torch.set_num_threads(threads)
+        try:
+            with self.log.open(self.step):
+                return TrainingLoop(self).run()
+        finally:
+            torch.set_num_threads(previous)
+
+    def finish(self) -> TrainResult:
+        """Final checkpoint, PLY, test renders and metrics.json."""
+        return TrainingLoop(self).finish()
 
 
 def train(config=None, overrides: Sequence[str] = (), **kwargs) -> TrainResult:

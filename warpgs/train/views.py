@@ -1,0 +1,49 @@
+"""The training views a Trainer draws from: device copies kept when data.preload, and a seeded order reshuffled
+every epoch. The order's generator and queue go into checkpoints, so a resumed run draws the same views."""
+from __future__ import annotations
+
+from typing import Dict, List
+
+import torch
+
+
+class TrainViews:
+    """Owns the kept device views and the draw order (generator + the rest of this epoch's queue)."""
+
+    def __init__(self, scene, device, *, seed: int, preload: bool = True):
+        self.scene = scene
+        self.device = torch.device(device)
+        self.preload = bool(preload)
+        self.indices: List[int] = list(scene.train)
+        self.generator = torch.Generator().manual_seed(int(seed))
+        self.queue: List[int] = []
+        self._kept: Dict[int, object] = {}
+
+    def view(self, index: int):
+        """Scene view `index` on the device (kept for the next call when preloading)."""
+        if index not in self._kept:
+            v = self.scene.view(index, self.device)
+            if not self.preload:
+                return v
+            self._kept[index] = v
+        return self._kept[index]
+
+    def kept_or_new(self, index: int):
+        """The kept copy when there is one, else a fresh view that is not kept (for evaluation)."""
+        return self._kept[index] if index in self._kept else self.scene.view(index, self.device)
+
+    def next(self):
+        """The next training view: a new random permutation of the training views each epoch."""
+        if not self.indices:
+            raise ValueError(f"scene: {getattr(self.scene, 'root', 'the scene')} has no training views to draw")
+        if not self.queue:
+            self.queue = torch.randperm(len(self.indices), generator=self.generator).tolist()
+        return self.view(self.indices[self.queue.pop(0)])
+
+    # The checkpoint keys of checkpoints written before this class existed.
+    def state_dict(self) -> dict:
+        return {"view_generator": self.generator.get_state(), "view_queue": list(self.queue)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.generator.set_state(state["view_generator"])
+        self.queue = list(state["view_queue"])
