@@ -97,6 +97,18 @@ def test_images_n_is_used_for_its_downscale(tmp_path, names):
     np.testing.assert_array_equal(scene.image_np(4)[0], read_image(shipped)[0])
 
 
+def test_images_n_alone_is_enough_for_its_downscale(tmp_path):
+    # A copy trimmed to the resolution in use (no images/): the poses' hwf gives the scale.
+    cams = _cameras()
+    _llff_folder(tmp_path, cams, shipped=(4,), shipped_names="renamed")
+    shutil.rmtree(tmp_path / "images")
+    scene = load_scene(tmp_path, downscale=4)
+    assert scene.source == "llff (images_4)" and scene.downscale == 1 and len(scene) == len(cams)
+    np.testing.assert_allclose(scene.cameras[3].K[0, 0], F / 4, rtol=1e-12)
+    with pytest.raises(FileNotFoundError, match="images.*full-resolution"):
+        load_scene(tmp_path, downscale=2)  # neither images/ nor images_2/
+
+
 def test_missing_or_incomplete_images_n_resizes_images(tmp_path, monkeypatch):
     monkeypatch.setenv("WARPGS_CACHE", str(tmp_path / "cache"))
     cams = _cameras()

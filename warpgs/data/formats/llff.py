@@ -147,6 +147,16 @@ def _shipped_images(root: Path, factor: int, full: list[Path]) -> Optional[list[
     return files
 
 
+def _only_shipped_images(root: Path, n: int, factor: int) -> Optional[list[Path]]:
+    """images_<factor> when images/ is absent (a copy trimmed to the resolution in use) and it holds one image per
+    pose; the poses' hwf then says the scale."""
+    folder = root / f"images_{factor}"
+    if factor == 1 or (root / "images").is_dir() or not folder.is_dir():
+        return None
+    files = list_images(folder)
+    return files if len(files) == n else None
+
+
 def _has_view_maps(root: Path, names: list[str], paths: list[Path]) -> bool:
     files = discover_view_files(root, names, paths)
     return any(getattr(f, k) is not None for f in files for k in ("depth", "depth_prior", "mask", "labels"))
@@ -197,9 +207,10 @@ def load_llff(root: PathLike, *, split=None, n_train: Optional[int] = None, down
         raise MissingSceneFile(root, "scene folder")
     poses_path = root / POSES_FILE
     viewmats, hwf, bounds = read_poses_bounds(poses_path)
-    full = _full_images(root, len(viewmats), poses_path)
+    only_small = _only_shipped_images(root, len(viewmats), downscale)
+    full = only_small or _full_images(root, len(viewmats), poses_path)
     names = [p.name for p in full]
-    shipped = _shipped_images(root, downscale, full)
+    shipped = only_small or _shipped_images(root, downscale, full)
     if shipped is not None and _has_view_maps(root, names, full):
         shipped = None  # masks/depth are checked against full-size cameras: resize images/ instead
     paths = shipped or full
