@@ -1,0 +1,100 @@
+"""Where a training step's time goes, on a real capture: the whole Trainer.train_step against its render
+forward+backward alone, the same with the NaN guard off, and a torch.profiler table of the busiest ops.
+
+    python benchmarks/profile_train_step.py data/fern --device cuda --warmup 2000 --steps 200 data.downscale=8
+
+Warm-up steps grow the model to a realistic size first (densification runs as in training). Writes
+benchmarks/results/profile_train_step_<name>_<device>.json.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from common import ROOT, write_json
+
+sys.path.insert(0, str(ROOT))
+
+from train_compare import sync  # noqa: E402
+from warpgs.cli.commands import resolve_config_source  # noqa: E402
+from warpgs.config.loader import load_config  # noqa: E402
+from warpgs.train.trainer import Trainer  # noqa: E402
+
+
+def time_steps(trainer: Trainer, steps: int, device: str) -> float:
+    """Mean seconds per Trainer.train_step over `steps` steps."""
+    sync(device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        trainer.train_step()
+    sync(device)
+    return (time.perf_counter() - t0) / steps
+
+
+def time_render_only(trainer: Trainer, steps: int, device: str) -> float:
+    """Mean seconds of a forward+backward of the training render on the step's views, with the losses'
+    outputs, nothing else (no loss terms, optimizer or strategy)."""
+    views = [trainer.view(i) for i in trainer.scene.train[:steps]]
+    sync(device)
+    t0 = time.perf_counter()
+    for k in range(steps):
+        out = trainer.render(views[k % len(views)], trainer.outputs)
+        loss = sum(v.float().sum() for v in (out.rgb, out.alpha, out.depth) if v is not None)
+        loss.backward()
+        trainer.model.zero_grad(set_to_none=True)
+    sync(device)
+    return (time.perf_counter() - t0) / steps
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("data", help="scene folder")
+    ap.add_argument("--config", default="gaussians")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--warmup", type=int, default=2000, help="training steps before measuring")
+    ap.add_argument("--steps", type=int, default=200, help="steps per measurement")
+    ap.add_argument("--top", type=int, default=25, help="rows of the profiler table")
+    ap.add_argument("overrides", nargs="*", help="key=value config overrides")
+    args = ap.parse_intermixed_args(argv)
+
+    cfg = load_config(resolve_config_source(args.config), [f"data.path={args.data}", f"train.device={args.device}",
+                                                            "eval.every=0", *args.overrides])
+    cfg.train.steps = args.warmup + 10 * args.steps
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg.output.dir = tmp
+        trainer = Trainer(cfg, quiet=True)
+        for _ in range(args.warmup):
+            trainer.train_step()
+        n = trainer.model.num_primitives
+        step_s = time_steps(trainer, args.steps, args.device)
+        trainer.config.train.nan_guard = False
+        no_guard_s = time_steps(trainer, args.steps, args.device)
+        trainer.config.train.nan_guard = True
+        render_s = time_render_only(trainer, args.steps, args.device)
+        activities = [torch.profiler.ProfilerActivity.CPU]
+        if torch.device(args.device).type == "cuda":
+            activities.append(torch.profiler.ProfilerActivity.CUDA)
+        with torch.profiler.profile(activities=activities) as prof:
+            time_steps(trainer, min(args.steps, 50), args.device)
+    key = "self_cuda_time_total" if len(activities) > 1 else "self_cpu_time_total"
+    table = prof.key_averages().table(sort_by=key, row_limit=args.top)
+    print(table)
+    result = {"data": args.data, "device": args.device, "primitives": n, "warmup": args.warmup,
+              "steps": args.steps, "ms_per_step": 1e3 * step_s, "ms_per_step_no_nan_guard": 1e3 * no_guard_s,
+              "ms_render_fwd_bwd": 1e3 * render_s, "ms_rest_of_step": 1e3 * (step_s - render_s),
+              "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+              "profile_sorted_by": key, "profile": table}
+    print(f"{n} primitives: step {1e3 * step_s:.2f} ms (NaN guard off: {1e3 * no_guard_s:.2f} ms); render fwd+bwd "
+          f"alone {1e3 * render_s:.2f} ms; the rest {1e3 * (step_s - render_s):.2f} ms")
+    name = Path(args.data).name
+    write_json(f"profile_train_step_{name}_{args.device}", result)
+    return result
+
+
+if __name__ == "__main__":
+    main()
