@@ -1,6 +1,6 @@
 """Command-line tools: `warpgs-train`, `warpgs-render`, `warpgs-eval` (also `python -m warpgs.cli train|render|eval`).
 
-    warpgs-train [CONFIG] [--data PATH] [--out DIR] [--resume] [key=value ...]
+    warpgs-train [CONFIG] [--data PATH] [--out DIR] [--resume] [--nproc N] [key=value ...]
     warpgs-render --model OUT [--orbit N] [--split test|train]
     warpgs-eval --model OUT [--split test|train] [--no-lpips] [--save-images]
 
@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import List, Optional, Sequence
 
-EXIT_CONFIG, EXIT_NONFINITE, EXIT_INTERRUPTED = 2, 3, 130
+EXIT_CONFIG, EXIT_NONFINITE, EXIT_DISTRIBUTED, EXIT_INTERRUPTED = 2, 3, 4, 130
 
 # The no-argument run, used when configs/default.yaml is not on disk (an installed wheel without the configs
 # folder); tests check that the file and this copy agree.
@@ -88,6 +88,9 @@ def train_main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--resume", action="store_true", help="continue from the checkpoint in the output folder")
     ap.add_argument("--quiet", action="store_true", help="no progress line")
     ap.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
+    ap.add_argument("--nproc", type=int, metavar="N",
+                    help="data-parallel training on N processes of this machine (one per GPU; gloo on the CPU), "
+                         "launched through torchrun; train.batch_size counts the views of a step over all of them")
     # Intermixed: CONFIG, options and key=value overrides in any order (plain parse_args stops collecting the
     # positionals at the first option, so `gaussians --data X steps=10` failed on steps=10).
     args = ap.parse_intermixed_args(argv)
@@ -110,21 +113,38 @@ def train_main(argv: Optional[List[str]] = None) -> int:
     if args.print_config:
         print(config.to_yaml(), end="")
         return 0
+    if args.nproc is not None:
+        from warpgs.cli.launch import launch_train
 
-    from warpgs.train.trainer import NonFiniteError, Trainer
+        try:
+            return launch_train(args.nproc, list(sys.argv[1:] if argv is None else argv))
+        except ValueError as e:
+            return _error("warpgs-train", str(e), EXIT_CONFIG)
+
+    from warpgs.train.trainer import DistributedError, NonFiniteError, Trainer
 
     try:
         trainer = Trainer(config, resume=args.resume, quiet=args.quiet)
     except (ValueError, FileNotFoundError) as e:  # bad config, scene or checkpoint: the message names it
         return _error("warpgs-train", str(e), EXIT_CONFIG)
+    except DistributedError as e:
+        return _error("warpgs-train", str(e), EXIT_DISTRIBUTED)
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
     try:
         result = trainer.fit()
     except KeyboardInterrupt:
+        trainer.close()
         return EXIT_INTERRUPTED
     except NonFiniteError:
+        trainer.close()
         return EXIT_NONFINITE
+    except DistributedError as e:  # the group is broken: leave it to the process's exit, not a collective teardown
+        # Rank 0's loop has said it already; the other ranks are quiet, so their error is printed here.
+        return _error("warpgs-train", str(e), EXIT_DISTRIBUTED) if trainer.quiet else EXIT_DISTRIBUTED
+    trainer.close()
+    if not trainer.ranks.is_main:  # rank 0 prints the summary
+        return 0
     out = result.out_dir
     m = result.metrics
     renders = out / "renders" / m["split"]

@@ -74,6 +74,14 @@ class TrainConfig:
     nan_guard: bool = True  # stop at the first non-finite loss, gradient or parameter
     threads: int = 0  # torch CPU threads during fit (0: 1 on CPU, where Warp's own thread pool uses the cores;
     #                   torch's default on CUDA)
+    # Views per optimizer step, over all ranks of a distributed run (each renders its share); the loss is their
+    # mean. The schedule stays in steps: divide steps and refine_* by B to see as many views (docs/distributed.md).
+    batch_size: int = 1
+    batch_scaling: str = "sqrt"  # Adam for the batch: "sqrt" (lr x sqrt(B), eps / sqrt(B), betas as gsplat) or "none"
+    dist_backend: str = "auto"  # under torchrun: "auto" (nccl on CUDA, gloo on the CPU), "nccl" or "gloo"
+    dist_timeout: int = 900  # seconds a rank waits in a collective before it stops with an error
+    viewer: bool = False  # serve a browser viewer of the model as it trains (pip install 'warpgs[viewer]')
+    viewer_port: int = 8080  # its port on 127.0.0.1 (0: any free one)
 
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""
@@ -126,7 +134,7 @@ ALIASES = {
     "steps": "train.steps", "device": "train.device", "eval_every": "eval.every", "seed": "train.seed",
     "background": "train.background", "out": "output.dir", "data": "data.path", "kind": "model.kind",
     "budget": "strategy.max_primitives", "max_primitives": "strategy.max_primitives",
-    "sh_degree": "model.sh_degree", "checkpoint_every": "train.checkpoint_every",
+    "sh_degree": "model.sh_degree", "checkpoint_every": "train.checkpoint_every", "batch_size": "train.batch_size",
 }
 CHOICES = {
     "data.synthetic": ("orbit", "lightfield"),
@@ -136,9 +144,11 @@ CHOICES = {
     "eval.split": ("test", "train"),
     "train.log": ("jsonl", "tensorboard", "none"),
     "eval.lpips_net": ("alex", "vgg", "squeeze"),
+    "train.batch_scaling": ("sqrt", "none"),
+    "train.dist_backend": ("auto", "nccl", "gloo"),
 }
 POSITIVE = {"data.width", "data.height", "data.downscale", "data.n_train", "model.init_points", "model.init_knn",
-            "train.steps", "train.tile_size"}
+            "train.steps", "train.tile_size", "train.batch_size", "train.dist_timeout"}
 NON_NEGATIVE = {"model.sh_interval", "model.background_points", "train.checkpoint_every", "train.log_every", "train.threads", "eval.every",
                 "eval.max_views"}
 # Mappings whose keys are free (user names), not fields.

@@ -18,15 +18,18 @@ class Evaluator:
     """Owns the evaluation views (chosen once), the LPIPS net and `history`, one entry per periodic evaluation.
 
     `render(view) -> rgb [H, W, 3]` renders the current model (the trainer's render with its extensions);
-    `views`, when given, is a TrainViews whose kept device copies are reused instead of loading a view again."""
+    `views`, when given, is a TrainViews whose kept device copies are reused instead of loading a view again.
+    `ranks` (a distributed run's Ranks): each rank scores a contiguous share of the views and writes their PNGs;
+    the scores are gathered, so every rank returns the same metrics, averaged in view order as one process does."""
 
-    def __init__(self, scene, config: EvalConfig, device, out_dir, *, render: Callable, views=None):
+    def __init__(self, scene, config: EvalConfig, device, out_dir, *, render: Callable, views=None, ranks=None):
         if not callable(render):
             raise ValueError(f"render: expected a callable view -> rgb, got {render!r}")
         self.scene, self.config, self.device = scene, config, torch.device(device)
         self.out_dir = Path(out_dir)
         self.render = render
         self.views = views
+        self.ranks = ranks
         self.history: List[dict] = []
         self._chosen: Optional[tuple] = None  # (split, views) of evaluate()
         self._lpips: Optional[LPIPSMetric] = None
@@ -51,6 +54,9 @@ class Evaluator:
     def evaluate(self, *, save_images: bool = False, max_views: int = 0, keep_images: int = 0) -> dict:
         """Metrics of evaluate_views plus "split"; keep_images > 0 adds "images" {name: rgb [H,W,3] on the CPU,
         clamped to [0, 1]} of the first that many views (for TensorBoard), from the same renders."""
+        shared = self.ranks is not None and self.ranks.enabled
+        if shared:  # rank 0's log decides (the others log nothing but render their share of the images)
+            keep_images = self.ranks.broadcast_object(keep_images, what="starting the evaluation")
         if self._chosen is None:
             self._chosen = self.eval_views()
         split, views = self._chosen
@@ -65,11 +71,42 @@ class Evaluator:
                 images[view.name] = rgb.detach().clamp(0.0, 1.0).cpu()
             return rgb
 
-        metrics = evaluate_views(render, views, lpips=self.lpips(), save_dir=save_dir)
+        if shared:
+            metrics = self._evaluate_shared(render, views, save_dir, images)
+        else:
+            metrics = evaluate_views(render, views, lpips=self.lpips(), save_dir=save_dir)
         metrics["split"] = split
         if keep_images:
-            metrics["images"] = images
+            metrics["images"] = dict(list(images.items())[:keep_images])
         return metrics
+
+    def _evaluate_shared(self, render: Callable, views: list, save_dir, images: dict) -> dict:
+        """evaluate_views over the ranks: this rank's share, then everyone's per-view scores (and kept images)."""
+        lpips = self.lpips()
+        mine = views[self.ranks.shard(len(views))]
+        if mine:
+            per_view = evaluate_views(render, mine, lpips=lpips, save_dir=save_dir)["per_view"]
+        else:  # fewer views than ranks
+            per_view = {}
+        gathered = self.ranks.all_gather_object((per_view, images), what="gathering the evaluation scores")
+        scores, kept = {}, {}
+        for rank_scores, rank_images in gathered:
+            scores.update(rank_scores)
+            kept.update(rank_images)
+        per_view = {v.name: scores[v.name] for v in views if v.name in scores}  # view order, as one process
+        n = len(per_view)
+        out = {"psnr": sum(v["psnr"] for v in per_view.values()) / n,
+               "ssim": sum(v["ssim"] for v in per_view.values()) / n}
+        if lpips is not None and lpips.available:
+            out["lpips"] = sum(v["lpips"] for v in per_view.values()) / n
+        else:
+            out["lpips"] = None
+            out["lpips_unavailable"] = lpips.reason if lpips is not None else "disabled (eval.lpips: false)"
+        out["num_views"] = n
+        out["per_view"] = per_view
+        images.clear()
+        images.update({v.name: kept[v.name] for v in views if v.name in kept})
+        return out
 
     def periodic(self, step: int, num_primitives: int, train_seconds: float, *, keep_images: int = 0) -> tuple:
         """Evaluate at most eval.max_views views during training and append the entry to `history`;

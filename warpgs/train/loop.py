@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Callable, List, Optional
 
 from warpgs.metrics.views import write_json
+from warpgs.train.distributed import DistributedError
 from warpgs.train.guard import NonFiniteError
 from warpgs.utils.atomic_file import atomic_write_bytes
 from warpgs.utils.progress import Progress
@@ -65,7 +66,8 @@ class TrainingLoop:
     def run(self) -> "TrainResult":
         tr, cfg = self.trainer, self.trainer.config
         tr.out_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(tr.out_dir / "config.yaml", cfg.to_yaml().encode())
+        if tr.ranks.is_main:  # a distributed run's files are rank 0's to write
+            atomic_write_bytes(tr.out_dir / "config.yaml", cfg.to_yaml().encode())
         self.progress = Progress(tr.max_steps, tr.step, enabled=cfg.train.progress and not tr.quiet,
                                  log_every=cfg.train.log_every)
         if tr.step == 0 or tr.init_source != "checkpoint":
@@ -78,14 +80,18 @@ class TrainingLoop:
         try:
             with StopOnSigint(self.say) as sigint:
                 while tr.step < tr.max_steps:
-                    if sigint.requested:
+                    if sigint.requested and not tr.ranks.enabled:
                         raise KeyboardInterrupt
-                    self._one_step()
+                    # Distributed: the request travels with the step's gradients, so every rank stops after the
+                    # same step (a rank stopping alone would leave the others waiting in a collective).
+                    tr.stop_requested = sigint.requested
+                    with tr.lock:  # a viewer thread renders between steps, never during one
+                        self._one_step()
         except KeyboardInterrupt:
             self._close_progress()
             self._interrupted()
             raise
-        except NonFiniteError as e:
+        except (NonFiniteError, DistributedError) as e:
             self._close_progress()
             last = tr.checkpointer.last_step
             kept = (f"last good checkpoint: step {last} in {tr.checkpoint_path}" if last >= 0
@@ -93,7 +99,8 @@ class TrainingLoop:
             self.say(f"warpgs: stopped, {e}; {kept}")
             raise
         self._close_progress()
-        return self.finish()
+        with tr.lock:
+            return self.finish()
 
     def _one_step(self) -> None:
         tr, cfg = self.trainer, self.trainer.config
@@ -110,6 +117,8 @@ class TrainingLoop:
             self._periodic_eval()
         if cfg.train.checkpoint_every and tr.step % cfg.train.checkpoint_every == 0 and tr.step < tr.max_steps:
             tr.save_checkpoint()
+        if info.get("stop"):  # a rank got Ctrl-C: every rank stops at this same boundary
+            raise KeyboardInterrupt
 
     def _close_progress(self) -> None:
         self.progress.close()
@@ -145,7 +154,8 @@ class TrainingLoop:
         tr, cfg = self.trainer, self.trainer.config
         if tr.step != tr.checkpointer.last_step:
             tr.save_checkpoint()
-        tr.model.save_ply(tr.out_dir / cfg.output.ply)
+        if tr.ranks.is_main:
+            tr.model.save_ply(tr.out_dir / cfg.output.ply)
         m = tr.evaluator.evaluate(save_images=cfg.eval.save_images, keep_images=tr.log.images)
         tr.log.eval(tr.step, m, num_primitives=tr.model.num_primitives, train_seconds=tr.train_seconds, final=True)
         metrics = {"split": m["split"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"]}
@@ -155,7 +165,9 @@ class TrainingLoop:
                         "train_seconds": round(tr.train_seconds, 3), "num_views": m["num_views"],
                         "model_kind": tr.model.kind, "device": str(tr.device), "scene": str(tr.scene.root),
                         "final_loss": tr.last_loss, "history": tr.history, "per_view": m["per_view"]})
-        write_json(tr.out_dir / cfg.output.metrics, metrics)
+        if tr.ranks.is_main:
+            write_json(tr.out_dir / cfg.output.metrics, metrics)
+        tr.ranks.barrier("waiting for rank 0 to write the final outputs")
         lp = f" lpips {m['lpips']:.4f}" if m["lpips"] is not None else " lpips unavailable"
         self.say(f"warpgs: {m['split']} psnr {m['psnr']:.2f} ssim {m['ssim']:.4f}{lp}; "
                  f"{tr.model.num_primitives} primitives; {tr.step} steps in {tr.train_seconds:.1f} s")

@@ -94,9 +94,12 @@ def means_lr_at(step: int, config: OptimConfig, scene_extent: float, max_steps: 
 
 
 def update_learning_rates(optimizer: torch.optim.Optimizer, step: int, config: OptimConfig, scene_extent: float,
-                          max_steps: int) -> float:
-    """Set the `means` group's lr for this step (call once per step before optimizer.step()); returns it."""
+                          max_steps: int, lr_scale: float = 1.0) -> float:
+    """Set the `means` group's lr for this step (call once per step before optimizer.step()); returns it.
+    lr_scale: the batch's multiplier (train/scaling.py), applied on top of the schedule."""
     lr = means_lr_at(step, config, scene_extent, max_steps)
+    if lr_scale != 1.0:
+        lr *= lr_scale
     hit = False
     for group in optimizer.param_groups:
         if group.get("name") == "means":

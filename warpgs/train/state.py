@@ -43,12 +43,14 @@ class TrainingState:
 class Checkpointer:
     """checkpoint.pt of one run. Owns its path and `last_step`: the step of the checkpoint on disk that this run
     wrote or resumed from (-1: none yet). `guard` (a NonFiniteGuard, or None with train.nan_guard off) checks the
-    parameters before a write, so a broken state never replaces a good checkpoint."""
+    parameters before a write, so a broken state never replaces a good checkpoint. write=False (the ranks other
+    than 0 of a distributed run, whose state is the same) checks and counts but leaves the file to rank 0."""
 
-    def __init__(self, path, device, *, guard=None):
+    def __init__(self, path, device, *, guard=None, write: bool = True):
         self.path = Path(path)
         self.device = torch.device(device)
         self.guard = guard
+        self.write = bool(write)
         self.last_step = -1
 
     def state_dict(self, parts: TrainingState) -> dict:
@@ -64,9 +66,10 @@ class Checkpointer:
         step = parts.counters.step
         if self.guard is not None:
             self.guard.check(step)
-        path = ckpt.save_checkpoint(self.path, self.state_dict(parts))
+        if self.write:
+            ckpt.save_checkpoint(self.path, self.state_dict(parts))
         self.last_step = step
-        return path
+        return self.path
 
     def load(self) -> dict:
         """The checkpoint at `path`, for a resume (a clear error when there is none)."""

@@ -22,6 +22,12 @@ respect to each primitive's projected 2D mean:
 Calling it after optimizer.step() (as above) means the densify step does not lose an Adam update; calling it
 before works too (new Parameters then have no grad for that step, like 3DGS).
 
+The same in pieces, for batches of views rendered one at a time (sizes may differ) and for data-parallel runs:
+`observe(...)` per camera (views_in_loss = the global batch size), `merge_observations`, a reduction over the
+ranks (sums of gradient norms and counts, maxima of radii: train/distributed.py), `add_observations`, then
+`maybe_refine(model, optimizers, step)`. For one camera, step_post_backward is exactly observe + add +
+maybe_refine.
+
 Gradient units: as 3DGS (and gsplat), the accumulated statistic is the norm of the gradient with respect to
 NDC coordinates, dL/dndc = dL/dpixel * (W/2, H/2), times B for a batch of B cameras (the loss is a mean over
 them), averaged over the steps in which the primitive was visible. The default threshold 0.0002 therefore
@@ -215,7 +221,12 @@ class DensifyStrategy:
             raise ValueError(f"grad2d/visible: expected [{n},2]/[{n}] per camera, got {list(g2.shape)}/{list(vis.shape)}")
         radii = torch.stack([screen_radii(model, views[b], Ks[b], width, height, near) for b in range(len(views))])
         self.accumulate(g2, vis, radii, width, height)
+        return self.maybe_refine(model, optimizers, step)
 
+    def maybe_refine(self, model: GaussianModel, optimizers: Optimizers, step: int) -> Optional[dict]:
+        """The end of step_post_backward, after the statistics are in: refine and/or reset opacities when this step
+        is one of theirs. Returns the report (or None)."""
+        cfg = self.config
         report = None
         if step > cfg.refine_start and step % cfg.refine_every == 0:
             report = self.refine(model, optimizers, step)
@@ -225,6 +236,63 @@ class DensifyStrategy:
             report["opacity_reset"] = True
         return report
 
+    # ----- one camera at a time (batches of views with their own sizes, data-parallel training) -----
+    def observe(self, model: GaussianModel, *, visible: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
+                width: int, height: int, grad2d: Optional[torch.Tensor] = None,
+                means_grad: Optional[torch.Tensor] = None, near: float = 0.01, views_in_loss: int = 1) -> dict:
+        """One camera's statistics for this step, not yet added (add_observations adds them; merge_observations
+        combines several cameras or ranks first). grad2d [N,2] is dL/dmeans2d of the loss this camera is part of;
+        without it, means_grad [N,3] (this camera's share of dL/dmeans, default model.means.grad) is projected as
+        step_post_backward does. views_in_loss: how many views the loss averages over (the global batch), the
+        factor that turns the gradient of the mean back into this view's own gradient, as gsplat's n_cameras."""
+        self._check_model(model)
+        if grad2d is None:
+            g = model.means.grad if means_grad is None else means_grad
+            if g is None:
+                raise ValueError("grad2d: not given and neither means_grad nor model.means.grad is set")
+            grad2d = screen_grads_from_means_grad(model.means, g, viewmat, K, near)
+        n = model.num_primitives
+        if grad2d.shape != (n, 2) or visible.shape != (n,):
+            raise ValueError(f"grad2d/visible: expected [{n},2]/[{n}], got {list(grad2d.shape)}/{list(visible.shape)}")
+        radii = torch.stack([screen_radii(model, viewmat, K, width, height, near)])
+        return self.observations(grad2d[None], visible[None], radii, width, height, views_in_loss)
+
+    @staticmethod
+    @torch.no_grad()
+    def observations(grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, width: int, height: int,
+                     views_in_loss: Optional[int] = None) -> dict:
+        """grad2d [B,N,2] px, visible [B,N], radii [B,N] px -> {"grad": summed NDC gradient norms [N], "count":
+        views in which each primitive was visible [N], "radii": largest radius px [N], "screen": the same as a
+        fraction of the image's larger side [N]}. views_in_loss defaults to B (see the module doc)."""
+        batch = grad2d.shape[0] if views_in_loss is None else int(views_in_loss)
+        scale = grad2d.new_tensor([0.5 * width * batch, 0.5 * height * batch])
+        norms = (grad2d.detach() * scale).norm(dim=-1)
+        vis = visible.to(torch.bool)
+        seen = torch.where(vis, radii, torch.zeros_like(radii)).amax(0)
+        return {"grad": torch.where(vis, norms, torch.zeros_like(norms)).sum(0), "count": vis.sum(0),
+                "radii": seen, "screen": seen / max(width, height)}
+
+    @staticmethod
+    def merge_observations(observations) -> dict:
+        """Several cameras' observations as one: sums of "grad" and "count", maxima of "radii" and "screen"."""
+        observations = list(observations)
+        out = dict(observations[0])
+        for obs in observations[1:]:
+            out = {"grad": out["grad"] + obs["grad"], "count": out["count"] + obs["count"],
+                   "radii": torch.maximum(out["radii"], obs["radii"]),
+                   "screen": torch.maximum(out["screen"], obs["screen"])}
+        return out
+
+    @torch.no_grad()
+    def add_observations(self, obs: dict) -> None:
+        """Add one step's observations (of one camera, merged cameras, or all ranks) to the statistics."""
+        if self.grad_accum is None:
+            raise ValueError("strategy: call initialize(model) first")
+        self.grad_accum += obs["grad"]
+        self.count += obs["count"]
+        self.max_radii = torch.maximum(self.max_radii, obs["radii"])
+        self.max_screen = torch.maximum(self.max_screen, obs["screen"])
+
     # ----- pieces (usable on their own) -----
     @torch.no_grad()
     def accumulate(self, grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, width: int,
@@ -232,15 +300,7 @@ class DensifyStrategy:
         """grad2d [B,N,2] in pixels, visible [B,N] bool, radii [B,N] px: one training step's observations."""
         if self.grad_accum is None:
             raise ValueError("strategy: call initialize(model) first")
-        batch = grad2d.shape[0]
-        scale = grad2d.new_tensor([0.5 * width * batch, 0.5 * height * batch])
-        norms = (grad2d.detach() * scale).norm(dim=-1)
-        vis = visible.to(torch.bool)
-        self.grad_accum += torch.where(vis, norms, torch.zeros_like(norms)).sum(0)
-        self.count += vis.sum(0)
-        seen = torch.where(vis, radii, torch.zeros_like(radii)).amax(0)
-        self.max_radii = torch.maximum(self.max_radii, seen)
-        self.max_screen = torch.maximum(self.max_screen, seen / max(width, height))
+        self.add_observations(self.observations(grad2d, visible, radii, width, height))
 
     def average_grads(self) -> torch.Tensor:
         return self.grad_accum / self.count.clamp_min(1)

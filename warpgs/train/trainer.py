@@ -7,6 +7,8 @@
 One step: pick the next training view (a seeded random order, reshuffled every epoch), set the active SH degree
 and the position learning rate, render exactly the outputs the active losses (and extensions) declare, sum the
 weighted losses, backward, step Adam, let the densification strategy clone/split/prune under its hard budget.
+With train.batch_size=B a step takes B views (loss = their mean); under torchrun the ranks share them out and sum
+their gradients and statistics (train/distributed.py, docs/distributed.md).
 
 Output folder: config.yaml (the resolved config), checkpoint.pt (atomic; model, optimizer, strategy, RNG
 states, step), point_cloud.ply (3DGS layout; surfels in the 2DGS layout), renders/<split>/*.png,
@@ -24,6 +26,7 @@ NonFiniteGuard (guard.py), Checkpointer (state.py), TrainLog (log.py). It owns t
 from __future__ import annotations
 
 import math
+import threading
 import time
 from pathlib import Path
 from typing import Callable, Dict, Iterable, List, Optional, Sequence, Union
@@ -37,10 +40,13 @@ from warpgs.train.extensions import CallbackExtension, Extension, build_extensio
 from warpgs.model.gaussians import GaussianModel
 from warpgs.model.rendering import check_outputs, render_model
 from warpgs.train.optim import build_optimizer, update_learning_rates
+from warpgs.train.scaling import apply_batch_scaling, lr_scale
 from warpgs.train.strategy import DensifyStrategy
 from warpgs.data.extent import scene_content_extent
 from warpgs.model import environment  # noqa: F401  (registers the built-in "environment" extension)
 from warpgs.train import setup as train_setup
+from warpgs.train.batch import ViewPass, batch_result, batch_summary, local_sums, scalar_names
+from warpgs.train.distributed import DistributedError, setup_ranks, sync_model
 from warpgs.train.evaluation import Evaluator
 from warpgs.train.guard import NonFiniteError, NonFiniteGuard
 from warpgs.train.log import TrainLog
@@ -51,7 +57,7 @@ from warpgs.train.views import TrainViews
 from warpgs.config.user_imports import import_user_module
 
 VIEW_FIELDS = ("mask", "inv_depth_prior", "inv_depth_valid", "depth", "labels", "features")
-__all__ = ["Trainer", "TrainResult", "NonFiniteError", "train"]
+__all__ = ["Trainer", "TrainResult", "NonFiniteError", "DistributedError", "train"]
 
 
 class Trainer:
@@ -64,10 +70,17 @@ class Trainer:
                  callbacks: Iterable[Callable] = (), resume: bool = False, out_dir=None, quiet: bool = False):
         self.config = load_config(config, overrides)  # a private, checked copy
         cfg = self.config
-        self.quiet = quiet
         for module in cfg.imports:  # e.g. modules that register custom losses or extensions
             import_user_module(module)
-        self.device = train_setup.resolve_device(cfg.train.device)
+        # Under torchrun (WORLD_SIZE > 1) this joins the process group; on one process `ranks` is a no-op.
+        self.ranks, self.device = setup_ranks(train_setup.resolve_device(cfg.train.device),
+                                              backend=cfg.train.dist_backend, timeout=cfg.train.dist_timeout)
+        self.quiet = quiet or not self.ranks.is_main  # one console voice: rank 0's
+        self.batch_size = cfg.train.batch_size
+        if self.batch_size < self.ranks.world_size:
+            raise ValueError(f"train.batch_size: {self.batch_size} is less than the {self.ranks.world_size} "
+                             f"processes; it counts the views of a step over all of them (each renders its "
+                             f"share), e.g. train.batch_size={self.ranks.world_size}")
         terms = resolve_terms(cfg.losses)
 
         if out_dir is not None:
@@ -75,14 +88,18 @@ class Trainer:
         if cfg.output.dir is None:
             cfg.output.dir = str(Path("outputs") / train_setup.scene_label(cfg.data))
         self.out_dir = Path(cfg.output.dir)
-        self.log = TrainLog(self.out_dir, kind=cfg.train.log, every=cfg.train.log_every)  # files open in fit()
-        self.scene = scene if scene is not None else train_setup.load_training_scene(cfg.data, self.out_dir)
+        self.log = TrainLog(self.out_dir, kind=cfg.train.log if self.ranks.is_main else "none",
+                            every=cfg.train.log_every)  # files open in fit()
+        # Rank 0 first: loading can write caches (the built-in scene, estimated depth priors) the others then read.
+        self.scene = scene if scene is not None else self.ranks.rank0_first(
+            lambda: train_setup.load_training_scene(cfg.data, self.out_dir), "loading the scene")
         self.extent = train_setup.scene_extent(self.scene, cfg.train.scene_extent)
         self.background = train_setup.resolve_background(cfg.train.background, self.scene, self.device)
         self.max_steps = cfg.train.steps
         self.guard = NonFiniteGuard(self.named_parameters)
         self.checkpointer = Checkpointer(self.out_dir / cfg.output.checkpoint, self.device,
-                                         guard=self.guard if cfg.train.nan_guard else None)
+                                         guard=self.guard if cfg.train.nan_guard else None,
+                                         write=self.ranks.is_main)
 
         state = self.checkpointer.load() if resume else None
         ckpt.seed_everything(cfg.train.seed)
@@ -91,7 +108,8 @@ class Trainer:
         elif model is not None:
             self.model, self.init_source = model.to(self.device), "given"
         else:
-            self.model, self.init_source = train_setup.build_model(self.scene, cfg, self.device)
+            self.model, self.init_source = self.ranks.rank0_first(  # triangulated points are cached
+                lambda: train_setup.build_model(self.scene, cfg, self.device), "building the initial model")
         if self.model.kind != cfg.model.kind:
             raise ValueError(f"model.kind: config says {cfg.model.kind!r} but the model is {self.model.kind!r}")
 
@@ -103,6 +121,11 @@ class Trainer:
         self.extensions += list(extensions) + [CallbackExtension(fn) for fn in callbacks]
         for ext in self.extensions:
             ext.setup(self)
+        if self.ranks.enabled:  # every rank starts from rank 0's values (the same as one process would)
+            self.model = sync_model(self.ranks, self.model, self.device)
+            with torch.no_grad():
+                for name, p in self.modules.named_parameters():
+                    self.ranks.broadcast_(p.data, what=f"broadcasting the initial modules.{name}")
 
         self.loss_set = LossSet(terms, always=[o for e in self.extensions for o in e.outputs()])
         check_outputs(self.model.kind, self.outputs, "losses")
@@ -116,17 +139,36 @@ class Trainer:
             groups = [{"params": list(m.parameters()), "lr": self._module_lrs[n], "name": n}
                       for n, m in self.modules.items()]
             self.module_optimizer = torch.optim.Adam(groups, lr=0.0)
+        self.lr_scale = lr_scale(self.batch_size, cfg.train.batch_scaling)
+        if self.batch_size > 1:
+            apply_batch_scaling(self.optimizers, self.base_learning_rates(), batch_size=self.batch_size,
+                                rule=cfg.train.batch_scaling)
         self.strategy = DensifyStrategy(cfg.strategy, self.extent, invisible_below=cfg.train.alpha_min,
                                         world_extent=cfg.train.scene_extent or scene_content_extent(self.scene))
         self.strategy.initialize(self.model)
 
         self.views = TrainViews(self.scene, self.device, seed=cfg.train.seed, preload=cfg.data.preload)
         self.evaluator = Evaluator(self.scene, cfg.eval, self.device, self.out_dir,
-                                   render=lambda v: self.render(v, ("rgb",)).rgb, views=self.views)
+                                   render=lambda v: self.render(v, ("rgb",)).rgb, views=self.views,
+                                   ranks=self.ranks)
         self.counters = RunCounters()
         self._at_boundary = True
+        self.stop_requested = False  # set by the loop on Ctrl-C (distributed runs stop together, see train_step)
+        # Held by TrainingLoop over each step: another thread (the train.viewer browser viewer, warpgs/viewer)
+        # renders the model only while holding it, so never mid-step.
+        self.lock = threading.RLock()
+        self.viewer = None
         if state is not None:
             self.checkpointer.restore(state, self.training_state())
+            saved = state.get("config", {}).get("train", {})
+            if lr_scale(saved.get("batch_size", 1), saved.get("batch_scaling", "sqrt")) != self.lr_scale:
+                # Trained with another batch size: the restored Adam groups hold its scaling, not this run's.
+                apply_batch_scaling(self.optimizers, self.base_learning_rates(), batch_size=self.batch_size,
+                                    rule=cfg.train.batch_scaling)
+        if self.ranks.enabled:
+            # Each rank's own global RNG streams (anything a loss or extension draws), from seed, rank and step;
+            # what every rank must agree on (view order, split sampling) has its own seeded generator.
+            ckpt.seed_everything(self.ranks.derived_seed(cfg.train.seed, self.step))
 
     # ----- the run's position (RunCounters) and its collaborators' views of it --------------------------------
     @property
@@ -269,43 +311,94 @@ class Trainer:
         return self.loss_set.outputs_at(step, self.max_steps)
 
     def train_step(self) -> dict:
-        """One optimisation step at self.step; returns info for logging and hooks."""
+        """One optimisation step at self.step over train.batch_size views (this rank's share of them when
+        distributed); returns info for logging and hooks. The loss is the mean over the batch's views; each view is
+        rendered, scored and back-propagated in turn (ViewPass, train/batch.py), gradients and densification
+        statistics are summed over the ranks, then every rank takes the same optimizer and strategy step. With one
+        view on one process this is the single-view step exactly (tests/test_train_batch.py checks bit for bit)."""
         cfg, model, step = self.config, self.model, self.step
         self._at_boundary = False
         t0 = time.perf_counter()
-        view = self.next_view()
-        batch = self.make_batch(view, step)
+        drawn = self.views.draw(self.batch_size)  # the global batch, drawn alike on every rank
+        mine = [self.view(i) for i in drawn[self.ranks.shard(len(drawn))]]
         model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
-        update_learning_rates(self.optimizer, step, cfg.optim, self.extent, self.max_steps)
+        update_learning_rates(self.optimizer, step, cfg.optim, self.extent, self.max_steps, self.lr_scale)
         densify = step < cfg.strategy.refine_stop
-        out = self.render(view, self.outputs_at(step), batch, track_means2d=densify, step=step)
-        result = self.loss_set(out, batch, model, step, self.max_steps)
-        self.strategy.step_pre_backward(model, step)
-        result.total.backward()
+        passes = []
+        for view in mine:
+            passes.append(self.view_pass(view, step, views_in_loss=len(drawn), densify=densify,
+                                         first=not passes))
+        names = scalar_names(passes)
+        # A Ctrl-C on any rank rides along with the sums, so all ranks learn of it at the same step.
+        sums = self.ranks.all_reduce_gradients([p for _, p in self.named_parameters()],
+                                               local_sums(passes, names) + [float(self.stop_requested)], step)
+        stop = self.ranks.enabled and sums.pop() > 0
+        if len(drawn) == 1:
+            result, summary = passes[0].result, {"loss": passes[0].loss, "values": passes[0].values,
+                                                 "psnr": passes[0].psnr}
+        else:
+            summary = batch_summary(sums, names, len(drawn))
+            result = batch_result(summary, passes[0].result)
         if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied
             self.check_finite(step, result)
         for opt in self.optimizers:
             opt.step()
         report = None
-        if densify:
-            grad2d = out.means2d.grad if out.means2d is not None else None
-            report = self.strategy.step_post_backward(model, self.optimizer, step, visible=out.visible,
-                                                      viewmat=view.viewmat, K=view.K, width=view.width,
-                                                      height=view.height, grad2d=grad2d, near=cfg.train.near)
+        if densify:  # after the optimizer step, as 3DGS: the screen radii are those of the updated model
+            observed = self.strategy.merge_observations(
+                self.strategy.observe(model, visible=p.visible, viewmat=p.view.viewmat, K=p.view.K,
+                                      width=p.view.width, height=p.view.height, grad2d=p.grad2d,
+                                      means_grad=p.means_grad, near=cfg.train.near, views_in_loss=len(drawn))
+                for p in passes)
+            self.strategy.add_observations(self.ranks.all_reduce_observations(observed, step))
+            report = self.strategy.maybe_refine(model, self.optimizer, step)
+            if report is not None and self.ranks.enabled:
+                self.ranks.check_same(model.num_primitives, f"the number of primitives after step {step}")
         for opt in self.optimizers:
             opt.zero_grad(set_to_none=True)
         model.zero_grad(set_to_none=True)
-        loss = float(result.total.detach())
-        train_psnr = None
-        if out.rgb is not None:
-            mse = float(((out.rgb.detach() - view.image) ** 2).mean())
-            train_psnr = 10.0 * math.log10(1.0 / max(mse, 1e-10))
         self.counters.train_seconds += time.perf_counter() - t0
         self.counters.step = step + 1
-        self.counters.last_loss = loss
+        self.counters.last_loss = summary["loss"]
         self._at_boundary = True
-        return {"step": step, "loss": loss, "values": {k: float(v) for k, v in result.values.items()},
-                "psnr": train_psnr, "num_primitives": model.num_primitives, "densify": report, "view": view.name}
+        return {"step": step, "loss": summary["loss"], "values": summary["values"], "psnr": summary["psnr"],
+                "num_primitives": model.num_primitives, "densify": report, "view": passes[0].view.name,
+                "views": [self.scene.cameras[i].name for i in drawn], "stop": stop}
+
+    def view_pass(self, view, step: int, *, views_in_loss: int = 1, densify: bool = False,
+                  first: bool = True) -> ViewPass:
+        """Render one view of the step, score it, and back-propagate its share (loss / views_in_loss) into the
+        parameters' .grad; returns what the rest of the step needs from it. `first`: the step's first view (the
+        strategy checks the model before the first backward)."""
+        model = self.model
+        batch = self.make_batch(view, step)
+        out = self.render(view, self.outputs_at(step), batch, track_means2d=densify, step=step)
+        result = self.loss_set(out, batch, model, step, self.max_steps)
+        if first:
+            self.strategy.step_pre_backward(model, step)
+        # Surfels give no means2d: this view's share of means.grad is what the strategy projects instead (with a
+        # single view, means.grad itself, read after the step as before).
+        own_means_grad = densify and out.means2d is None and views_in_loss > 1
+        before = model.means.grad.clone() if own_means_grad and model.means.grad is not None else None
+        (result.total if views_in_loss == 1 else result.total / views_in_loss).backward()
+        p = ViewPass(view=view, result=result, loss=float(result.total.detach()),
+                     values={k: float(v) for k, v in result.values.items()})
+        if densify:
+            p.visible = out.visible
+            p.grad2d = out.means2d.grad if out.means2d is not None else None
+            if own_means_grad:
+                g = model.means.grad
+                p.means_grad = g.clone() if before is None else g - before
+        if out.rgb is not None:  # read now: the next view's render may reuse the output buffers
+            mse = float(((out.rgb.detach() - view.image) ** 2).mean())
+            p.psnr = 10.0 * math.log10(1.0 / max(mse, 1e-10))
+        return p
+
+    def base_learning_rates(self) -> Dict[str, float]:
+        """{param group: its configured lr} before any batch scaling (the means' is set every step anyway)."""
+        base = {name: self.config.optim.lr_for(name, self.extent) for name in self.model.params}
+        base.update(self._module_lrs)
+        return base
 
     # ----- evaluation and checkpoints (Evaluator, Checkpointer) -----------------------------------------------
     def eval_views(self, split: Optional[str] = None) -> tuple:
@@ -327,13 +420,19 @@ class Trainer:
         return self.checkpointer.state_dict(self.training_state())
 
     def save_checkpoint(self) -> Path:
+        """Write checkpoint.pt (rank 0 only; the other ranks wait for it at a barrier)."""
         if not self._at_boundary:
             raise RuntimeError("save_checkpoint: only between steps")
-        return self.checkpointer.save(self.training_state())
+        path = self.checkpointer.save(self.training_state())
+        self.ranks.barrier(f"waiting for rank 0 to write the checkpoint of step {self.step}")
+        return path
 
     # ----- the loop (TrainingLoop in loop.py) -----------------------------------------------------------------
     def fit(self) -> TrainResult:
         """Train from self.step to max_steps, then write the final outputs (see the module docstring)."""
+        if self.config.train.viewer and self.viewer is None and self.ranks.is_main:  # serves until the process ends
+            from warpgs.viewer.live import start_live_viewer
+            self.viewer = start_live_viewer(self, self.config.train.viewer_port)
         threads = self.config.train.threads or (1 if self.device.type == "cpu" else 0)
         previous = torch.get_num_threads()
         if threads:
@@ -351,6 +450,10 @@ class Trainer:
     def finish(self) -> TrainResult:
         """Final checkpoint, PLY, test renders and metrics.json."""
         return TrainingLoop(self).finish()
+
+    def close(self) -> None:
+        """Leave the process group if this Trainer joined it (warpgs-train does this after fit())."""
+        self.ranks.close()
 
 
 def train(config=None, overrides: Sequence[str] = (), **kwargs) -> TrainResult:

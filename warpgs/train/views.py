@@ -1,5 +1,6 @@
 """The training views a Trainer draws from: device copies kept when data.preload, and a seeded order reshuffled
-every epoch. The order's generator and queue go into checkpoints, so a resumed run draws the same views."""
+every epoch. The order's generator and queue go into checkpoints, so a resumed run draws the same views. The order
+is global (the same on every rank of a distributed run); each rank keeps only the views it renders."""
 from __future__ import annotations
 
 from typing import Dict, List
@@ -34,11 +35,20 @@ class TrainViews:
 
     def next(self):
         """The next training view: a new random permutation of the training views each epoch."""
+        return self.view(self.draw(1)[0])
+
+    def draw(self, n: int) -> List[int]:
+        """The scene indices of the next n training views, not loaded. A batch that crosses an epoch's end takes
+        the rest of that epoch and the start of the next (so a view can appear twice in it). Every rank of a
+        distributed run draws the whole global batch from the same seeded order and loads only its own slice."""
         if not self.indices:
             raise ValueError(f"scene: {getattr(self.scene, 'root', 'the scene')} has no training views to draw")
-        if not self.queue:
-            self.queue = torch.randperm(len(self.indices), generator=self.generator).tolist()
-        return self.view(self.indices[self.queue.pop(0)])
+        out = []
+        for _ in range(int(n)):
+            if not self.queue:
+                self.queue = torch.randperm(len(self.indices), generator=self.generator).tolist()
+            out.append(self.indices[self.queue.pop(0)])
+        return out
 
     # The checkpoint keys of checkpoints written before this class existed.
     def state_dict(self) -> dict:
