@@ -139,6 +139,9 @@ def train_main(argv: Optional[List[str]] = None) -> int:
     except NonFiniteError:
         trainer.close()
         return EXIT_NONFINITE
+    except ImportError as e:  # an optional extra the config asks for (train.viewer, train.log=tensorboard)
+        trainer.close()
+        return _error("warpgs-train", str(e), EXIT_CONFIG)
     except DistributedError as e:  # the group is broken: leave it to the process's exit, not a collective teardown
         # Rank 0's loop has said it already; the other ranks are quiet, so their error is printed here.
         return _error("warpgs-train", str(e), EXIT_DISTRIBUTED) if trainer.quiet else EXIT_DISTRIBUTED

@@ -1,0 +1,5 @@
+import sys
+
+from warpgs.viewer.cli import main
+
+sys.exit(main())
