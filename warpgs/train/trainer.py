@@ -381,17 +381,21 @@ class Trainer:
         own_means_grad = densify and out.means2d is None and views_in_loss > 1
         before = model.means.grad.clone() if own_means_grad and model.means.grad is not None else None
         (result.total if views_in_loss == 1 else result.total / views_in_loss).backward()
-        p = ViewPass(view=view, result=result, loss=float(result.total.detach()),
-                     values={k: float(v) for k, v in result.values.items()})
+        # The scalars for the log and the progress line in one device-to-host copy (one sync, not one per value).
+        names = list(result.values)
+        scalars = [result.total.detach().reshape(())] + [result.values[k].detach().reshape(()) for k in names]
+        if out.rgb is not None:  # read now: the next view's render may reuse the output buffers
+            scalars.append(((out.rgb.detach() - view.image) ** 2).mean())
+        host = torch.stack([v.float() for v in scalars]).tolist()
+        p = ViewPass(view=view, result=result, loss=host[0], values=dict(zip(names, host[1:1 + len(names)])))
         if densify:
             p.visible = out.visible
             p.grad2d = out.means2d.grad if out.means2d is not None else None
             if own_means_grad:
                 g = model.means.grad
                 p.means_grad = g.clone() if before is None else g - before
-        if out.rgb is not None:  # read now: the next view's render may reuse the output buffers
-            mse = float(((out.rgb.detach() - view.image) ** 2).mean())
-            p.psnr = 10.0 * math.log10(1.0 / max(mse, 1e-10))
+        if out.rgb is not None:
+            p.psnr = 10.0 * math.log10(1.0 / max(host[-1], 1e-10))
         return p
 
     def base_learning_rates(self) -> Dict[str, float]:
