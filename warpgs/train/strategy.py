@@ -33,7 +33,7 @@ NDC coordinates, dL/dndc = dL/dpixel * (W/2, H/2), times B for a batch of B came
 them), averaged over the steps in which the primitive was visible. The default threshold 0.0002 therefore
 matches 3DGS for a loss on the same scale (0.8 L1 + 0.2 (1 - SSIM), means over pixels).
 
-Screen radii (for screen-size pruning) are computed here from the camera: 3 sqrt(largest eigenvalue) of the
+Screen radii (for screen-size pruning, so only when a screen rule is on) are computed here from the camera: 3 sqrt(largest eigenvalue) of the
 projected covariance with the 0.3 px^2 low-pass, as the projection kernel does (3D scales; surfels get 0 for
 the third axis).
 
@@ -219,7 +219,7 @@ class DensifyStrategy:
         n = model.num_primitives
         if g2.shape != (views.shape[0], n, 2) or vis.shape != (views.shape[0], n):
             raise ValueError(f"grad2d/visible: expected [{n},2]/[{n}] per camera, got {list(g2.shape)}/{list(vis.shape)}")
-        radii = torch.stack([screen_radii(model, views[b], Ks[b], width, height, near) for b in range(len(views))])
+        radii = torch.stack([self._screen_radii(model, views[b], Ks[b], width, height, near) for b in range(len(views))])
         self.accumulate(g2, vis, radii, width, height)
         return self.maybe_refine(model, optimizers, step)
 
@@ -254,7 +254,7 @@ class DensifyStrategy:
         n = model.num_primitives
         if grad2d.shape != (n, 2) or visible.shape != (n,):
             raise ValueError(f"grad2d/visible: expected [{n},2]/[{n}], got {list(grad2d.shape)}/{list(visible.shape)}")
-        radii = torch.stack([screen_radii(model, viewmat, K, width, height, near)])
+        radii = torch.stack([self._screen_radii(model, viewmat, K, width, height, near)])
         return self.observations(grad2d[None], visible[None], radii, width, height, views_in_loss)
 
     @staticmethod
@@ -410,6 +410,13 @@ class DensifyStrategy:
         self.generator.set_state(state["generator"])
 
     # ----- internals -----
+    def _screen_radii(self, model: GaussianModel, viewmat, K, width: int, height: int, near: float) -> torch.Tensor:
+        """screen_radii, or zeros when no screen-size rule is on (the default): only those rules read them, and
+        projecting every covariance each step is a dozen kernels over N primitives for nothing."""
+        if self.config.prune_screen_size > 0 or self.config.prune_screen_radius > 0:
+            return screen_radii(model, viewmat, K, width, height, near)
+        return torch.zeros(model.num_primitives, device=model.means.device)
+
     def _reset_stats(self, n: int, device) -> None:
         self.grad_accum = torch.zeros(n, device=device)
         self.count = torch.zeros(n, dtype=torch.int64, device=device)
