@@ -79,13 +79,46 @@ def test_random_and_adversarial_scenes_stay_finite(s):
     assert_sane(out, leaves)
 
 
+def ill_conditioned(s, max_cancellation=1e3, min_depth_gap=1e-5):
+    """[N] bool: Gaussians whose float32 render cannot match the float64 reference to 1e-4, for two reasons
+    that have nothing to do with the renderer being right (both measured on hypothesis examples):
+    - depths closer than float32 resolves (e.g. several Gaussians at the same world z seen through a rotation
+      with 1e-8 terms): float32 sorts them as a tie (by index), float64 by their true depths, and a different
+      blending order changes rgb by up to the colours' difference (0.35 seen); alpha does not change;
+    - projected covariances so elongated that det = ac - b^2 cancels: float32 keeps log10(a c / det) fewer
+      digits of the conic, and a c / det of 1e4-1e5 gave errors of 1e-4 to 5e-3."""
+    if len(s["means"]) == 0:
+        return torch.zeros(0, dtype=torch.bool)
+    R, t = s["viewmat"][:3, :3], s["viewmat"][:3, 3]
+    fx, fy, cx, cy = s["K"][0, 0], s["K"][1, 1], s["K"][0, 2], s["K"][1, 2]
+    p = s["means"] @ R.T + t
+    z = p[:, 2].clamp(min=0.01)
+    tan_x, tan_y = 0.5 * s["width"] / fx, 0.5 * s["height"] / fy
+    xz = (p[:, 0] / z).clamp(-(cx / fx + 0.3 * tan_x), (s["width"] - cx) / fx + 0.3 * tan_x)
+    yz = (p[:, 1] / z).clamp(-(cy / fy + 0.3 * tan_y), (s["height"] - cy) / fy + 0.3 * tan_y)
+    J = torch.zeros(len(z), 2, 3, dtype=torch.float64)
+    J[:, 0, 0], J[:, 0, 2], J[:, 1, 1], J[:, 1, 2] = fx / z, -fx * xz / z, fy / z, -fy * yz / z
+    M = torch.stack([rotation_from(q) for q in s["quats"].tolist()]) * s["scales"][:, None, :]
+    T = J @ R @ M
+    cov = T @ T.transpose(1, 2) + 0.3 * torch.eye(2, dtype=torch.float64)
+    a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    bad = a * c / (a * c - b * b) > max_cancellation
+    order = torch.argsort(p[:, 2])
+    zs = p[order, 2]
+    tie = (zs[1:] - zs[:-1]).abs() < min_depth_gap * zs[1:].abs().clamp(min=1.0)
+    bad[order[1:][tie]] = True  # one of each tied pair is enough
+    return bad
+
+
 @STRESS
 @given(scenes(max_n=16, max_side=24))
 def test_agrees_with_reference_when_well_conditioned(s):
-    # Keep to scales and depths where float32 vs float64 differences stay far below the 1e-4 tolerance.
+    # Keep to scales and depths where float32 vs float64 differences stay far below the 1e-4 tolerance, and
+    # hide (opacity 0: both renderers skip alpha < 1/255) the Gaussians no float32 renderer could match.
     s["scales"] = s["scales"].clamp(1e-3, 3.0)
     s["means"][:, 2] = s["means"][:, 2].abs() + 0.5
     s["quats"][s["quats"].norm(dim=1) < 1e-3] = torch.tensor([1.0, 0, 0, 0], dtype=torch.float64)
+    s["opacities"][ill_conditioned(s)] = 0.0
     out, _ = render_with_grads(s)
     ref = render_reference(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], s["viewmat"], s["K"],
                            s["width"], s["height"], background=torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64))

@@ -1,7 +1,7 @@
 """Command-line tools: `warpgs-train`, `warpgs-render`, `warpgs-eval` (also `python -m warpgs.cli train|render|eval`).
 
     warpgs-train [CONFIG] [--data PATH] [--out DIR] [--resume] [--nproc N] [key=value ...]
-    warpgs-render --model OUT [--orbit N] [--split test|train]
+    warpgs-render --model OUT [--orbit N [--video [--fps F]]] [--split test|train]
     warpgs-eval --model OUT [--split test|train] [--no-lpips] [--save-images]
 
 CONFIG is a YAML file or the name of a preset in configs/ (default, gaussians, surfels, ...). With no CONFIG,
@@ -212,11 +212,27 @@ def render_main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--out", help="where the PNGs go (default: MODEL/renders/<split> or MODEL/renders/orbit)")
     ap.add_argument("--device", help="cpu, cuda, ... (default: the run's)")
     ap.add_argument("--depth", action="store_true", help="also write normalised inverse-depth images")
+    ap.add_argument("--video", action="store_true",
+                    help="with --orbit: also write the views as OUT/orbit.mp4 (pip install 'warpgs[video]')")
+    ap.add_argument("--fps", type=float, default=30.0, help="frames per second of --video (default 30)")
     args = ap.parse_args(argv)
+    if args.video:  # before loading anything: a missing extra should not cost a scene load and half the renders
+        from warpgs.cli.video import VideoUnavailable, check_video_support
+
+        if args.orbit is None:
+            return _error("warpgs-render", "--video needs --orbit N (the frames of the video)", EXIT_CONFIG)
+        if not args.fps > 0:
+            return _error("warpgs-render", f"--fps: expected a positive number, got {args.fps}", EXIT_CONFIG)
+        try:
+            check_video_support()
+        except VideoUnavailable as e:
+            return _error("warpgs-render", str(e), EXIT_CONFIG)
     try:
         trainer = load_run(args.model, args.device)
     except (ValueError, FileNotFoundError) as e:
         return _error("warpgs-render", str(e), EXIT_CONFIG)
+    import contextlib
+
     import torch
 
     from warpgs.data.formats.image_io import write_png
@@ -239,10 +255,19 @@ def render_main(argv: Optional[List[str]] = None) -> int:
     out_dir = Path(args.out) if args.out else Path(args.model) / "renders" / label
     outputs = ("rgb", "inv_depth") if args.depth else ("rgb",)
     t0 = time.perf_counter()
-    with torch.no_grad():
+    if args.video:
+        from warpgs.cli.video import Mp4Writer
+
+        video = Mp4Writer(out_dir / f"{label}.mp4", args.fps)
+    else:
+        video = contextlib.nullcontext()
+    with torch.no_grad(), video:
         for v in views:
             r = trainer.render(v, outputs)
-            write_png(out_dir / f"{Path(v.name).stem}.png", r.rgb.clamp(0, 1).cpu().numpy())
+            rgb = r.rgb.clamp(0, 1).cpu().numpy()
+            write_png(out_dir / f"{Path(v.name).stem}.png", rgb)
+            if args.video:
+                video.append(rgb)
             if args.depth:
                 inv = r.inv_depth
                 inv = inv / inv.max().clamp_min(1e-12)
@@ -250,6 +275,8 @@ def render_main(argv: Optional[List[str]] = None) -> int:
     dt = time.perf_counter() - t0
     print(f"rendered {len(views)} views of {trainer.model.num_primitives} {trainer.model.kind} in {dt:.2f} s "
           f"({len(views) / max(dt, 1e-9):.1f} views/s) to {out_dir.resolve()}")
+    if args.video:
+        print(f"video: {video.path.resolve()} ({video.frames} frames at {args.fps:g} fps)")
     return 0
 
 

@@ -349,8 +349,15 @@ def model_from_ply_columns(cols: Mapping[str, np.ndarray], device=None, source: 
         m = re.fullmatch(r"([A-Za-z_]\w*?)_(\d+)", nm)
         if nm not in standard and m:
             groups[m.group(1)] = max(groups.get(m.group(1), 0), int(m.group(2)) + 1)
+    for g, c in groups.items():  # a gap would make `stack` list every missing name: c can be huge in a bad file
+        present = sum(1 for nm in cols if re.fullmatch(rf"{re.escape(g)}_\d+", nm) and nm not in standard)
+        if present != c:
+            raise ValueError(f"{source}: extra properties {g}_* are not numbered 0..{present - 1} (highest {c - 1})")
     extras = {g: stack([f"{g}_{j}" for j in range(c)]) for g, c in groups.items()}
-    model = cls(means, stack([f"scale_{j}" for j in range(num_scales)]), stack([f"rot_{j}" for j in range(4)]),
-                stack(["opacity"])[:, 0], stack([f"f_dc_{c}" for c in range(3)])[:, None, :], shN, extras=extras)
+    try:
+        model = cls(means, stack([f"scale_{j}" for j in range(num_scales)]), stack([f"rot_{j}" for j in range(4)]),
+                    stack(["opacity"])[:, 0], stack([f"f_dc_{c}" for c in range(3)])[:, None, :], shN, extras=extras)
+    except ValueError as exc:  # non-finite values, an SH count that is no degree, ...: say which file
+        raise ValueError(f"{source}: {exc}") from exc
     model.active_sh_degree = model.max_sh_degree
     return model.to(device) if device is not None else model

@@ -33,13 +33,17 @@ def write_ply(path, columns: Mapping[str, np.ndarray]) -> None:
 
 
 def read_ply(path) -> Dict[str, np.ndarray]:
-    """Columns of the `vertex` element of a binary PLY (little or big endian), in file order."""
+    """Columns of the `vertex` element of a binary PLY (little or big endian), in file order.
+
+    The header is untrusted: every count is checked against the bytes the file holds before anything is read,
+    and every problem is a ValueError naming the file."""
     with open(path, "rb") as f:
         raw = f.read()
     end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise ValueError(f"path: {path} is not a PLY file (no 'ply' magic or 'end_header')")
-    body = raw.index(b"\n", end) + 1
+    newline = raw.find(b"\n", end) if end >= 0 else -1
+    if not raw.startswith(b"ply") or newline < 0:
+        raise ValueError(f"path: {path} is not a PLY file (no 'ply' magic or 'end_header' line)")
+    body = newline + 1
     lines = [ln.strip() for ln in raw[:end].decode("ascii", "replace").splitlines()]
     endian = None
     elements = []  # (name, count, [(prop, dtype)])
@@ -53,14 +57,18 @@ def read_ply(path) -> Dict[str, np.ndarray]:
                 raise ValueError(f"path: {path}: only binary PLY is supported, got format {' '.join(parts[1:])}")
             endian = fmt[parts[1]]
         elif parts[0] == "element":
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise ValueError(f"path: {path}: bad element line {ln!r:.80} (expected 'element <name> <count>')")
             elements.append((parts[1], int(parts[2]), []))
         elif parts[0] == "property":
             if not elements:
                 raise ValueError(f"path: {path}: property before any element")
-            if parts[1] == "list":
+            if len(parts) >= 2 and parts[1] == "list":
                 raise ValueError(f"path: {path}: list property {parts[-1]!r} in element {elements[-1][0]!r} is not supported")
-            if parts[1] not in _PLY_TYPES:
-                raise ValueError(f"path: {path}: unknown property type {parts[1]!r}")
+            if len(parts) != 3 or parts[1] not in _PLY_TYPES:
+                raise ValueError(f"path: {path}: bad property line {ln!r:.80} (expected 'property <type> <name>')")
+            if any(parts[2] == p for p, _ in elements[-1][2]):
+                raise ValueError(f"path: {path}: property {parts[2]!r} appears twice in element {elements[-1][0]!r}")
             elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
     if endian is None:
         raise ValueError(f"path: {path}: missing 'format' line")
@@ -68,8 +76,11 @@ def read_ply(path) -> Dict[str, np.ndarray]:
     for name, count, props in elements:
         dtype = np.dtype([(p, endian + t) for p, t in props])
         if name == "vertex":
+            if not props:
+                raise ValueError(f"path: {path}: the vertex element has no properties")
             if len(raw) < offset + count * dtype.itemsize:
-                raise ValueError(f"path: {path}: truncated (vertex data needs {count * dtype.itemsize} bytes)")
+                raise ValueError(f"path: {path}: truncated (vertex data needs {count * dtype.itemsize} bytes, "
+                                 f"{max(len(raw) - offset, 0)} follow)")
             data = np.frombuffer(raw, dtype=dtype, count=count, offset=offset)
             return {p: np.ascontiguousarray(data[p]) for p, _ in props}
         offset += count * dtype.itemsize

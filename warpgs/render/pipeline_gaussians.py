@@ -223,7 +223,7 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
                       outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out_features,
                                out.last], device=dev, block_dim=block_dim)
 
-    run_threads(work, _tile_launches(s, dev))
+    run_threads(work, _tile_launches(s, dev), kernels=[kernel], device=dev, block_dim=block_dim)
     return out
 
 
@@ -249,7 +249,7 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
                       inputs=head + [blend_params(s, want, first)] + tail + buffers[thread], device=dev,
                       block_dim=block_dim)
 
-    run_threads(work, per_thread)
+    run_threads(work, per_thread, kernels=[kernel], device=dev, block_dim=block_dim)
     _merge_gradient_buffers(buffers)
 
 

@@ -135,7 +135,7 @@ def blend_forward(p: SurfelProjected, bins: Bins, opacities, features, s: Settin
             wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [surfel_blend_params(s, want, first)],
                       outputs=outputs, device=dev, block_dim=block_dim)
 
-    run_threads(work, _tile_launches(s, dev))
+    run_threads(work, _tile_launches(s, dev), kernels=[kernel], device=dev, block_dim=block_dim)
     return out
 
 
@@ -163,5 +163,5 @@ def blend_backward(p: SurfelProjected, bins: Bins, opacities, features, s: Setti
                       inputs=head + [surfel_blend_params(s, want, first)] + tail + buffers[thread],
                       device=dev, block_dim=block_dim)
 
-    run_threads(work, per_thread)
+    run_threads(work, per_thread, kernels=[kernel], device=dev, block_dim=block_dim)
     _merge_gradient_buffers(buffers)

@@ -23,15 +23,36 @@ KINDS = ("depth", "inverse_depth")
 _VALUE_CHANNELS = ("Z", "inv_depth", "depth", "Y", "R", "V")
 _VALID_CHANNEL = "valid"
 _KIND_ATTRIBUTE = "warpgs_kind"
+# A corrupted EXR header can declare any data window, and the reader allocates it before decoding a pixel;
+# no depth map is anywhere near 2^28 pixels (16384 x 16384), so larger windows are refused up front.
+MAX_EXR_PIXELS = 1 << 28
 
 
-def _read_exr(path: Path) -> tuple[np.ndarray, Optional[np.ndarray], Optional[str]]:
+def _open_exr(path: Path, **kwargs):
+    """OpenEXR.File of `path` once its header's data window has been checked (SceneError naming the file)."""
     import OpenEXR  # lazily: only depth files need it
 
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
+        with OpenEXR.File(str(path), header_only=True) as exr:
+            (x0, y0), (x1, y1) = exr.header()["dataWindow"]
+    except Exception as exc:  # OpenEXR raises RuntimeError for truncated/corrupt files
+        raise SceneError(path, f"unreadable or truncated EXR ({exc})") from exc
+    width, height = int(x1) - int(x0) + 1, int(y1) - int(y0) + 1
+    if width < 1 or height < 1 or width * height > MAX_EXR_PIXELS:
+        raise SceneError(path, f"EXR data window {width}x{height} is empty or implausibly large (corrupt header?)")
+    try:
+        return OpenEXR.File(str(path), **kwargs)
+    except Exception as exc:
+        raise SceneError(path, f"unreadable or truncated EXR ({exc})") from exc
+
+
+def _read_exr(path: Path) -> tuple[np.ndarray, Optional[np.ndarray], Optional[str]]:
+    try:
+        with _open_exr(path, separate_channels=True) as exr:
             header = dict(exr.header())  # the File clears its header dict on close
             channels = {name: np.array(ch.pixels) for name, ch in exr.channels().items()}
+    except SceneError:
+        raise
     except Exception as exc:  # OpenEXR raises RuntimeError for truncated/corrupt files
         raise SceneError(path, f"unreadable or truncated EXR ({exc})") from exc
     value_name = next((c for c in _VALUE_CHANNELS if c in channels), None)
@@ -40,9 +61,14 @@ def _read_exr(path: Path) -> tuple[np.ndarray, Optional[np.ndarray], Optional[st
             raise SceneError(path, f"cannot tell which EXR channel holds depth among {sorted(channels)}")
         value_name = next(iter(channels))
     valid = channels.get(_VALID_CHANNEL)
+    values = channels[value_name]
+    if not np.issubdtype(values.dtype, np.number):
+        raise SceneError(path, f"EXR channel {value_name!r} is not numeric ({values.dtype})")
+    if valid is not None and valid.shape != values.shape:  # subsampled channels differ in size
+        raise SceneError(path, f"EXR channels {value_name!r} {values.shape} and {_VALID_CHANNEL!r} {valid.shape} differ")
     kind = header.get(_KIND_ATTRIBUTE)
-    kind = kind.decode() if isinstance(kind, bytes) else kind
-    return channels[value_name].astype(np.float32), None if valid is None else valid > 0.5, kind
+    kind = kind.decode("utf-8", "replace") if isinstance(kind, bytes) else kind
+    return values.astype(np.float32), None if valid is None else valid > 0.5, kind
 
 
 def _read_png16(path: Path) -> np.ndarray:
@@ -59,14 +85,21 @@ def _read_png16(path: Path) -> np.ndarray:
 
 
 def _read_npy(path: Path) -> np.ndarray:
+    # Memory-mapped first: a corrupted shape then fails against the file size instead of allocating what the
+    # header claims (np.load reads into an array of the declared size).
     try:
-        arr = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise SceneError(path, f"unreadable or truncated .npy ({exc})") from exc
+        arr = np.load(path, allow_pickle=False, mmap_mode="r")
+        if not isinstance(arr, np.ndarray):  # an .npz archive
+            raise SceneError(path, "expected a single .npy array, not an .npz archive")
+        arr = np.array(arr)
+    except SceneError:
+        raise
+    except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, tokenize.TokenError, ...
+        raise SceneError(path, f"unreadable or truncated .npy ({type(exc).__name__}: {exc})") from exc
     if arr.ndim == 3 and arr.shape[-1] == 1:
         arr = arr[..., 0]
-    if not np.issubdtype(arr.dtype, np.number):
-        raise SceneError(path, f"depth array has non-numeric dtype {arr.dtype}")
+    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise SceneError(path, f"depth array has non-numeric (or complex) dtype {arr.dtype}")
     return arr.astype(np.float32)
 
 
@@ -157,11 +190,11 @@ def write_exr_channels(path: PathLike, channels: dict, attributes: Optional[dict
 
 def read_exr_channels(path: PathLike) -> dict:
     """All channels of an EXR as float32 arrays (an [H, W, 3] array for an RGB group such as normals)."""
-    import OpenEXR
-
     path = require_file(path, "EXR file")
     try:
-        with OpenEXR.File(str(path)) as exr:
+        with _open_exr(path) as exr:
             return {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
+    except SceneError:
+        raise
     except Exception as exc:
         raise SceneError(path, f"unreadable or truncated EXR ({exc})") from exc

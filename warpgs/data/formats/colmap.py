@@ -12,7 +12,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from warpgs.data.camera import Camera
-from warpgs.data.formats.colmap_check import find_broken_binary_file
+from warpgs.data.formats.colmap_check import check_binary_model, find_broken_binary_file
 from warpgs.data.errors import MissingSceneFile, PathLike, SceneError
 from warpgs.data.points import PointCloud
 from warpgs.data.scene import MapFormat, Scene
@@ -52,6 +52,8 @@ def read_model(model_dir: PathLike):
     for stem in MODEL_FILES:
         if not (model_dir / f"{stem}{ext}").is_file():
             raise MissingSceneFile(model_dir / f"{stem}{ext}", "COLMAP model file")
+    if ext == ".bin":
+        check_binary_model(model_dir)  # pycolmap would hang, over-allocate or read garbage on a broken layout
     try:
         return pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # pycolmap raises ValueError, IndexError, RuntimeError... depending on the damage
@@ -69,31 +71,54 @@ def _cam_from_world(im):
     return pose() if callable(pose) else pose
 
 
-def cameras_from_model(rec, images_dir: Path) -> tuple[list[Camera], list[int]]:
-    """Registered images sorted by name -> (cameras, COLMAP image ids in the same order)."""
-    entries = sorted(((im.name, iid) for iid, im in rec.images.items() if _has_pose(im)), key=lambda e: e[0])
+def _model_file(model_dir: Optional[PathLike], stem: str) -> Optional[Path]:
+    """The model file errors about `stem` records should name (binary or text), or the folder."""
+    if model_dir is None:
+        return None
+    for ext in (".bin", ".txt"):
+        if (Path(model_dir) / f"{stem}{ext}").is_file():
+            return Path(model_dir) / f"{stem}{ext}"
+    return Path(model_dir)
+
+
+def cameras_from_model(rec, images_dir: Path, model_dir: Optional[PathLike] = None) -> tuple[list[Camera], list[int]]:
+    """Registered images sorted by name -> (cameras, COLMAP image ids in the same order).
+    model_dir: where `rec` was read from, so that errors (a NaN pose, a zero focal length) name the file."""
+    try:
+        entries = sorted(((im.name, iid) for iid, im in rec.images.items() if _has_pose(im)), key=lambda e: e[0])
+    except UnicodeDecodeError as exc:  # text models are not checked beforehand
+        raise SceneError(_model_file(model_dir, "images"), f"an image name is not valid UTF-8 ({exc})") from exc
     cameras = []
     for name, iid in entries:
         im = rec.images[iid]
         viewmat = np.eye(4)
         viewmat[:3, :] = _cam_from_world(im).matrix()
-        cameras.append(Camera.from_pycolmap(rec.cameras[im.camera_id], viewmat, name, images_dir / name))
+        try:
+            cameras.append(Camera.from_pycolmap(rec.cameras[im.camera_id], viewmat, name, images_dir / name))
+        except ValueError as exc:  # a bad pose is the image's record; size and intrinsics are its camera's
+            stem = "images" if "viewmat" in str(exc) else "cameras"
+            raise SceneError(_model_file(model_dir, stem), f"image {iid} ({name}), camera {im.camera_id}: {exc}") from exc
     return cameras, [iid for _, iid in entries]
 
 
-def points_from_model(rec, image_ids: Sequence[int]) -> Optional[PointCloud]:
+def points_from_model(rec, image_ids: Sequence[int], model_dir: Optional[PathLike] = None) -> Optional[PointCloud]:
     if rec.num_points3D() == 0:
         return None
     ids = sorted(rec.points3D.keys())
     row = {pid: r for r, pid in enumerate(ids)}
-    xyz = np.array([rec.points3D[p].xyz for p in ids], dtype=np.float32)
+    xyz = np.array([rec.points3D[p].xyz for p in ids], dtype=np.float64)
+    if not np.all(np.isfinite(xyz)) or np.abs(xyz).max() > np.finfo(np.float32).max:
+        raise SceneError(_model_file(model_dir, "points3D"), "3D point positions must be finite (float32)")
     rgb = np.array([rec.points3D[p].color for p in ids], dtype=np.float32) / 255.0
     observed = []
     for iid in image_ids:
         im = rec.images[iid]
         pts = im.points2D
-        observed.append(np.unique([row[pts[k].point3D_id] for k in im.get_observation_point2D_idxs()]).astype(np.int64))
-    return PointCloud(xyz, rgb, observed)
+        seen = [pts[k].point3D_id for k in im.get_observation_point2D_idxs()]
+        if any(pid not in row for pid in seen):
+            raise SceneError(_model_file(model_dir, "images"), f"image {iid} observes a 3D point the model lacks")
+        observed.append(np.unique([row[pid] for pid in seen]).astype(np.int64))
+    return PointCloud(xyz.astype(np.float32), rgb, observed)
 
 
 def load_colmap(root: PathLike, *, model_dir: Optional[PathLike] = None, images_dir: Optional[PathLike] = None,
@@ -113,13 +138,13 @@ def load_colmap(root: PathLike, *, model_dir: Optional[PathLike] = None, images_
     if not images_dir.is_dir():
         raise MissingSceneFile(images_dir, "image folder")
     rec = read_model(model_dir)
-    cameras, image_ids = cameras_from_model(rec, images_dir)
+    cameras, image_ids = cameras_from_model(rec, images_dir, model_dir)
     if not cameras:
         raise SceneError(model_dir, "COLMAP model has no registered images")
     names = [c.name for c in cameras]
     train, test = resolve_split(root, names, split, n_train)
     scene = Scene(cameras, discover_view_files(root, names, [c.image_path for c in cameras]), root=root,
-                  train=train, test=test, points=points_from_model(rec, image_ids),
+                  train=train, test=test, points=points_from_model(rec, image_ids, model_dir),
                   label_names=read_label_names(root),
                   depth_format=read_map_format(root, "depth", MapFormat("depth")),
                   prior_format=read_map_format(root, "depth_prior", MapFormat()),

@@ -10,7 +10,9 @@ and are ignored: the poses are used as written.
 """
 from __future__ import annotations
 
+import errno
 import json
+import math
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -19,7 +21,7 @@ import numpy as np
 from warpgs.data.camera import Camera, intrinsics_matrix, opengl_camtoworld_from_viewmat, viewmat_from_opengl_camtoworld
 from warpgs.data.errors import MissingSceneFile, PathLike, SceneError, read_json
 from warpgs.data.formats.image_io import IMAGE_EXTENSIONS, image_size
-from warpgs.data.points import PointCloud
+from warpgs.data.formats.ply_points import read_ply_points
 from warpgs.data.scene import MapFormat, Scene
 from warpgs.data.formats.splits import resolve_split
 from warpgs.data.formats.view_files import discover_view_files, read_label_names, read_map_format
@@ -36,16 +38,42 @@ def find_transforms(root: PathLike) -> list[Path]:
 
 
 def _read_json(path: Path) -> dict:
-    data = read_json(path)
+    try:
+        data = read_json(path)
+    except RecursionError as exc:  # json nests one Python frame per bracket
+        raise SceneError(path, "JSON nested too deeply") from exc
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
         raise SceneError(path, 'expected an object with a "frames" list')
     if not data["frames"]:
         raise SceneError(path, "has no frames")
+    bad = next((i for i, f in enumerate(data["frames"]) if not isinstance(f, dict)), None)
+    if bad is not None:
+        raise SceneError(path, f"frame {bad} is not an object")
     return data
+
+
+def _number(value, key: str, json_path: Path, where: str, positive: bool = False) -> float:
+    """A finite JSON number (bools are not numbers here), else SceneError naming the file and key."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or abs(value) > 1e300 or (positive and value <= 0):
+        kind = "a positive" if positive else "a finite"
+        raise SceneError(json_path, f"{where}: {key} must be {kind} number, got {value!r:.60}")
+    return float(value)
+
+
+def _text(value, key: str, json_path: Path, where: str) -> str:
+    if not isinstance(value, str) or not value or "\0" in value:
+        raise SceneError(json_path, f"{where}: {key} must be a non-empty string, got {value!r:.60}")
+    return value
 
 
 def _resolve_image(base: Path, file_path: str, json_path: Path) -> Path:
     path = base / file_path
+    try:
+        path.stat()
+    except OSError as exc:  # is_file() raises (not False) for a name too long, so say which entry it was
+        if exc.errno not in (errno.ENOENT, errno.ENOTDIR):
+            raise SceneError(json_path, f"file_path {file_path!r:.80}: {exc.strerror}") from exc
     if path.suffix in IMAGE_EXTENSIONS:
         return path
     for ext in IMAGE_EXTENSIONS:  # NeRF-synthetic writes "./train/r_0" without the extension
@@ -54,13 +82,13 @@ def _resolve_image(base: Path, file_path: str, json_path: Path) -> Path:
     raise MissingSceneFile(path, f"image (listed in {json_path.name})")
 
 
-def _model_and_distortion(get, json_path: Path) -> tuple[str, tuple]:
-    k1, k2, k3, k4, p1, p2 = (float(get(k, 0.0)) for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
+def _model_and_distortion(get, json_path: Path, where: str) -> tuple[str, tuple]:
+    k1, k2, k3, k4, p1, p2 = (_number(get(k, 0.0), k, json_path, where) for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
     model = get("camera_model", "OPENCV")
     if model == "OPENCV_FISHEYE":
         return "OPENCV_FISHEYE", (k1, k2, k3, k4)
-    if model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
-        raise SceneError(json_path, f"camera_model {model!r} is not supported (use OPENCV or OPENCV_FISHEYE)")
+    if not isinstance(model, str) or model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
+        raise SceneError(json_path, f"camera_model {model!r:.60} is not supported (use OPENCV or OPENCV_FISHEYE)")
     if k4 != 0.0:
         raise SceneError(json_path, "k4 is only meaningful for OPENCV_FISHEYE")
     if k3 != 0.0:
@@ -74,29 +102,36 @@ def _camera_from_frame(frame: dict, top: dict, base: Path, json_path: Path, inde
     get = lambda key, default=None: frame.get(key, top.get(key, default))  # noqa: E731
     if "file_path" not in frame or "transform_matrix" not in frame:
         raise SceneError(json_path, f"frame {index} needs 'file_path' and 'transform_matrix'")
-    image_path = _resolve_image(base, frame["file_path"], json_path)
+    where = f"frame {index}"
+    file_path = _text(frame["file_path"], "file_path", json_path, where)
+    image_path = _resolve_image(base, file_path, json_path)
     w, h = get("w"), get("h")
     if w is None or h is None:
         w, h = image_size(image_path)
+    w, h = (_number(v, k, json_path, where, positive=True) for v, k in ((w, "w"), (h, "h")))
+    if w != int(w) or h != int(h) or max(w, h) > 1 << 20:
+        raise SceneError(json_path, f"{where}: w and h must be whole numbers of pixels (at most 2^20), got {w}, {h}")
     w, h = int(w), int(h)
     fx = get("fl_x")
     if fx is None and get("camera_angle_x") is not None:
-        fx = 0.5 * w / np.tan(0.5 * float(get("camera_angle_x")))
+        fx = 0.5 * w / np.tan(0.5 * _number(get("camera_angle_x"), "camera_angle_x", json_path, where))
     fy = get("fl_y")
     if fy is None and get("camera_angle_y") is not None:
-        fy = 0.5 * h / np.tan(0.5 * float(get("camera_angle_y")))
+        fy = 0.5 * h / np.tan(0.5 * _number(get("camera_angle_y"), "camera_angle_y", json_path, where))
     if fx is None:
-        raise SceneError(json_path, f"frame {index} ({frame['file_path']}): no focal length (fl_x or camera_angle_x)")
+        raise SceneError(json_path, f"frame {index} ({file_path}): no focal length (fl_x or camera_angle_x)")
     fy = fx if fy is None else fy
-    K = intrinsics_matrix(float(fx), float(fy), float(get("cx", w / 2)), float(get("cy", h / 2)))
+    K = intrinsics_matrix(_number(fx, "fl_x", json_path, where), _number(fy, "fl_y", json_path, where),
+                          _number(get("cx", w / 2), "cx", json_path, where),
+                          _number(get("cy", h / 2), "cy", json_path, where))
     try:
         c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise SceneError(json_path, f"frame {index}: transform_matrix is not numeric") from exc
     if c2w.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(c2w)):
         raise SceneError(json_path, f"frame {index}: transform_matrix must be a finite 4x4 or 3x4 matrix")
-    model, distortion = _model_and_distortion(get, json_path)
-    name = str(Path(frame["file_path"]).as_posix()).removeprefix("./")
+    model, distortion = _model_and_distortion(get, json_path, where)
+    name = str(Path(file_path).as_posix()).removeprefix("./")
     if Path(name).suffix not in IMAGE_EXTENSIONS:
         name = name + image_path.suffix
     try:
@@ -106,27 +141,12 @@ def _camera_from_frame(frame: dict, top: dict, base: Path, json_path: Path, inde
         raise SceneError(json_path, f"frame {index}: {exc}") from exc
 
 
-def _frame_files(frames: list, base: Path):
+def _frame_files(frames: list, base: Path, json_path: Path):
     """nerfstudio's per-frame depth_file_path / mask_path, when given."""
-    out = []
-    for f in frames:
-        out.append({"depth": base / f["depth_file_path"] if "depth_file_path" in f else None,
-                    "mask": base / f["mask_path"] if "mask_path" in f else None})
-    return out
+    def file(f, key, i):
+        return base / _text(f[key], key, json_path, f"frame {i}") if key in f else None
 
-
-def _read_ply_points(path: Path) -> PointCloud:
-    import pycolmap
-
-    if not path.is_file():
-        raise MissingSceneFile(path, "point cloud (ply_file_path)")
-    rec = pycolmap.Reconstruction()
-    try:
-        rec.import_PLY(str(path))
-    except (ValueError, RuntimeError) as exc:
-        raise SceneError(path, f"unreadable PLY point cloud ({exc})") from exc
-    pts = list(rec.points3D.values())
-    return PointCloud(np.array([p.xyz for p in pts]), np.array([p.color for p in pts]) / 255.0)
+    return [{"depth": file(f, "depth_file_path", i), "mask": file(f, "mask_path", i)} for i, f in enumerate(frames)]
 
 
 def load_transforms(root: PathLike, *, split=None, n_train: Optional[int] = None, downscale: int = 1,
@@ -146,7 +166,7 @@ def load_transforms(root: PathLike, *, split=None, n_train: Optional[int] = None
         frames = top["frames"]
         start = len(cameras)
         cameras += [_camera_from_frame(f, top, json_path.parent, json_path, i) for i, f in enumerate(frames)]
-        extras += _frame_files(frames, json_path.parent)
+        extras += _frame_files(frames, json_path.parent, json_path)
         parts[json_path.name] = list(range(start, len(cameras)))
     names = [c.name for c in cameras]
     if json_paths[0].name == TRANSFORMS_FILE:
@@ -158,8 +178,12 @@ def load_transforms(root: PathLike, *, split=None, n_train: Optional[int] = None
     for vf, ex in zip(files, extras):
         vf.depth = ex["depth"] or vf.depth
         vf.mask = ex["mask"] or vf.mask
-    depth_default = MapFormat("depth", float(top.get("depth_unit_scale_factor", 1.0)))
-    points = _read_ply_points(json_paths[0].parent / top["ply_file_path"]) if "ply_file_path" in top else None
+    depth_default = MapFormat("depth", _number(top.get("depth_unit_scale_factor", 1.0), "depth_unit_scale_factor",
+                                               json_paths[-1], "top level", positive=True))
+    points = None
+    if "ply_file_path" in top:
+        ply = _text(top["ply_file_path"], "ply_file_path", json_paths[-1], "top level")
+        points = read_ply_points(json_paths[0].parent / ply)
     scene = Scene(cameras, files, root=root, train=train, test=test, points=points,
                   label_names=read_label_names(root), depth_format=read_map_format(root, "depth", depth_default),
                   prior_format=read_map_format(root, "depth_prior", MapFormat()), background=background,
