@@ -1,24 +1,38 @@
-"""Ablation of the sparse-view method (issue 6), after the paper's Table 2, on the synthetic 3x3 light field.
+"""Ablation of the sparse-view method (issues 6, 15), after the paper's Table 2: on the synthetic 3x3 light field,
+or on a real forward-facing LLFF capture with 3 training views (--data DIR).
 
     python benchmarks/ablation.py                               # CPU, reduced run (500 steps, seed 0, budget 10k)
     python benchmarks/ablation.py --device cuda --steps 30000   # the full run
     python benchmarks/ablation.py --only baseline,full --seeds 0,1,2
+    python benchmarks/ablation.py --data data/fern --device cuda --seeds 0,1,2 --steps 10000   # real, 3 views
 
-Train: the 9 array views; test: the 4 held-out off-array views (between array positions). Every setting loads
-its preset from configs/ (sparse_baseline, sparse_wo_*, sparse_lightfield), so the table measures exactly what
+Synthetic: train the 9 array views; test the 4 held-out off-array views (between array positions). Every setting
+loads its preset from configs/ (sparse_baseline, sparse_wo_*, sparse_lightfield), so the table measures exactly what
 `warpgs-train <preset>` trains. Reported per setting, on the test views: PSNR, SSIM (LPIPS when its weights are on
 disk), the relative-depth judgement (fraction of random pixel pairs, reference depths > 5% apart, whose rendered
 order is right; empty pixels read as far), AbsRel of the rendered depth (alpha >= 0.5 pixels; coverage reported)
 and the final number of primitives.
 
-Runs shorter than 30k steps scale the 3DGS step schedule (densification window, SH bands, size pruning) by
-steps/30000 with floors so a short run still densifies, and switch opacity resets off below 10k steps (the
-depth-term decay always spans the whole run: it is relative to train.steps). The defaults used are printed and
-stored in the JSON. Writes benchmarks/results/ablation_<device>_<steps>.json (or $OUT/...).
+--data DIR (an LLFF folder; docs/sparse_view.md): the LLFF few-view protocol of configs/sparse_llff*.yaml (1/8
+resolution, every 8th view tests, --n-train views spread over the rest train, initial points triangulated from
+the training views only). Settings: 3DGS (sparse_llff_baseline), each term removed in turn (sparse_llff with
+losses.<term>=0), the method without the prior's confidence weighting, and the full method (sparse_llff). The
+plane-sweep prior is made once, from the training views (warpgs.data.compute_depth_priors, what
+data.depth_priors=estimate runs), and shared by every run that uses it. Test-view depth is scored at the points
+of the capture's own SfM model (sparse/0/points3D.bin, every view; each point only in the views its track saw):
+sparse, and for evaluation only. The CPU default is a smoke run (300 steps); results are the GPU's.
+
+Runs shorter than the preset's steps (30k synthetic, 10k LLFF) scale the 3DGS step schedule (densification
+window, SH bands, size pruning) by steps/preset-steps with floors so a short run still densifies, and switch
+opacity resets off below a third of it (the depth-term decay always spans the whole run: it is relative to
+train.steps). The defaults used are printed and stored in the JSON. Writes
+benchmarks/results/ablation_<device>_<steps>.json, or ablation_<scene>_<device>_<steps>.json with --data (or
+$OUT/...).
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import platform
 import statistics
@@ -26,12 +40,14 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Optional
 
 import torch
 
 from common import ROOT, write_json
 
 from warpgs.config.loader import load_config
+from warpgs.losses import marr
 from warpgs.metrics.depth import evaluate_depth
 from warpgs.train.trainer import Trainer
 
@@ -46,43 +62,83 @@ SETTINGS = [
     ("wo_count", "w/o count", "sparse_wo_count"),
     ("full", "Ours (full)", "sparse_lightfield"),
 ]
+# Real captures (--data): (key, label, preset, overrides, Marr settings); the terms as in SETTINGS.
+REAL_TERMS = ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")
+REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
+                 + [(f"wo_{t}", f"w/o {t}", "sparse_llff", [f"losses.{t}=0"], {}) for t in REAL_TERMS]
+                 + [("wo_confidence", "w/o confidence", "sparse_llff", [], {"confidence_power": 0.0}),
+                    ("full", "Ours (full)", "sparse_llff", [], {})])
 CPU_STEPS = 500
+CPU_STEPS_REAL = 300  # a smoke run: 504x378 views cost ~1 s a step on 2 cores
 CPU_BUDGET = 10_000  # primitives, on CPU only (the presets' budget otherwise); the same for every setting
+FULL_STEPS = {"synthetic": 30_000, "real": 10_000}  # the presets' train.steps
 
 
-def schedule_overrides(steps: int) -> list[str]:
-    """The 3DGS step schedule (for 30k steps) scaled to a shorter run."""
-    if steps >= 30_000:
+def schedule_overrides(steps: int, full: int = 30_000) -> list[str]:
+    """The 3DGS step schedule of a `full`-step preset (densify from 500 every 100 until half the run, reset every
+    3000, size pruning from 3000, one SH band per 1000) scaled to a shorter run."""
+    if steps >= full:
         return []
-    f = steps / 30_000
+    f = steps / full
     every = max(25, int(round(100 * f)))
     start = max(every, int(round(500 * f)))
     stop = max(start + every, steps // 2)
     return [f"strategy.refine_every={every}", f"strategy.refine_start={start}", f"strategy.refine_stop={stop}",
-            f"strategy.reset_every={0 if steps < 10_000 else int(round(3000 * f))}",
+            f"strategy.reset_every={0 if steps < full / 3 else int(round(3000 * f))}",
             f"strategy.size_prune_start={max(start, int(round(3000 * f)))}",
             f"model.sh_interval={max(1, int(round(1000 * f)))}"]
 
 
-def run_setting(preset: str, steps: int, seed: int, device: str, extra: list[str], workdir: Path,
-                pairs: int) -> dict:
+def run_setting(key: str, preset: str, steps: int, seed: int, device: str, extra: list[str], workdir: Path,
+                pairs: int, full: int, marr_settings: Optional[dict] = None,
+                reference: Optional[dict] = None) -> dict:
+    """One training run. marr_settings: warpgs.losses.marr settings for this run only; reference: {test view
+    name: [H, W] sparse reference depth} for views that carry none (real captures)."""
     overrides = [f"train.steps={steps}", f"train.seed={seed}", f"strategy.seed={seed}", f"train.device={device}",
                  "train.progress=false", "train.checkpoint_every=0", "eval.every=0", "eval.save_images=false",
-                 f"output.dir={workdir / f'{preset}_s{seed}'}"] + schedule_overrides(steps) + extra
+                 f"output.dir={workdir / f'{key}_s{seed}'}"] + schedule_overrides(steps, full) + extra
     cfg = load_config(ROOT / "configs" / f"{preset}.yaml", overrides)
+    saved = dataclasses.asdict(marr.SETTINGS)
     start = time.perf_counter()
-    trainer = Trainer(cfg, quiet=True)
-    result = trainer.fit()
+    try:
+        marr.configure(**(marr_settings or {}))
+        trainer = Trainer(cfg, quiet=True)
+        result = trainer.fit()
+    finally:
+        marr.configure(**saved)
     split, views = trainer.eval_views("test")
+    if reference is not None:
+        views = [dataclasses.replace(v, depth=torch.as_tensor(reference[v.name])[..., None].to(v.image.device))
+                 for v in views]
     depth = evaluate_depth(lambda v: trainer.render(v, ("depth", "alpha")), views,
                            num_primitives=trainer.model.num_primitives, num_pairs=pairs, seed=seed)
     m = result.metrics
-    return {"preset": preset, "seed": seed, "steps": result.steps, "split": split, "psnr": m["psnr"],
+    return {"preset": preset, "overrides": extra, "marr": marr_settings or {}, "seed": seed, "steps": result.steps,
+            "split": split, "psnr": m["psnr"],
             "ssim": m["ssim"], "lpips": m["lpips"], "depth_order": depth["depth_order"], "abs_rel": depth["abs_rel"],
             "coverage": depth["coverage"], "num_pairs": depth["num_pairs"], "num_primitives": result.num_primitives,
             "train_seconds": round(result.train_seconds, 1), "wall_seconds": round(time.perf_counter() - start, 1),
             "losses": [t.name for t in trainer.terms], "outputs": list(trainer.outputs),
             "per_view": {k: {**v, **depth["per_view"].get(k, {})} for k, v in m["per_view"].items()}}
+
+
+def real_scene_setup(data: str, n_train: int, downscale: int, workdir: Path) -> tuple[list[str], dict, dict]:
+    """(data overrides for every run, the shared prior's report, {test view: sparse reference depth})."""
+    from warpgs.data import compute_depth_priors, load_scene
+    from warpgs.data.depth.reference_points import sparse_depth_map, view_reference_points
+
+    scene = load_scene(data, split="llff", n_train=n_train, downscale=downscale)
+    start = time.perf_counter()
+    _, report = compute_depth_priors(scene, out_dir=workdir / "depth_priors")
+    report["seconds_total"] = round(time.perf_counter() - start, 1)
+    points, per_view = view_reference_points(scene)
+    reference = {scene.names[v]: sparse_depth_map(scene.cameras[v], points.xyz[per_view[v]]) for v in scene.test}
+    info = {"scene": str(Path(data).resolve()), "train": [scene.names[v] for v in scene.train],
+            "train_index": scene.train, "test": [scene.names[v] for v in scene.test], "test_index": scene.test,
+            "size": [scene.cameras[0].width, scene.cameras[0].height], "prior": report,
+            "reference_points_per_test_view": {n: int((d > 0).sum()) for n, d in reference.items()}}
+    data_overrides = [f"data.path={Path(data).resolve()}", f"data.n_train={n_train}", f"data.downscale={downscale}"]
+    return data_overrides, info, reference
 
 
 def summarise(runs: list[dict]) -> dict:
@@ -106,47 +162,87 @@ def fmt(v, digits: int, std=None) -> str:
     return s if std is None else f"{s} ± {std:.{digits}f}"
 
 
+def paired_delta(runs: list[dict], base: list[dict]) -> tuple[Optional[float], Optional[float]]:
+    """Mean and standard deviation over seeds of (PSNR - the baseline's PSNR at the same seed)."""
+    by_seed = {r["seed"]: r["psnr"] for r in base}
+    d = [r["psnr"] - by_seed[r["seed"]] for r in runs if r["seed"] in by_seed]
+    if not d:
+        return None, None
+    return statistics.fmean(d), (statistics.stdev(d) if len(d) > 1 else None)
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", default=None,
+                    help="an LLFF scene folder (e.g. data/fern): the real few-view protocol instead of the synthetic "
+                         "light field")
+    ap.add_argument("--n-train", type=int, default=3, help="training views with --data (default 3)")
+    ap.add_argument("--downscale", type=int, default=8, help="image downscale with --data (default 8: images_8)")
     ap.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N")
-    ap.add_argument("--steps", type=int, default=None, help=f"training steps (default: {CPU_STEPS} on CPU, 30000 on CUDA)")
+    ap.add_argument("--steps", type=int, default=None,
+                    help=f"training steps (default on CPU: {CPU_STEPS}, {CPU_STEPS_REAL} with --data; on CUDA the "
+                         f"presets': {FULL_STEPS['synthetic']}, {FULL_STEPS['real']} with --data)")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
-    ap.add_argument("--only", default=None, help="comma-separated subset of: " + ",".join(s[0] for s in SETTINGS))
+    ap.add_argument("--only", default=None, help="comma-separated subset of: " + ",".join(s[0] for s in SETTINGS)
+                    + " (with --data also wo_confidence)")
     ap.add_argument("--budget", type=int, default=None,
                     help=f"strategy.max_primitives for every setting (default: {CPU_BUDGET} on CPU, the presets' on CUDA)")
     ap.add_argument("--pairs", type=int, default=2000, help="probe pairs per test view for the depth judgement")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
-    ap.add_argument("--name", default=None, help="result file name (default ablation_<device>_<steps>)")
+    ap.add_argument("--name", default=None, help="result file name (default ablation_[<scene>_]<device>_<steps>)")
     ap.add_argument("overrides", nargs="*", help="extra key=value config overrides for every setting")
     args = ap.parse_args(argv)
-    steps = args.steps or (30_000 if args.device.startswith("cuda") else CPU_STEPS)
+    real = args.data is not None
+    cuda = args.device.startswith("cuda")
+    full = FULL_STEPS["real" if real else "synthetic"]
+    steps = args.steps or (full if cuda else (CPU_STEPS_REAL if real else CPU_STEPS))
     seeds = [int(s) for s in args.seeds.split(",")]
-    budget = args.budget or (None if args.device.startswith("cuda") else CPU_BUDGET)
+    budget = args.budget or (None if cuda else CPU_BUDGET)
     extra = ([f"strategy.max_primitives={budget}"] if budget else []) + list(args.overrides)
-    chosen = SETTINGS if not args.only else [s for s in SETTINGS if s[0] in args.only.split(",")]
+    table = REAL_SETTINGS if real else [(k, label, preset, [], {}) for k, label, preset in SETTINGS]
+    chosen = table if not args.only else [s for s in table if s[0] in args.only.split(",")]
     if not chosen:
         raise SystemExit(f"--only: none of {args.only!r} is a setting")
+    if real and not Path(args.data).is_dir():
+        raise SystemExit(f"--data: {args.data} is not a folder")
     if args.threads:
         torch.set_num_threads(args.threads)
-    print(f"ablation: {len(chosen)} settings x seeds {seeds}, {steps} steps on {args.device}, budget {budget}; "
-          f"schedule {schedule_overrides(steps) or '3DGS defaults'}", file=sys.stderr, flush=True)
+    print(f"ablation: {len(chosen)} settings x seeds {seeds} = {len(chosen) * len(seeds)} runs, {steps} steps on "
+          f"{args.device}, budget {budget}; schedule {schedule_overrides(steps, full) or 'the presets'}",
+          file=sys.stderr, flush=True)
     rows, payload = [], {"steps": steps, "seeds": seeds, "device": args.device,
                          "torch_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
-                         "schedule_overrides": schedule_overrides(steps), "extra_overrides": extra, "budget": budget,
-                         "settings": {}}
+                         "schedule_overrides": schedule_overrides(steps, full), "extra_overrides": extra,
+                         "budget": budget, "settings": {}}
     with tempfile.TemporaryDirectory(prefix="warpgs-ablation-") as tmp:
-        for key, label, preset in chosen:
+        reference, prior_folder = None, Path(tmp) / "depth_priors"
+        if real:
+            data_overrides, info, reference = real_scene_setup(args.data, args.n_train, args.downscale, Path(tmp))
+            payload["data"] = info
+            extra = data_overrides + extra
+            print(f"  {Path(args.data).name}: train {info['train_index']}, test {info['test_index']}, "
+                  f"{info['size'][0]}x{info['size'][1]}; prior from the training views in "
+                  f"{info['prior']['seconds_total']:.0f} s", file=sys.stderr, flush=True)
+        for key, label, preset, setting_overrides, marr_settings in chosen:
             runs = []
             for seed in seeds:
-                r = run_setting(preset, steps, seed, args.device, extra, Path(tmp), args.pairs)
+                uses_prior = real and preset != "sparse_llff_baseline"
+                run_extra = extra + setting_overrides + ([f"data.depth_priors={prior_folder}"] if uses_prior else [])
+                r = run_setting(key, preset, steps, seed, args.device, run_extra, Path(tmp), args.pairs, full,
+                                marr_settings, reference)
                 runs.append(r)
                 print(f"  {label:16s} seed {seed}: psnr {r['psnr']:.2f} ssim {r['ssim']:.4f} "
                       f"order {r['depth_order']:.3f} absrel {r['abs_rel']:.4f} n {r['num_primitives']} "
                       f"({r['wall_seconds']:.0f} s)", file=sys.stderr, flush=True)
             s = summarise(runs)
-            payload["settings"][key] = {"label": label, "preset": preset, "mean": s, "runs": runs}
+            payload["settings"][key] = {"label": label, "preset": preset, "overrides": setting_overrides,
+                                        "marr": marr_settings, "mean": s, "runs": runs}
             sd = lambda k: s.get(k + "_std")  # noqa: E731
+            base = payload["settings"].get("baseline")
+            delta, delta_sd = paired_delta(runs, base["runs"]) if base and key != "baseline" else (None, None)
+            s["psnr_vs_baseline"] = delta
             rows.append({"Setting": label, "PSNR ↑": fmt(s["psnr"], 2, sd("psnr")),
+                         "Δ PSNR vs 3DGS": fmt(delta, 2, delta_sd) if key != "baseline" else "—",
                          "SSIM ↑": fmt(s["ssim"], 4, sd("ssim")), "LPIPS ↓": fmt(s["lpips"], 3, sd("lpips")),
                          "Depth order ↑": fmt(s["depth_order"], 3, sd("depth_order")),
                          "AbsRel ↓": fmt(s["abs_rel"], 4, sd("abs_rel")), "Coverage": fmt(s["coverage"], 3),
@@ -154,14 +250,24 @@ def main(argv=None) -> dict:
     columns = list(rows[0])
     if all(r["LPIPS ↓"] == "n/a" for r in rows):
         columns.remove("LPIPS ↓")
-    print(f"\nSynthetic 3x3 light field 128x96: train 9 array views, test 4 off-array views; {steps} steps, "
-          f"seed(s) {','.join(map(str, seeds))}, {args.device}, primitive budget {budget or 'preset'}\n")
+    if "baseline" not in payload["settings"]:
+        columns.remove("Δ PSNR vs 3DGS")
+    if real:
+        info = payload["data"]
+        print(f"\n{Path(args.data).name} (LLFF) {info['size'][0]}x{info['size'][1]}: train views "
+              f"{info['train_index']}, test views {info['test_index']}; {steps} steps, seed(s) "
+              f"{','.join(map(str, seeds))}, {args.device}, primitive budget {budget or 'preset'}; depth order / "
+              f"AbsRel / coverage at the all-view SfM points of the test views\n")
+    else:
+        print(f"\nSynthetic 3x3 light field 128x96: train 9 array views, test 4 off-array views; {steps} steps, "
+              f"seed(s) {','.join(map(str, seeds))}, {args.device}, primitive budget {budget or 'preset'}\n")
     print("| " + " | ".join(columns) + " |")
     print("|" + "|".join("---" for _ in columns) + "|")
     for r in rows:
         print("| " + " | ".join(r[c] for c in columns) + " |")
     payload["table"] = rows
-    name = args.name or f"ablation_{args.device.replace(':', '')}_{steps}"
+    scene = f"{Path(args.data).resolve().name}_" if real else ""
+    name = args.name or f"ablation_{scene}{args.device.replace(':', '')}_{steps}"
     path = write_json(name, payload)
     print(f"\nwrote {path}", file=sys.stderr)
     return payload

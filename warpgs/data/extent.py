@@ -63,7 +63,7 @@ def content_extent(cameras: Sequence[Camera], points: Optional[np.ndarray] = Non
 
 
 def scene_content_extent(scene) -> float:
-    """content_extent over all the scene's cameras (as Scene.camera_extent, so the two agree around an object)
-    and its SfM points."""
+    """content_extent over the scene's training cameras (all when none trains; as Scene.camera_extent, so the two
+    agree around an object) and its SfM points."""
     points = scene.points.xyz if scene.points is not None else None
-    return content_extent(scene.cameras, points)
+    return content_extent([scene.cameras[i] for i in scene.train] or scene.cameras, points)

@@ -55,6 +55,7 @@ class View:
     mask: Optional[torch.Tensor] = None  # [H, W, 1] bool, pixels to use
     inv_depth_prior: Optional[torch.Tensor] = None  # [H, W, 1]
     inv_depth_valid: Optional[torch.Tensor] = None  # [H, W, 1] bool
+    inv_depth_confidence: Optional[torch.Tensor] = None  # [H, W, 1] in [0, 1], when the prior file carries one
     depth: Optional[torch.Tensor] = None  # [H, W, 1] reference depth; inf = sky, 0 = unknown
     labels: Optional[torch.Tensor] = None  # [H, W] int64
     features: Optional[torch.Tensor] = None  # [h, w, C]
@@ -179,6 +180,15 @@ class Scene:
         out._check_split()
         return out
 
+    def with_points(self, points: Optional[PointCloud]) -> "Scene":
+        """The same views with other SfM points (e.g. triangulated from the training views only)."""
+        if points is not None and points.observed_by is not None and len(points.observed_by) != len(self.cameras):
+            raise ValueError(f"points: observations for {len(points.observed_by)} views, the scene has "
+                             f"{len(self.cameras)}")
+        out = self._copy()
+        out.points = points
+        return out
+
     def with_depth_priors(self, folder: Path, fmt: MapFormat = MapFormat()) -> "Scene":
         """Attach per-view depth priors found in `folder` (by image stem); views without a file get none."""
         folder = Path(folder)
@@ -213,8 +223,11 @@ class Scene:
         return any(getattr(f, what) is not None for f in self.files)
 
     def camera_extent(self) -> float:
-        """Radius of the camera centres around their mean, times 1.1 (the usual 3DGS scene scale)."""
-        centres = np.stack([c.center for c in self.cameras])
+        """Radius of the training cameras' centres around their mean, times 1.1 (the usual 3DGS scene scale,
+        getNerfppNorm over the training cameras: held-out cameras must not set a run's learning rates; on fern
+        with 3 training views the extent of all 20 cameras is twice theirs). All cameras when none trains."""
+        cams = [self.cameras[i] for i in self.train] or self.cameras
+        centres = np.stack([c.center for c in cams])
         radius = float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
         return 1.1 * radius if radius > 0 else 1.0
 
@@ -341,6 +354,32 @@ class Scene:
             return None
         return self._inverse_depth(i, f.depth_prior, self.prior_format, "depth prior")
 
+    def prior_confidence_np(self, i: int) -> Optional[np.ndarray]:
+        """The depth prior's per-pixel confidence ([H, W] float32 in [0, 1], 0 where the prior is invalid), or None
+        when its file carries none (EXR priors written by compute_depth_priors keep it in a `confidence` channel)."""
+        from warpgs.data.depth.estimators import CONFIDENCE_CHANNEL
+
+        f = self.files[i]
+        if f.depth_prior is None or Path(f.depth_prior).suffix.lower() != ".exr":
+            return None
+        key = ("prior confidence", i)
+        if key in self._memory:
+            return self._memory[key] if self._memory[key].size else None  # empty: the file has no such channel
+        channels = depth_io.read_exr_channels(f.depth_prior)
+        conf = channels.get(CONFIDENCE_CHANNEL)
+        if conf is None:
+            self._remember(key, np.zeros(0, np.float32))
+            return None
+        if conf.ndim != 2 or not np.all(np.isfinite(conf)) or conf.min() < 0 or conf.max() > 1:
+            raise SceneError(f.depth_prior, f"channel {CONFIDENCE_CHANNEL!r} must be a finite [H, W] map in [0, 1]")
+        raw_valid = channels.get("valid", conf)
+        if raw_valid.shape != conf.shape:
+            raise SceneError(f.depth_prior, f"channels 'valid' {raw_valid.shape} and {CONFIDENCE_CHANNEL!r} "
+                                            f"{conf.shape} differ in size")
+        stage = self._check_size(i, f.depth_prior, conf.shape, "depth prior confidence")
+        conf, valid = self._to_final(i, conf, stage, "masked", raw_valid > 0.5)
+        return self._remember(key, np.where(valid, np.clip(conf, 0.0, 1.0), 0.0).astype(np.float32))
+
     def _inverse_depth(self, i: int, path: Path, fmt: MapFormat, what: str) -> tuple[np.ndarray, np.ndarray]:
         key = (what, i)
         if key in self._memory:
@@ -383,6 +422,7 @@ class Scene:
         cam = self.cameras[i]
         t = lambda a: None if a is None else torch.from_numpy(np.ascontiguousarray(a)).to(device)  # noqa: E731
         prior = self.inv_depth_prior_np(i)
+        confidence = None if prior is None else self.prior_confidence_np(i)
         depth = self.depth_np(i)
         mask = self.mask_np(i)
         return View(index=i, name=cam.name, viewmat=cam.viewmat_tensor(device), K=cam.K_tensor(device),
@@ -390,6 +430,7 @@ class Scene:
                     mask=None if mask is None else t(mask[..., None]),
                     inv_depth_prior=None if prior is None else t(prior[0][..., None]),
                     inv_depth_valid=None if prior is None else t(prior[1][..., None]),
+                    inv_depth_confidence=None if confidence is None else t(confidence[..., None]),
                     depth=None if depth is None else t(depth[0][..., None]),
                     labels=t(self.labels_np(i)), features=t(self.features_np(i)))
 

@@ -24,6 +24,12 @@ Batch fields (as the trainer fills them from the scene's View): `inv_depth_prior
 and `inv_depth_valid` (same shape, bool). An optional `mask` (pixels to use) is and-ed in. Pixels with a
 non-finite or non-positive prior are invalid whatever the mask says.
 
+Confidence (issue 15). When the prior comes with a per-pixel confidence c in [0, 1] (`inv_depth_confidence`, in
+the batch or on `batch["view"]`; the built-in plane sweep writes one), every term is a weighted mean with weight
+c ** `confidence_power` over its pixels (for the 3x3 terms, the smallest c in the window, as validity is
+eroded): a weighted mean keeps each term's scale, so λ1..λ3 keep their meaning, while pixels the stereo is
+unsure of (weakly textured, confirmed by fewer views) pull less. confidence_power 0 ignores the confidence.
+
 Options that the config's loss entries cannot carry (they take only weight and schedule) live in
 `SETTINGS` (change them with `configure(alpha_min=...)`, e.g. from a module listed under `imports`).
 """
@@ -40,6 +46,7 @@ from warpgs.losses.registry import batch_field, register_loss, render_output
 
 PRIOR_KEY = "inv_depth_prior"
 VALID_KEY = "inv_depth_valid"
+CONFIDENCE_KEY = "inv_depth_confidence"
 MASK_KEY = "mask"
 OUTPUTS = ("alpha", "inv_depth")
 DEPTH_SCHEDULE = ("exp", 1.0, 0.01)  # λ1..λ3: 1 at step 0, 0.01 at the last step, log-linear in between
@@ -49,6 +56,7 @@ DEPTH_SCHEDULE = ("exp", 1.0, 0.01)  # λ1..λ3: 1 at step 0, 0.01 at the last s
 class MarrSettings:
     alpha_min: float = 0.1  # pixels whose rendered alpha is below this are left out (0: keep all covered pixels)
     alpha_eps: float = 1e-6  # guard of the alpha normalisation
+    confidence_power: float = 1.0  # per-pixel weight = confidence ** this (0: ignore the prior's confidence)
 
 
 SETTINGS = MarrSettings()
@@ -86,26 +94,37 @@ def window_valid(mask: torch.Tensor) -> torch.Tensor:
     return F.max_pool2d(inv, 3, stride=1) < 0.5
 
 
-def _masked_mean(value: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean of `value` over `mask` (broadcast over channels); 0 (still connected to the graph) when empty."""
+def _masked_mean(value: torch.Tensor, mask: torch.Tensor, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """(Weighted) mean of `value` over `mask` (broadcast over channels); 0 (still connected to the graph) when
+    empty. weight: [B, 1, H, W] >= 0, or None for a plain mean."""
     m = mask.to(value.dtype)
+    if weight is not None:
+        m = m * weight.to(value.dtype)
     count = m.sum() * (value.numel() / m.numel())
-    return (value * m).sum() / count.clamp_min(1.0)
+    # A plain mean divides by the pixel count (>= 1 when any); a weighted one by the weight sum, which may be tiny.
+    return (value * m).sum() / (count.clamp_min(1.0) if weight is None else count.clamp_min(1e-6))
 
 
-def depth_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """mean |pred - prior| over mask; maps [B, 1, H, W]."""
+def window_min(weight: torch.Tensor) -> torch.Tensor:
+    """[B, 1, H, W] -> the smallest value in each pixel's 3x3 window (out-of-image counts as 0)."""
+    return -F.max_pool2d(F.pad(-weight, (1, 1, 1, 1), value=0.0), 3, stride=1)
+
+
+def depth_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor,
+             weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """mean |pred - prior| over mask, weighted by `weight` when given; maps [B, 1, H, W]."""
     diff = torch.where(mask, pred - prior, torch.zeros_like(pred))
-    return _masked_mean(diff.abs(), mask)
+    return _masked_mean(diff.abs(), mask, weight)
 
 
-def depth_gradient_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def depth_gradient_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor,
+                      weight: Optional[torch.Tensor] = None) -> torch.Tensor:
     """mean over pixels with an all-valid 3x3 window of |∂x D̂ - ∂x D*| + |∂y D̂ - ∂y D*|, with kornia's
-    normalised Sobel (a ramp of slope 1 per pixel has gradient 1)."""
+    normalised Sobel (a ramp of slope 1 per pixel has gradient 1); weighted by the window's smallest weight."""
     diff = torch.where(mask, pred - prior, torch.zeros_like(pred))  # ∇ is linear: ∇D̂ - ∇D* = ∇(D̂ - D*)
     g = spatial_gradient(diff, mode="sobel", order=1, normalized=True)  # [B, 1, 2, H, W]
     inner = window_valid(mask)
-    return _masked_mean(g.abs().sum(2), inner)
+    return _masked_mean(g.abs().sum(2), inner, None if weight is None else window_min(weight))
 
 
 def local_stats(x: torch.Tensor) -> tuple:
@@ -115,8 +134,10 @@ def local_stats(x: torch.Tensor) -> tuple:
     return mean, var
 
 
-def depth_local_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """mean over pixels with an all-valid 3x3 window of |μ_D̂ - μ_D*| + |σ²_D̂ - σ²_D*| (population variance)."""
+def depth_local_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor,
+                   weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """mean over pixels with an all-valid 3x3 window of |μ_D̂ - μ_D*| + |σ²_D̂ - σ²_D*| (population variance);
+    weighted by the window's smallest weight."""
     inner = window_valid(mask)
     # Both maps are shifted by the same constant (the prior's mean): the statistics' differences do not change,
     # and E[x²] - E[x]² loses less to float32 cancellation.
@@ -125,7 +146,8 @@ def depth_local_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor) 
     zero = torch.zeros_like(pred)
     mu_p, var_p = local_stats(torch.where(mask, pred - centre, zero))
     mu_t, var_t = local_stats(torch.where(mask, prior - centre, zero))
-    return _masked_mean((mu_p - mu_t).abs() + (var_p - var_t).abs(), inner)
+    return _masked_mean((mu_p - mu_t).abs() + (var_p - var_t).abs(), inner,
+                        None if weight is None else window_min(weight))
 
 
 # ----- from the render and the batch ---------------------------------------------------------------------------
@@ -167,10 +189,32 @@ def prior_and_mask(batch, like: torch.Tensor, alpha: Optional[torch.Tensor] = No
     return prior, mask
 
 
+def prior_weight(batch, like: torch.Tensor, power: Optional[float] = None) -> Optional[torch.Tensor]:
+    """confidence ** power as [B, 1, H, W] matching `like`, from batch["inv_depth_confidence"] or the batch's
+    view; None when there is none or power is 0 (plain means)."""
+    power = SETTINGS.confidence_power if power is None else power
+    if power == 0:
+        return None
+    try:
+        conf = batch_field(batch, CONFIDENCE_KEY)
+    except ValueError:
+        view = batch.get("view") if isinstance(batch, dict) else getattr(batch, "view", None)
+        conf = getattr(view, CONFIDENCE_KEY, None)
+        if conf is None:
+            return None
+    conf = _bchw(conf, f"batch.{CONFIDENCE_KEY}").to(like)
+    if conf.shape[-2:] != like.shape[-2:]:
+        raise ValueError(f"batch.{CONFIDENCE_KEY}: {list(conf.shape[-2:])} does not match the render "
+                         f"{list(like.shape[-2:])}")
+    if not bool(torch.isfinite(conf).all()):
+        raise ValueError(f"batch.{CONFIDENCE_KEY}: contains NaN or Inf")
+    return conf.clamp(0.0, 1.0).pow(power).expand_as(like)
+
+
 def _inputs(render_out, batch):
     pred, alpha = rendered_inverse_depth(render_out)
     prior, mask = prior_and_mask(batch, pred, alpha)
-    return pred, prior, mask
+    return pred, prior, mask, prior_weight(batch, pred)
 
 
 @register_loss("depth", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)

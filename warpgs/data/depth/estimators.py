@@ -8,6 +8,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+# Name of the EXR channel a written prior keeps its confidence in (read back by Scene.prior_confidence_np).
+CONFIDENCE_CHANNEL = "confidence"
+
 
 @dataclass
 class DepthEstimate:

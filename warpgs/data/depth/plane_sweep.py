@@ -1,12 +1,22 @@
-"""Built-in depth estimator: plane-sweep stereo against neighbouring views (light-field sub-apertures or
-nearby frames). Needs no network weights; vectorised in torch.
+"""Built-in depth estimator: plane-sweep stereo against neighbouring views (light-field sub-apertures, nearby
+frames, or the other training views of a few-view capture). Needs no network weights; vectorised in torch.
 
 For each reference view: sweep fronto-parallel planes uniformly in inverse depth; warp every source image onto
 the reference through each plane's homography; score photo-consistency with a truncated colour + gradient
-difference; keep, per pixel and plane, the mean of the best half of the sources that see it (so a source that
-is occluded there does not vote); average that over a small window; take the best plane with a parabolic
-sub-plane refinement. A pixel is valid when its best cost is clearly below its median over the planes (it has
-texture) and the best plane is not at either end of the sweep.
+difference; keep, per pixel and plane, the mean of the best `best_fraction` of the sources that see it (all by
+default: on fern's 3 views the mean of both sources ranked errors better than the better one alone, and the
+consistency check below removes what an occluded source gets wrong; 0.5 was the old default); average that
+over a small window; take the best plane with a parabolic sub-plane refinement.
+
+Which pixels to trust (issue 15: on real 3-view captures the old rule trusted textureless walls most):
+- confidence "margin" (default): how far the best cost sits below the best cost of any clearly different depth
+  (more than 2 planes away). Flat cost curves (textureless) and double minima (repeated texture) score ~0.
+  Reported as 1 - exp(-margin / margin_scale). The old "distinct" rule, (median - best) / median, divides by a
+  median that is itself ~0 on textureless pixels and so ranked them highest.
+- geometric consistency (default on; warpgs.data.depth.consistency): the depth must agree with at least `min_agree`
+  other views' own depth maps; confidence is scaled by the share of the views that could check it and agree.
+A pixel is valid when some source sees it, the best plane is not at either end of the sweep, and it passes the
+rules above.
 """
 from __future__ import annotations
 
@@ -21,6 +31,11 @@ from warpgs.data.depth.estimators import DepthEstimate, DepthEstimator
 
 
 _CHUNK_ELEMENTS = 1 << 22  # source x plane x pixel elements per chunk of the sweep
+# The estimator as it was before issue 15 (benchmarks/prior_accuracy.py scores it as "legacy").
+LEGACY_SETTINGS = dict(num_sources=8, window=5, truncation=0.15, best_fraction=0.5, min_distinctiveness=0.25,
+                       confidence="distinct", consistency=False)
+CONFIDENCE_RULES = ("margin", "distinct")
+_MARGIN_PLANES = 2  # a "clearly different" depth is more than this many planes from the best
 
 
 def _features(img: torch.Tensor) -> torch.Tensor:
@@ -42,16 +57,28 @@ class PlaneSweepStereo(DepthEstimator):
     """num_planes: planes per sweep (None: enough for half-pixel steps in the widest-baseline source, 16..128);
     num_sources: nearest views used per reference; window: aggregation window (pixels); truncation: cap on a
     pixel's colour+gradient difference; best_fraction: share of the seeing sources averaged per pixel;
-    near/far: depth range (None: from the SfM points the view sees); min_distinctiveness: validity threshold;
-    device: torch device (None: CUDA when available, else CPU); num_threads: torch CPU threads during a sweep
-    (1 by default: its ops are small, and on a shared 2-core machine a second thread mostly waits, which measured
-    up to 5x slower here; None keeps torch's setting)."""
+    near/far: depth range (None: from the SfM points the view sees); confidence: "margin" or "distinct" (see the
+    module doc) with its threshold min_margin / min_distinctiveness and margin_scale; consistency: keep only
+    depths that min_agree other views' depth maps confirm within consistency_px pixels and consistency_rel
+    relative depth; device: torch device (None: CUDA when available, else CPU); num_threads: torch CPU threads
+    during a sweep (1 by default: its ops are small, and on a shared 2-core machine a second thread mostly waits,
+    which measured up to 5x slower here; None keeps torch's setting)."""
 
     name = "plane_sweep"
 
     def __init__(self, num_planes: Optional[int] = None, num_sources: int = 8, window: int = 5, truncation: float = 0.15,
-                 best_fraction: float = 0.5, near: Optional[float] = None, far: Optional[float] = None,
-                 min_distinctiveness: float = 0.25, device: Optional[str] = None, num_threads: Optional[int] = 1):
+                 best_fraction: float = 1.0, near: Optional[float] = None, far: Optional[float] = None,
+                 min_distinctiveness: float = 0.25, confidence: str = "margin", min_margin: float = 0.0,
+                 margin_scale: float = 0.01, consistency: bool = True, consistency_px: float = 1.0,
+                 consistency_rel: float = 0.03, min_agree: int = 1, device: Optional[str] = None,
+                 num_threads: Optional[int] = 1):
+        if confidence not in CONFIDENCE_RULES:
+            raise ValueError(f"confidence: expected one of {CONFIDENCE_RULES}, got {confidence!r}")
+        if not 0 < best_fraction <= 1:
+            raise ValueError(f"best_fraction: expected a share in (0, 1], got {best_fraction}")
+        if margin_scale <= 0 or consistency_px <= 0 or consistency_rel <= 0 or min_agree < 1:
+            raise ValueError("margin_scale, consistency_px and consistency_rel must be > 0 and min_agree >= 1, got "
+                             f"{margin_scale}, {consistency_px}, {consistency_rel}, {min_agree}")
         self.num_planes = num_planes  # None: enough for half-pixel steps in the widest-baseline source
         self.num_sources = num_sources
         self.window = window
@@ -59,6 +86,10 @@ class PlaneSweepStereo(DepthEstimator):
         self.best_fraction = best_fraction
         self.near, self.far = near, far
         self.min_distinctiveness = min_distinctiveness
+        self.confidence = confidence
+        self.min_margin, self.margin_scale = min_margin, margin_scale
+        self.consistency = consistency
+        self.consistency_px, self.consistency_rel, self.min_agree = consistency_px, consistency_rel, min_agree
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.num_threads = num_threads
 
@@ -159,14 +190,23 @@ class PlaneSweepStereo(DepthEstimator):
         offset = offset.clamp(-0.5, 0.5).double()
         step = (inv[-1] - inv[0]) / max(d_count - 1, 1)
         inv_depth = inv[idx] + offset * step
-        # Distinctiveness: how far the best cost sits below the median over planes (flat = textureless).
-        median = vol.median(0).values
-        distinct = (median - c_min) / median.clamp(min=1e-6)
         seen = finite.float().mean(0) > 0.5
         interior = (idx > 0) & (idx < d_count - 1)
-        valid = seen & interior & (distinct > self.min_distinctiveness)
+        if self.confidence == "distinct":
+            # How far the best cost sits below the median over planes (the rule before issue 15).
+            median = vol.median(0).values
+            score = (median - c_min) / median.clamp(min=1e-6)
+            valid = seen & interior & (score > self.min_distinctiveness)
+            conf = score.clamp(0, 1)
+        else:
+            planes = torch.arange(d_count, device=vol.device)[:, None, None]
+            elsewhere = (planes - idx[None]).abs() > _MARGIN_PLANES
+            second = torch.where(elsewhere, vol, torch.full_like(vol, float("inf"))).min(0).values
+            margin = torch.where(torch.isfinite(second), second - c_min, torch.zeros_like(c_min)).clamp_min(0)
+            valid = seen & interior & (margin > self.min_margin)
+            conf = 1 - torch.exp(-margin / self.margin_scale)
         return DepthEstimate(inv_depth=inv_depth.float().cpu().numpy(), valid=valid.cpu().numpy(), metric=True,
-                             confidence=distinct.clamp(0, 1).float().cpu().numpy())
+                             confidence=torch.where(valid, conf, torch.zeros_like(conf)).float().cpu().numpy())
 
     # --- the estimator interface ---------------------------------------------------------------------------
     def neighbours(self, scene, view: int, sources: Sequence[int]) -> list[int]:
@@ -177,18 +217,44 @@ class PlaneSweepStereo(DepthEstimator):
 
     def estimate(self, scene, views: Sequence[int], sources: Optional[Sequence[int]] = None) -> dict[int, DepthEstimate]:
         sources = list(scene.train if sources is None else sources)
+        views = list(views)
         previous = torch.get_num_threads()
         if self.device.type == "cpu" and self.num_threads:
             torch.set_num_threads(self.num_threads)
         try:
-            out = {}
-            for v in views:
-                nbrs = self.neighbours(scene, v, sources)
-                if not nbrs:
+            nbrs = {v: self.neighbours(scene, v, sources) for v in views}
+            raw = {}
+            # The consistency check needs the neighbours' own depth maps too (from their own neighbours).
+            needed = views + [n for v in views for n in nbrs[v] if self.consistency and n not in views]
+            for v in dict.fromkeys(needed):
+                near_views = nbrs.get(v) or self.neighbours(scene, v, sources)
+                if not near_views:
                     raise ValueError(f"plane sweep for view {scene.names[v]!r}: no other view to match against")
                 near, far = self.depth_range(scene, v)
-                out[v] = self.sweep(scene.image_np(v)[0], scene.cameras[v], [scene.image_np(s)[0] for s in nbrs],
-                                    [scene.cameras[s] for s in nbrs], near, far)
-            return out
+                raw[v] = self.sweep(scene.image_np(v)[0], scene.cameras[v],
+                                    [scene.image_np(s)[0] for s in near_views], [scene.cameras[s] for s in near_views],
+                                    near, far)
+            if not self.consistency:
+                return {v: raw[v] for v in views}
+            return {v: self._checked(scene, v, raw, nbrs[v]) for v in views}
         finally:
             torch.set_num_threads(previous)
+
+    def _checked(self, scene, view: int, raw: dict, neighbours: Sequence[int]) -> DepthEstimate:
+        """raw[view] with its validity and confidence narrowed by the neighbours' depth maps."""
+        from warpgs.data.depth.consistency import consistent_views
+
+        def depth_of(est):
+            inv = torch.as_tensor(est.inv_depth, device=self.device, dtype=torch.float64)
+            return torch.where(inv > 0, 1.0 / inv.clamp_min(1e-12), torch.zeros_like(inv))
+
+        others = [(scene.cameras[n], depth_of(raw[n]), torch.as_tensor(raw[n].valid, device=self.device))
+                  for n in neighbours]
+        agree, checked = consistent_views(scene.cameras[view], depth_of(raw[view]), others, self.consistency_px,
+                                          self.consistency_rel)
+        est = raw[view]
+        valid = est.valid & (agree >= self.min_agree).cpu().numpy()
+        share = (agree.float() / checked.clamp_min(1).float()).cpu().numpy()
+        conf = np.where(valid, (est.confidence if est.confidence is not None else 1.0) * share, 0.0)
+        return DepthEstimate(inv_depth=est.inv_depth, valid=valid, metric=est.metric,
+                             confidence=conf.astype(np.float32))

@@ -1,6 +1,12 @@
-"""Make the 2.5D sketch: estimate inverse depth per view, align it to the SfM points, write it as EXR."""
+"""Make the 2.5D sketch: estimate inverse depth per view, align it to the SfM points, write it as EXR (with the
+estimator's per-pixel confidence as a `confidence` channel when it gives one; the depth losses weight by it).
+
+A scene without SfM points (an LLFF few-view run: the capture's own points were made from every view, held-out
+ones included) gets points triangulated from its training views' known poses, cached in <out_dir>/points: they
+bound the plane sweep's depth range and are what the prior is aligned to."""
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Optional, Sequence
@@ -8,23 +14,48 @@ from typing import Optional, Sequence
 import numpy as np
 
 from warpgs.data.depth.align import align_depth_to_points
-from warpgs.data.depth.estimators import DepthEstimator
-from warpgs.data.depth.files import write_exr
+from warpgs.data.depth.estimators import CONFIDENCE_CHANNEL, DepthEstimator
+from warpgs.data.depth import files as depth_files
 from warpgs.data.scene import MapFormat, Scene
 from warpgs.data.formats.view_files import write_map_format
 
 PRIOR_FOLDER = "depth_priors"
+POINTS_FOLDER = "points"  # inside the prior folder: the training-view triangulation of a scene without points
+
+
+def write_prior(path: Path, inv_depth: np.ndarray, valid: np.ndarray, confidence: Optional[np.ndarray] = None) -> Path:
+    """An aligned inverse-depth prior as EXR: value, validity and (optional) confidence in [0, 1] channels."""
+    channels = {"Z": np.where(valid, inv_depth, 0.0), depth_files._VALID_CHANNEL: valid}
+    if confidence is not None:
+        channels[CONFIDENCE_CHANNEL] = np.where(valid, np.clip(confidence, 0.0, 1.0), 0.0)
+    return depth_files.write_exr_channels(path, channels, {depth_files._KIND_ATTRIBUTE: "inverse_depth"})
+
+
+def _with_training_points(scene: Scene, out_dir: Path) -> Scene:
+    """The scene with points triangulated from its training views; unchanged (with a note) when that fails, so
+    an estimator given near/far still runs and one that needs points says so."""
+    from warpgs.data.errors import SceneError
+    from warpgs.data.sfm.triangulate import triangulate_scene
+
+    try:
+        tri = triangulate_scene(scene, out_dir / POINTS_FOLDER, progress=False)
+    except (SceneError, RuntimeError, ValueError) as exc:  # pycolmap raises RuntimeError/ValueError
+        print(f"depth priors: no SfM points and triangulating the training views failed ({exc})", file=sys.stderr)
+        return scene
+    return scene.with_points(tri.points)
 
 
 def compute_depth_priors(scene: Scene, estimator: Optional[DepthEstimator] = None, *,
                          views: Optional[Sequence[int]] = None, out_dir: Optional[Path] = None,
-                         align: bool = True, min_points: int = 10) -> tuple[Scene, dict]:
+                         align: bool = True, min_points: int = 10, triangulate: bool = True) -> tuple[Scene, dict]:
     """Estimate, align and write priors for `views` (default: training views) into out_dir (default
     <scene root>/depth_priors). Returns the scene with priors attached and a report:
     {"estimator", "seconds", "views": {name: {"alignment": {...} or None, "valid_fraction"}}}.
 
     Relative (non-metric) estimates must be aligned, so they need SfM points; metric ones (stereo) are aligned
-    too when points exist, and the report's scale/shift then shows how well they already agreed.
+    too when points exist, and the report's scale/shift then shows how well they already agreed. A scene without
+    points gets them from its training views (triangulate=True, see the module doc); the returned scene is the
+    one given (without those points), so a trainer still chooses its own initial points.
     """
     from warpgs.data.depth.plane_sweep import PlaneSweepStereo
 
@@ -32,6 +63,9 @@ def compute_depth_priors(scene: Scene, estimator: Optional[DepthEstimator] = Non
     views = list(scene.train if views is None else views)
     out_dir = Path(out_dir) if out_dir is not None else scene.root / PRIOR_FOLDER
     start = time.perf_counter()
+    bare = scene
+    if scene.points is None and triangulate:
+        scene = _with_training_points(scene, out_dir)
     estimates = estimator.estimate(scene, views)
     report = {"estimator": estimator.name, "views": {}}
     for v in views:
@@ -46,10 +80,11 @@ def compute_depth_priors(scene: Scene, estimator: Optional[DepthEstimator] = Non
         elif not est.metric:
             raise ValueError(f"view {scene.names[v]!r}: a relative depth estimate needs at least {min_points} "
                              f"SfM points to align to, the view sees {len(seen)}")
-        write_exr(out_dir / f"{Path(scene.names[v]).stem}.exr", np.where(valid, inv, 0.0), "inverse_depth", valid)
+        write_prior(out_dir / f"{Path(scene.names[v]).stem}.exr", inv, valid, est.confidence)
         report["views"][scene.names[v]] = {"alignment": None if alignment is None else alignment.as_dict(),
-                                           "valid_fraction": float(valid.mean())}
+                                           "valid_fraction": float(valid.mean()),
+                                           "confidence": est.confidence is not None}
     report["seconds"] = round(time.perf_counter() - start, 3)
     write_map_format(out_dir, MapFormat("inverse_depth"), estimator=estimator.name, aligned=align,
                      views=report["views"])
-    return scene.with_depth_priors(out_dir, MapFormat("inverse_depth")), report
+    return bare.with_depth_priors(out_dir, MapFormat("inverse_depth")), report

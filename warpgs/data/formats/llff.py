@@ -10,8 +10,11 @@ frame is the COLMAP model's the poses came from. In OpenCV axes (ours: x right, 
 images_N/ folders hold the same views 1/N the size, named in the same sorted order (not always with the same
 names: fern's images_8 has image000.png, ...). When the requested downscale has a complete images_N folder of
 the right size they are the stored images; otherwise images/ is resized through the image cache.
-Default split: split.json when present, else the LLFF protocol (views 0, 8, 16, ... held out).
-A complete COLMAP model in sparse/0 whose poses agree with poses_bounds.npy contributes its points.
+Default split: split.json when present, else the LLFF protocol (views 0, 8, 16, ... held out; with n_train,
+that many training views spread evenly over the rest, as FSGS and DNGaussian pick them: splits.llff_split).
+A complete COLMAP model in sparse/0 whose poses agree with poses_bounds.npy contributes its points, except to a
+few-view scene (n_train given): those points were triangulated from every view, held-out ones included, so a
+few-view run must make its own from its training views (model.init=triangulate; compute_depth_priors does).
 """
 from __future__ import annotations
 
@@ -221,7 +224,11 @@ def load_llff(root: PathLike, *, split=None, n_train: Optional[int] = None, down
     train, test = resolve_split(root, names, split, n_train)
     files = discover_view_files(root, names, paths)
     metadata = {"near_far": bounds.tolist(), "images": paths[0].parent.name, "llff_downscale": downscale}
-    scene = Scene(cameras, files, root=root, train=train, test=test, points=colmap_points(root, cameras),
+    # Few-view runs never see the all-view model's points (test-view leakage); see the module docstring.
+    points = colmap_points(root, cameras) if n_train is None else None
+    if n_train is not None:
+        metadata["colmap_points"] = "withheld: made from all views, and this is a few-view (n_train) scene"
+    scene = Scene(cameras, files, root=root, train=train, test=test, points=points,
                   label_names=read_label_names(root), depth_format=read_map_format(root, "depth", MapFormat("depth")),
                   prior_format=read_map_format(root, "depth_prior", MapFormat()), undistort=undistort,
                   downscale=1 if shipped else downscale, source=f"llff ({paths[0].parent.name})",

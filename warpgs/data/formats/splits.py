@@ -14,7 +14,11 @@ SPLIT_FILE = "split.json"
 
 def llff_split(num_views: int, n_train: Optional[int] = None, hold_every: int = 8) -> tuple[list[int], list[int]]:
     """The LLFF protocol of the sparse-view literature: every `hold_every`-th view (0, 8, 16, ...) is a test
-    view; of the rest, `n_train` views spread evenly (first and last included) train; all of them if None."""
+    view; of the rest, `n_train` views spread evenly (first and last included) train; all of them if None.
+
+    "Evenly" is FSGS's and DNGaussian's rule (their LLFF readers): of the remaining views in sorted order, those
+    at positions np.linspace(0, len(rest) - 1, n_train), each rounded half-to-even (Python's round, as np.round).
+    fern (20 views): test 0, 8, 16; train 1, 10, 19."""
     if num_views <= 0:
         raise ValueError("llff_split: no views")
     test = list(range(0, num_views, hold_every)) if num_views > 1 else []
@@ -78,5 +82,8 @@ def resolve_split(root: Path, names: Sequence[str], split: Optional[str | tuple]
     if split == "llff":
         return llff_split(len(names), n_train)
     if split == "all":
+        if n_train is not None:
+            raise ValueError(f"n_train={n_train} needs a split that holds views out ('llff' or a split.json); with "
+                             "'all' (the default without split.json) every view trains")
         return list(range(len(names))), []
     raise ValueError(f"unknown split {split!r}; use 'file', 'llff', 'all' or a (train, test) pair")

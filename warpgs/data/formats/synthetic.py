@@ -36,7 +36,9 @@ from warpgs.data.formats.image_io import write_png
 from warpgs.data.points import PointCloud
 from warpgs.data.formats.splits import llff_split, write_split_file
 
-GENERATOR_VERSION = 1
+# Part of the cache folder's name: bump it when what a scene holds changes, so cached copies are made again.
+# 2: the light field's plane-sweep priors carry a confidence channel (the issue-15 estimator).
+GENERATOR_VERSION = 2
 KINDS = ("lightfield", "orbit")
 TARGET = np.array([0.0, 0.0, 0.35])  # where the cameras look
 
