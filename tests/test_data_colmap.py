@@ -110,6 +110,14 @@ def test_split_file_and_llff(tmp_path):
     assert load_colmap(tmp_path, split="all").train == [0, 1, 2]
 
 
+def test_few_view_scene_gets_no_all_view_points(tmp_path):
+    # The model's points were triangulated with every view: a few-view run (n_train) must not start from them.
+    _pycolmap_model(tmp_path, binary=True)
+    assert load_colmap(tmp_path).points is not None and len(load_colmap(tmp_path).points) > 0
+    few = load_colmap(tmp_path, split="llff", n_train=1)
+    assert few.points is None and len(few.train) == 1
+
+
 @pytest.mark.parametrize("factor", [2, 4, 8])
 def test_downscale_area_average_and_disk_cache(tmp_path, monkeypatch, factor):
     monkeypatch.setenv("WARPGS_CACHE", str(tmp_path / "cache"))

@@ -127,6 +127,7 @@ def load_colmap(root: PathLike, *, model_dir: Optional[PathLike] = None, images_
     """A COLMAP scene folder -> Scene (see module docstring for the layout).
 
     split: None (split.json if present, else all train), "llff", "all" or a (train, test) index pair.
+    n_train: a few-view scene; it gets no SfM points (they were made from every view).
     """
     root = Path(root)
     if not root.is_dir():
@@ -143,8 +144,11 @@ def load_colmap(root: PathLike, *, model_dir: Optional[PathLike] = None, images_
         raise SceneError(model_dir, "COLMAP model has no registered images")
     names = [c.name for c in cameras]
     train, test = resolve_split(root, names, split, n_train)
+    # A few-view run (n_train) must not start from points the model triangulated with every view, held-out ones
+    # included: it gets none, and model.init=auto triangulates from its training views (as the LLFF loader).
+    points = points_from_model(rec, image_ids, model_dir) if n_train is None else None
     scene = Scene(cameras, discover_view_files(root, names, [c.image_path for c in cameras]), root=root,
-                  train=train, test=test, points=points_from_model(rec, image_ids, model_dir),
+                  train=train, test=test, points=points,
                   label_names=read_label_names(root),
                   depth_format=read_map_format(root, "depth", MapFormat("depth")),
                   prior_format=read_map_format(root, "depth_prior", MapFormat()),
