@@ -98,7 +98,8 @@ def main(argv=None) -> dict:
     for r in runs:
         d = r["largest_drop"]
         print(f"{r['system']}: {1e3 * per_step[r['system']]:.2f} ms/step; largest one-step primitive drop "
-              f"{100 * d['fraction_removed']:.1f}% (step {d['step']}: {d['before']} -> {d['after']})")
+              f"{100 * d['fraction_removed']:.1f}% (step {d['step']}: {d['before']} -> {d['after']})"
+              + (f"; flagged by rule: {d['pruned_by']}" if d.get("pruned_by") else ""))
     payload = {"data": str(data), "scene": scene.summary(), "device": args.device, "steps": marks,
                "seed": args.seed, "config": cfg.to_dict(), "runs": runs, "ms_per_step": per_step,
                "init_source": str(trainer.init_source)}

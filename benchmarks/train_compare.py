@@ -31,12 +31,20 @@ def sync(device) -> None:
 
 
 def largest_drop(counts: list) -> dict:
-    """The step whose primitive count fell the most, relative to the count before it."""
-    worst = {"step": None, "before": None, "after": None, "fraction_removed": 0.0}
-    for (s0, n0), (s1, n1) in zip(counts, counts[1:]):
+    """The step whose primitive count fell the most, relative to the count before it. Entries are (step, count)
+    or (step, count, {rule: primitives it pruned}); the rule counts of that step come along as "pruned_by"."""
+    worst = {"step": None, "before": None, "after": None, "fraction_removed": 0.0, "pruned_by": None}
+    for before, after in zip(counts, counts[1:]):
+        (s0, n0), (s1, n1) = before[:2], after[:2]
         if n0 > 0 and (n0 - n1) / n0 > worst["fraction_removed"]:
-            worst = {"step": s1, "before": n0, "after": n1, "fraction_removed": round((n0 - n1) / n0, 4)}
+            worst = {"step": s1, "before": n0, "after": n1, "fraction_removed": round((n0 - n1) / n0, 4),
+                     "pruned_by": after[2] if len(after) > 2 else None}
     return worst
+
+
+def _record(counts: list, step: int, n: int, report) -> None:
+    pruned_by = report.get("pruned_by") if report else None
+    counts.append((step, n, pruned_by) if pruned_by is not None else (step, n))
 
 
 def initial_model(cfg):
@@ -44,7 +52,8 @@ def initial_model(cfg):
     per-step primitive counts are recorded into)."""
     counts: list = []
     trainer = Trainer(cfg, quiet=True,
-                      callbacks=[lambda tr, step, info: counts.append((step + 1, tr.model.num_primitives))])
+                      callbacks=[lambda tr, step, info: _record(counts, step + 1, tr.model.num_primitives,
+                                                                info.get("densify"))])
     counts.append((0, trainer.model.num_primitives))
     start = {k: v.detach().clone() for k, v in trainer.model.params.items()}
     return trainer, start, counts
@@ -159,11 +168,14 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict) -> dict:
         for opt in list(optimizers.values()) + ([env_opt] if env_opt is not None else []):
             opt.step()
             opt.zero_grad(set_to_none=True)
+        rules = None
+        if step > s.refine_start and step % s.refine_every == 0 and step < s.refine_stop:
+            rules = gsplat_prune_rules(params, step, s, extent)  # what its refine will test (before growing)
         if step > 0:  # some gsplat releases reset opacities at step 0 (step % reset_every == 0); ours never does
             strategy.step_post_backward(params, optimizers, state, step, info, packed=False)
         sync(device)
         seconds += time.perf_counter() - t0
-        counts.append((step + 1, len(params["means"])))
+        _record(counts, step + 1, len(params["means"]), {"pruned_by": rules} if rules else None)
         if (step + 1) % eval_every == 0 or step + 1 == steps:
             p, q = evaluate(deg)
             points.append({"step": step + 1, "seconds": round(seconds, 3), "psnr": p, "ssim": q,
@@ -174,6 +186,17 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict) -> dict:
             "final": {"psnr": last["psnr"], "ssim": last["ssim"], "num_primitives": last["num_primitives"],
                       "train_seconds": last["seconds"]},
             "largest_drop": largest_drop(counts)}
+
+
+@torch.no_grad()
+def gsplat_prune_rules(params, step: int, s, extent: float) -> dict:
+    """Primitives gsplat's DefaultStrategy pruning rules flag at a refine step, counted before it grows: opacity
+    under prune_opa, and after its first opacity reset the largest scale over prune_scale3d x scene scale."""
+    low = torch.sigmoid(params["opacities"].flatten()) < s.prune_opacity
+    big = torch.zeros_like(low)
+    if s.prune_world_scale > 0 and s.reset_every and step > s.reset_every:
+        big = torch.exp(params["scales"]).amax(-1) > s.prune_world_scale * extent
+    return {"opacity": int(low.sum()), "world_size": int(big.sum())}
 
 
 def time_to(points: list, level: float):
