@@ -33,6 +33,12 @@ def evaluate_views(render_fn: Callable, views: Sequence, *, lpips: Optional[LPIP
                 from warpgs.data.formats.image_io import write_png
 
                 write_png(Path(save_dir) / f"{Path(view.name).stem}.png", rgb.cpu().numpy())
+    return summarize_views(per_view, lpips)
+
+
+def summarize_views(per_view: dict, lpips=None) -> dict:
+    """Means of the per-view scores ({view name: {"psnr", "ssim"[, "lpips"]}}), with the view count, the
+    per-view scores and, when LPIPS is off or unavailable, why."""
     n = len(per_view)
     out = {"psnr": sum(v["psnr"] for v in per_view.values()) / n,
            "ssim": sum(v["ssim"] for v in per_view.values()) / n}

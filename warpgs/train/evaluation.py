@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Callable, List, Optional
 import torch
 
 from warpgs.metrics.image import LPIPSMetric
-from warpgs.metrics.views import evaluate_views
+from warpgs.metrics.views import evaluate_views, summarize_views
 
 if TYPE_CHECKING:
     from warpgs.config.schema import EvalConfig
@@ -94,16 +94,7 @@ class Evaluator:
             scores.update(rank_scores)
             kept.update(rank_images)
         per_view = {v.name: scores[v.name] for v in views if v.name in scores}  # view order, as one process
-        n = len(per_view)
-        out = {"psnr": sum(v["psnr"] for v in per_view.values()) / n,
-               "ssim": sum(v["ssim"] for v in per_view.values()) / n}
-        if lpips is not None and lpips.available:
-            out["lpips"] = sum(v["lpips"] for v in per_view.values()) / n
-        else:
-            out["lpips"] = None
-            out["lpips_unavailable"] = lpips.reason if lpips is not None else "disabled (eval.lpips: false)"
-        out["num_views"] = n
-        out["per_view"] = per_view
+        out = summarize_views(per_view, lpips)
         images.clear()
         images.update({v.name: kept[v.name] for v in views if v.name in kept})
         return out
