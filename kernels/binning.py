@@ -112,6 +112,27 @@ def emit_tile_keys(
             k += 1
 
 
+@wp.func
+def pair_slot(offsets: wp.array(dtype=wp.int32), num_primitives: int, k: int) -> int:
+    """The slot whose key range holds pair k: the first whose inclusive prefix sum `offsets` exceeds k."""
+    lo = int(0)
+    hi = num_primitives - 1
+    while lo < hi:
+        mid = (lo + hi) / 2
+        if offsets[mid] > k:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@wp.func
+def pair_tile(r: wp.vec4i, local: int, tiles_x: int) -> int:
+    """The tile index of the local-th tile (row by row) of the tile rectangle r = (x0, y0, x1, y1)."""
+    width = r[2] - r[0] + 1
+    return (r[1] + local / width) * tiles_x + r[0] + local % width
+
+
 @wp.kernel
 def emit_tile_keys_per_pair(
     rects: wp.array(dtype=wp.vec4i),
@@ -127,19 +148,9 @@ def emit_tile_keys_per_pair(
     primitive's thousands of tiles no longer serialise on one GPU thread, and writes are coalesced. Each thread
     finds its primitive by binary search in the prefix sum (worth it on GPUs; the CPU keeps the loop)."""
     k = wp.tid()
-    lo = int(0)
-    hi = num_primitives - 1
-    while lo < hi:  # the first primitive (in depth order) whose range ends after k
-        mid = (lo + hi) / 2
-        if offsets[mid] > k:
-            hi = mid
-        else:
-            lo = mid + 1
-    i = order[lo]
-    r = rects[i]
-    local = k - (offsets[lo] - counts[i])
-    width = r[2] - r[0] + 1
-    keys[k] = (r[1] + local / width) * tiles_x + r[0] + local % width
+    slot = pair_slot(offsets, num_primitives, k)
+    i = order[slot]
+    keys[k] = pair_tile(rects[i], k - (offsets[slot] - counts[i]), tiles_x)
     values[k] = i
 
 
@@ -260,19 +271,9 @@ def emit_tile_depth_keys_per_pair(
 ):
     """One thread per (primitive, tile) pair, finding its primitive by binary search (GPUs)."""
     k = wp.tid()
-    lo = int(0)
-    hi = num_primitives - 1
-    while lo < hi:
-        mid = (lo + hi) / 2
-        if offsets[mid] > k:
-            hi = mid
-        else:
-            lo = mid + 1
-    r = rects[lo]
-    local = k - (offsets[lo] - counts[lo])
-    width = r[2] - r[0] + 1
-    keys[k] = tile_depth_key((r[1] + local / width) * tiles_x + r[0] + local % width, depth_bits[lo])
-    values[k] = lo
+    i = pair_slot(offsets, num_primitives, k)
+    keys[k] = tile_depth_key(pair_tile(rects[i], k - (offsets[i] - counts[i]), tiles_x), depth_bits[i])
+    values[k] = i
 
 
 @wp.kernel
