@@ -1,5 +1,6 @@
 """The viewer's parts that need no viser: browser camera <-> our camera, the frame loop (small frames while the
-camera moves, one still frame after) and the lock that lets a viewer thread render between training steps (one test checks our quaternions against viser's own)."""
+camera moves, one still frame after) and the lock that lets a viewer thread render between training steps (one
+test checks our quaternions against viser's own)."""
 import math
 import threading
 import time

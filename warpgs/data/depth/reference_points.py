@@ -8,7 +8,6 @@ near/far as the 0.1 / 99.9 percentiles of the camera z of exactly the points who
 """
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -17,7 +16,6 @@ import numpy as np
 
 from warpgs.data.errors import PathLike, SceneError, require_file
 
-_POINT_HEAD = struct.Struct("<QdddBBBdQ")  # id, xyz, rgb, error, track length
 _BOUNDS_RTOL = 1e-4  # near/far agreement needed to accept the id = row + 1 mapping
 
 
@@ -30,31 +28,13 @@ class TrackedPoints:
 
 def read_points3d_tracks(path: PathLike) -> TrackedPoints:
     """points3D.bin -> positions, errors and tracks; a truncated or inconsistent file is a SceneError naming it."""
+    from warpgs.data.formats.colmap_check import read_points3d
+
     path = require_file(path, "COLMAP points3D.bin")
-    data = path.read_bytes()
-    if len(data) < 8:
-        raise SceneError(path, "truncated: no point count")
-    (n,), off = struct.unpack_from("<Q", data, 0), 8
-    # Each point takes at least its header; a count the file cannot hold is corruption, not a reason to allocate.
-    if n > (len(data) - 8) // _POINT_HEAD.size:
-        raise SceneError(path, f"declares {n} points but holds at most {(len(data) - 8) // _POINT_HEAD.size}")
-    xyz, err, tracks = np.empty((n, 3)), np.empty(n), []
-    for i in range(n):
-        if off + _POINT_HEAD.size > len(data):
-            raise SceneError(path, f"truncated in point {i} of {n}")
-        _, x, y, z, _, _, _, e, length = _POINT_HEAD.unpack_from(data, off)
-        off += _POINT_HEAD.size
-        if off + 8 * length > len(data):
-            raise SceneError(path, f"truncated in the track of point {i} of {n}")
-        ids = np.frombuffer(data, dtype="<i4", count=2 * length, offset=off)[0::2]
-        off += 8 * length
-        xyz[i], err[i] = (x, y, z), e
-        tracks.append(np.unique(ids.astype(np.int64)))
-    if off != len(data):
-        raise SceneError(path, f"{len(data) - off} trailing bytes after {n} points")
+    _, xyz, error, tracks = read_points3d(path)
     if not np.all(np.isfinite(xyz)):
         raise SceneError(path, "point positions must be finite")
-    return TrackedPoints(xyz, err, tracks)
+    return TrackedPoints(xyz, error, [np.unique(t["image_id"].astype(np.int64)) for t in tracks])
 
 
 def _ids_from_bounds(points: TrackedPoints, scene, model: Path) -> dict[int, int]:

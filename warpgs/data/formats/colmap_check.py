@@ -61,7 +61,7 @@ class _Records:
 
     def array(self, dtype: np.dtype, n: int, what: str) -> np.ndarray:
         if n * dtype.itemsize > self.left:
-            self.fail(f"declares {n} {what} but only {self.left} bytes follow ({dtype.itemsize} each)")
+            self.fail(f"truncated: declares {n} {what} but only {self.left} bytes follow ({dtype.itemsize} each)")
         out = np.frombuffer(self.data, dtype=dtype, count=n, offset=self.pos)
         self.pos += n * dtype.itemsize
         return out
@@ -139,14 +139,25 @@ def _check_images(path: Path, camera_ids: set, frame_of: Optional[dict]) -> tupl
     return keypoints, np.concatenate(observed) if observed else np.zeros(0, np.uint64)
 
 
-def _check_points(path: Path, keypoints: dict) -> np.ndarray:
-    r = _Records(path)
-    ids, tracks = [], []
+def read_points3d(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
+    """points3D.bin's records, every read bounds-checked: (ids [N] uint64, xyz [N, 3] float64, mean reprojection
+    errors [N], tracks: N structured arrays of (image_id, point2D_idx)). A malformed file is a SceneError naming it."""
+    r = _Records(Path(path))
+    ids, xyz, errors, tracks = [], [], [], []
     for i in range(r.count("points", _POINT.size)):
-        point_id, *_, track_length = r.take(_POINT, f"point {i}")
+        point_id, x, y, z, _, _, _, error, track_length = r.take(_POINT, f"point {i}")
         tracks.append(r.array(_TRACK, track_length, f"track elements of point {point_id}"))
         ids.append(point_id)
+        xyz.append((x, y, z))
+        errors.append(error)
     r.finish()
+    return (np.asarray(ids, dtype=np.uint64), np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
+            np.asarray(errors, dtype=np.float64), tracks)
+
+
+def _check_points(path: Path, keypoints: dict) -> np.ndarray:
+    ids, _, _, tracks = read_points3d(path)
+    r = _Records(path)  # for its error messages only
     if tracks:
         track = np.concatenate(tracks)
         if len(track) and not keypoints:
@@ -162,7 +173,7 @@ def _check_points(path: Path, keypoints: dict) -> np.ndarray:
         if bad.any():
             r.fail(f"a track refers to keypoint {int(track['point2D_idx'][bad][0])} of image "
                    f"{int(track['image_id'][bad][0])}, which has fewer keypoints")
-    return np.asarray(ids, dtype=np.uint64)
+    return ids
 
 
 _SENSOR_TYPES = {0: "camera", 1: "IMU"}  # pycolmap.SensorType
