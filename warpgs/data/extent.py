@@ -25,6 +25,7 @@ MAX_POINTS = 20_000  # a strided subset is plenty for a median and keeps this O(
 
 
 def camera_radius(cameras: Sequence[Camera]) -> float:
+    """The largest distance of a camera centre from the centres' mean (Scene.camera_extent is 1.1 x this)."""
     centres = np.stack([c.center for c in cameras])
     return float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
 

@@ -19,6 +19,7 @@ from warpgs.data.depth import files as depth_io
 
 from warpgs.data.formats import image_io
 from warpgs.data.cache import cache_dir, file_key
+from warpgs.data.extent import camera_radius
 from warpgs.data.camera import Camera
 from warpgs.data.errors import MissingSceneFile, SceneError
 from warpgs.data.points import PointCloud
@@ -226,9 +227,7 @@ class Scene:
         """Radius of the training cameras' centres around their mean, times 1.1 (the usual 3DGS scene scale,
         getNerfppNorm over the training cameras: held-out cameras must not set a run's learning rates; on fern
         with 3 training views the extent of all 20 cameras is twice theirs). All cameras when none trains."""
-        cams = [self.cameras[i] for i in self.train] or self.cameras
-        centres = np.stack([c.center for c in cams])
-        radius = float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
+        radius = camera_radius([self.cameras[i] for i in self.train] or self.cameras)
         return 1.1 * radius if radius > 0 else 1.0
 
     def summary(self) -> str:
