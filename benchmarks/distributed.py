@@ -95,6 +95,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tag", default="", help="suffix of the result file name")
     ap.add_argument("--out", help="folder for the runs (default: a temporary folder)")
+    ap.add_argument("--warmup-steps", type=int, default=30,
+                    help="steps of an unreported first run that fills the kernel and scene caches (0: none)")
     ap.add_argument("--tiny", action="store_true", help="CPU smoke test: 64x48, 40 steps, gloo")
     ap.add_argument("overrides", nargs="*", help="extra key=value overrides for every run")
     args = ap.parse_args(argv)
@@ -109,6 +111,12 @@ def main(argv=None) -> dict:
         print(f"note: {args.size} is {width * height / 1e6:.2f} MP, under the 1 MP this benchmark is meant for",
               file=sys.stderr)
 
+    if args.warmup_steps > 0:
+        # Warp compiles its kernels on first use and caches them on disk: without this run the first measured
+        # process count would pay the compilation inside its training time.
+        warm = argparse.Namespace(**{**vars(args), "steps": args.warmup_steps, "scale_steps": False,
+                                     "eval_every": args.warmup_steps})
+        run_one(1, warm, root / "warmup")
     runs = [run_one(n, args, root / f"n{n}") for n in counts]
     base = next((r for r in runs if r["nproc"] == 1), None)
     for r in runs:
