@@ -168,3 +168,18 @@ def test_masks_and_feature_maps(tmp_path, monkeypatch):
     assert other.mask is None and other.features is None
     small = scene.downscaled(2).view(scene.index("r0_c0.png"))
     assert small.mask.shape == (48, 64, 1) and small.mask[:, 32:].all() and not small.mask[:, :32].any()
+
+
+def test_views_rendered_in_parallel_equal_one_at_a_time():
+    from warpgs.data.formats import raytrace
+    from warpgs.data.formats.synthetic import RigSettings, orbit_rig, render_views, scene_definition
+
+    cameras = orbit_rig(RigSettings(width=40, height=30, n_orbit=4))[0]
+    definition = scene_definition()
+    serial = [raytrace.render(definition, cam) for cam in cameras]
+    threaded = render_views(definition, cameras, max_workers=4)
+    assert len(threaded) == len(cameras)
+    for a, b in zip(serial, threaded):
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.labels, b.labels)

@@ -19,6 +19,7 @@ import os
 import shutil
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Optional
@@ -143,6 +144,17 @@ def sample_surface_points(renders: list, cameras: list, train: list[int], n_poin
     return PointCloud(xyz, rgb, observed)
 
 
+def render_views(definition: raytrace.SceneDef, cameras: list[Camera], max_workers: int = 8) -> list:
+    """Ray trace every view, several at once: numpy releases the GIL in its array loops, so threads scale
+    (1.7x on 2 cores) without pickling the textures' closures. A 1280x800 orbit took 6+ minutes one view at a
+    time. At most max_workers views are in flight, each holding about 1 GB of rays at a megapixel."""
+    workers = max(1, min(len(cameras), os.cpu_count() or 1, max_workers))
+    if workers == 1:
+        return [raytrace.render(definition, cam) for cam in cameras]
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(lambda cam: raytrace.render(definition, cam), cameras))
+
+
 def _write_view(root: Path, cam: Camera, rend: raytrace.Rendering):
     stem = Path(cam.name).stem
     write_png(root / "images" / cam.name, rend.rgb)
@@ -169,7 +181,7 @@ def write_synthetic_scene(out_dir: Path, kind: str = "lightfield", settings: Opt
         cameras, positions, train, test = lightfield_rig(s)
     else:
         (cameras, train, test), positions = orbit_rig(s), None
-    renders = [raytrace.render(definition, cam) for cam in cameras]
+    renders = render_views(definition, cameras)
     for cam, rend in zip(cameras, renders):
         _write_view(out_dir, cam, rend)
     points = sample_surface_points(renders, cameras, train, n_points, np.random.default_rng(seed))
