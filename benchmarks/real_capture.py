@@ -57,6 +57,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--downscale", type=int, default=None, help="data.downscale (default: the config's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--gsplat", action="store_true", help="also run the plain gsplat loop (CUDA only)")
+    ap.add_argument("--only", choices=("warpgs", "gsplat"), default=None,
+                    help="run one system (with --gsplat): a 30k-step pair does not fit one 10-minute GPU call")
+    ap.add_argument("--tag", default="", help="suffix of the result file name")
     ap.add_argument("--lpips", action="store_true", help="score LPIPS at the end (needs its weights locally)")
     ap.add_argument("--out", default=None, help="output folder for the warpgs run (default: a temp folder)")
     ap.add_argument("overrides", nargs="*", help="extra key=value config overrides (both systems)")
@@ -64,6 +67,8 @@ def main(argv=None) -> dict:
     data = Path(args.data)
     if not data.is_dir():
         raise SystemExit(f"data: {data} is not a folder")
+    if args.only == "gsplat" and not args.gsplat:
+        raise SystemExit("--only gsplat needs --gsplat")
     if args.gsplat and not args.device.startswith("cuda"):
         raise SystemExit("--gsplat needs --device cuda (gsplat has no CPU rasterizer)")
     try:
@@ -86,8 +91,8 @@ def main(argv=None) -> dict:
     scene = trainer.scene
     print(f"{data.name}: {scene.summary()}; init {trainer.model.num_primitives} primitives "
           f"from {trainer.init_source}", flush=True)
-    runs = [run_warpgs(trainer, counts, eval_every)]
-    if args.gsplat:
+    runs = [] if args.only == "gsplat" else [run_warpgs(trainer, counts, eval_every)]
+    if args.gsplat and args.only != "warpgs":
         runs.append(run_gsplat(cfg, eval_every, scene, start))
 
     rows = [{"system": r["system"], "step": p["step"], "seconds": p["seconds"], "psnr": p["psnr"], "ssim": p["ssim"],
@@ -103,12 +108,16 @@ def main(argv=None) -> dict:
     payload = {"data": str(data), "scene": scene.summary(), "device": args.device, "steps": marks,
                "seed": args.seed, "config": cfg.to_dict(), "runs": runs, "ms_per_step": per_step,
                "init_source": str(trainer.init_source)}
-    if args.gsplat:
+    if len(per_step) == 2:
         payload["step_time_ratio"] = per_step["warpgs"] / per_step["gsplat"]
         print(f"time per step warpgs / gsplat = {payload['step_time_ratio']:.2f}")
     if args.device.startswith("cuda"):
         payload["gpu"] = torch.cuda.get_device_name()
     name = f"real_capture_{data.resolve().name}_{torch.device(args.device).type}" + ("_gsplat" if args.gsplat else "")
+    name += f"_{args.only}_only" if args.only else ""
+    name += f"_{marks[-1]}" if marks[-1] != 7000 else ""
+    name += f"_seed{args.seed}" if args.seed else ""
+    name += f"_{args.tag}" if args.tag else ""
     path = write_json(name, payload)
     try:
         plot(runs, f"{data.name}: held-out PSNR vs time ({args.device})", path.with_suffix(".png"))
