@@ -59,6 +59,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--gsplat", action="store_true", help="also run the plain gsplat loop (CUDA only)")
     ap.add_argument("--only", choices=("warpgs", "gsplat"), default=None,
                     help="run one system (with --gsplat): a 30k-step pair does not fit one 10-minute GPU call")
+    ap.add_argument("--gsplat-reset", choices=("auto", "off"), default="auto",
+                    help="auto: the gsplat loop applies the opacity resets gsplat 1.5.3's DefaultStrategy skips "
+                         "(see benchmarks/train_compare.py); off: the release as it is")
     ap.add_argument("--tag", default="", help="suffix of the result file name")
     ap.add_argument("--lpips", action="store_true", help="score LPIPS at the end (needs its weights locally)")
     ap.add_argument("--out", default=None, help="output folder for the warpgs run (default: a temp folder)")
@@ -93,7 +96,7 @@ def main(argv=None) -> dict:
           f"from {trainer.init_source}", flush=True)
     runs = [] if args.only == "gsplat" else [run_warpgs(trainer, counts, eval_every)]
     if args.gsplat and args.only != "warpgs":
-        runs.append(run_gsplat(cfg, eval_every, scene, start))
+        runs.append(run_gsplat(cfg, eval_every, scene, start, args.gsplat_reset))
 
     rows = [{"system": r["system"], "step": p["step"], "seconds": p["seconds"], "psnr": p["psnr"], "ssim": p["ssim"],
              "primitives": p["num_primitives"]} for r in runs for p in r["points"] if p["step"] in [0] + marks]
@@ -107,7 +110,7 @@ def main(argv=None) -> dict:
               + (f"; flagged by rule: {d['pruned_by']}" if d.get("pruned_by") else ""))
     payload = {"data": str(data), "scene": scene.summary(), "device": args.device, "steps": marks,
                "seed": args.seed, "config": cfg.to_dict(), "runs": runs, "ms_per_step": per_step,
-               "init_source": str(trainer.init_source)}
+               "init_source": str(trainer.init_source), "gsplat_reset": args.gsplat_reset if args.gsplat else None}
     if len(per_step) == 2:
         payload["step_time_ratio"] = per_step["warpgs"] / per_step["gsplat"]
         print(f"time per step warpgs / gsplat = {payload['step_time_ratio']:.2f}")

@@ -6,7 +6,10 @@ captures).
 Differences left in the gsplat loop, on purpose or by necessity: gsplat's DefaultStrategy has no primitive
 budget (ours stops densifying at strategy.max_primitives), samples split children with the global RNG, and
 resets opacity to 2 x prune_opa; the size rules map to prune_scale3d (world) only; step 0 is not reported to
-it. When the config enables the learned environment background, the gsplat loop composites the same
+it. gsplat 1.5.3's DefaultStrategy never resets opacities at all (its test `step % reset_every == 0 & step > 0`
+is always false: `&` binds first; gsplat PR #776): where the installed release has that line, this loop applies
+gsplat's own `reset_opa` on the reset steps, so both loops run the 3DGS recipe (`gsplat_reset="auto"`; "off"
+keeps the release's behaviour). When the config enables the learned environment background, the gsplat loop composites the same
 EnvironmentMap module behind its render, with the same learning rate.
 
 Both loops record the primitive count after every step, so a refine step that deletes most of the model shows
@@ -80,14 +83,31 @@ def run_warpgs(trainer, counts: list, eval_every: int) -> dict:
             "largest_drop": largest_drop(counts)}
 
 
-def run_gsplat(cfg, eval_every: int, scene, start: dict) -> dict:
+def gsplat_skips_opacity_reset() -> bool:
+    """True when the installed gsplat's DefaultStrategy has the reset test that never fires (1.5.3)."""
+    import inspect
+
+    from gsplat.strategy import DefaultStrategy
+
+    return "== 0 & step > 0" in inspect.getsource(DefaultStrategy.step_post_backward)
+
+
+def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "auto") -> dict:
     """The plain loop: gsplat rasterization + DefaultStrategy on `scene`, from the initial parameters `start`
-    (the warpgs model's), with our losses, learning rates and view order."""
+    (the warpgs model's), with our losses, learning rates and view order. gsplat_reset: "auto" applies the opacity
+    resets a DefaultStrategy skips (see the module doc), "off" leaves the installed release as it is."""
     try:
         from gsplat import rasterization
         from gsplat.strategy import DefaultStrategy
+        from gsplat.strategy.ops import reset_opa
     except ImportError as e:
         raise SystemExit(f"--gsplat: gsplat is not importable ({e}); pip install gsplat on the GPU machine")
+    if gsplat_reset not in ("auto", "off"):
+        raise ValueError(f"gsplat_reset: expected 'auto' or 'off', got {gsplat_reset!r}")
+    manual_reset = gsplat_reset == "auto" and bool(cfg.strategy.reset_every) and gsplat_skips_opacity_reset()
+    if manual_reset:
+        print("gsplat loop: this gsplat's DefaultStrategy never resets opacities (gsplat PR #776); the loop applies "
+              "gsplat's reset_opa on the reset steps", flush=True)
     device = train_setup.resolve_device(cfg.train.device)
     seed_everything(cfg.train.seed)
     extent = train_setup.scene_extent(scene, cfg.train.scene_extent)
@@ -173,6 +193,8 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict) -> dict:
             rules = gsplat_prune_rules(params, step, s, extent)  # what its refine will test (before growing)
         if step > 0:  # some gsplat releases reset opacities at step 0 (step % reset_every == 0); ours never does
             strategy.step_post_backward(params, optimizers, state, step, info, packed=False)
+            if manual_reset and step % s.reset_every == 0 and step < s.refine_stop:  # where gsplat meant to
+                reset_opa(params=params, optimizers=optimizers, state=state, value=s.prune_opacity * 2.0)
         sync(device)
         seconds += time.perf_counter() - t0
         _record(counts, step + 1, len(params["means"]), {"pruned_by": rules} if rules else None)
@@ -185,7 +207,7 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict) -> dict:
     return {"system": "gsplat", "points": points, "wall_seconds": round(wall, 2),
             "final": {"psnr": last["psnr"], "ssim": last["ssim"], "num_primitives": last["num_primitives"],
                       "train_seconds": last["seconds"]},
-            "largest_drop": largest_drop(counts)}
+            "largest_drop": largest_drop(counts), "opacity_reset_applied_by_loop": manual_reset}
 
 
 @torch.no_grad()
