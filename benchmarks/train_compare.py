@@ -92,12 +92,16 @@ def gsplat_skips_opacity_reset() -> bool:
     return "== 0 & step > 0" in inspect.getsource(DefaultStrategy.step_post_backward)
 
 
-def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "auto") -> dict:
+def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "auto", *, rasterization=None,
+               system: str = "gsplat") -> dict:
     """The plain loop: gsplat rasterization + DefaultStrategy on `scene`, from the initial parameters `start`
     (the warpgs model's), with our losses, learning rates and view order. gsplat_reset: "auto" applies the opacity
-    resets a DefaultStrategy skips (see the module doc), "off" leaves the installed release as it is."""
+    resets a DefaultStrategy skips (see the module doc), "off" leaves the installed release as it is.
+    rasterization: a stand-in with gsplat's signature (benchmarks/strategy_compare.py passes warpgs's renderer,
+    so that the loop and strategy can be compared on the CPU); system: the run's name in the result."""
     try:
-        from gsplat import rasterization
+        if rasterization is None:
+            from gsplat import rasterization
         from gsplat.strategy import DefaultStrategy
         from gsplat.strategy.ops import reset_opa
     except ImportError as e:
@@ -204,7 +208,7 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "au
                            "num_primitives": len(params["means"])})
     wall = time.perf_counter() - t_wall
     last = points[-1]
-    return {"system": "gsplat", "points": points, "wall_seconds": round(wall, 2),
+    return {"system": system, "points": points, "wall_seconds": round(wall, 2),
             "final": {"psnr": last["psnr"], "ssim": last["ssim"], "num_primitives": last["num_primitives"],
                       "train_seconds": last["seconds"]},
             "largest_drop": largest_drop(counts), "opacity_reset_applied_by_loop": manual_reset}
