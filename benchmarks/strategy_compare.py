@@ -68,6 +68,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--gsplat-src", default=None, help="folder holding gsplat's Python package (gsplat/)")
     ap.add_argument("--only", choices=("warpgs", "loop"), default=None)
+    ap.add_argument("--out", default=None, help="output folder (default: a temporary one); two --only runs that "
+                    "share it share the triangulated points cached there, which are not bit-reproducible between runs")
     ap.add_argument("--tag", default="")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides (both sides)")
     args = ap.parse_intermixed_args(argv)
@@ -87,7 +89,7 @@ def main(argv=None) -> dict:
     cfg = load_config(resolve_config_source(args.config), overrides)
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
-        cfg.output.dir = tmp
+        cfg.output.dir = args.out or tmp
         trainer, start, counts = initial_model(cfg)
         print(f"{Path(args.data).name}: {trainer.scene.summary()}; init {trainer.model.num_primitives} "
               f"from {trainer.init_source}", flush=True)
