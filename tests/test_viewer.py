@@ -161,7 +161,9 @@ def test_cli_serves_a_ply_until_ctrl_c(ply):
         with urllib.request.urlopen(url, timeout=10) as r:
             assert r.status == 200
         proc.send_signal(2)  # Ctrl-C
-        assert proc.wait(30) == 0
+        # Generous: it checks that Ctrl-C ends the viewer, and a loaded 2-core machine once needed over 30 s for
+        # the render loop's last frame plus viser's shutdown.
+        assert proc.wait(90) == 0
     finally:
         if proc.poll() is None:
             proc.kill()
