@@ -6,7 +6,7 @@ import torch
 
 from warpgs.model.gaussians import GaussianModel, SurfelModel, quat_to_rotmat
 from warpgs.train.optim import build_optimizer
-from warpgs.train.strategy import DensifyStrategy, StrategyConfig, screen_grads_from_means_grad, screen_radii
+from warpgs.train.strategy import DensifyStrategy, PruningWarning, StrategyConfig, screen_grads_from_means_grad, screen_radii
 
 W = H = 100
 HIGH = 1e-5  # px gradient -> NDC norm 1e-5 * 50 = 5e-4 > 2e-4
@@ -120,6 +120,35 @@ def test_size_pruning_starts_late():
     assert feed(s, m, opt, 600, [LOW, LOW])["pruned"] == 0
     assert feed(s, m, opt, 3100, [LOW, LOW])["pruned"] == 1 and m.num_primitives == 1
     assert m.scales.max() < 0.1
+
+
+def test_oversized_primitive_with_a_high_gradient_is_split_before_the_size_rule():
+    # As 3DGS and gsplat (grow, then prune): world threshold 0.1 x extent 1 = 0.1. 0: 0.12, hot -> split into two
+    # children of 0.075 that pass; 1: 0.12, cold -> pruned; 2: 0.5, hot -> children 0.31 still too big, pruned;
+    # 3: ordinary, cold -> kept.
+    m = make([0.12, 0.12, 0.5, 0.005], [0.5, 0.5, 0.5, 0.5])
+    opt = adam_with_state(m)
+    s = DensifyStrategy(StrategyConfig(size_prune_start=3000))
+    s.initialize(m)
+    with pytest.warns(PruningWarning, match="world size"):  # 3 of 4 pruned
+        report = feed(s, m, opt, 3100, [HIGH, LOW, HIGH, LOW])
+    assert report["pruned_by"]["world_size"] == 3
+    assert report["split"] == 2 and report["pruned"] == 1 + 2 and report["cloned"] == 0
+    assert m.num_primitives == 3
+    kept = sorted(m.scales.amax(1).tolist())
+    assert kept[0] == pytest.approx(0.005, rel=0.02) and kept[1:] == pytest.approx([0.12 / 1.6] * 2, rel=0.02)
+    assert all(len(opt.state[p]["exp_avg"]) == 3 for p in m.params.values())
+
+
+def test_flagged_primitives_are_not_copied():
+    # A faint (opacity rule) hot primitive would pass its opacity to its copies: neither cloned nor split.
+    m = make([0.005, 0.5, 0.005], [0.001, 0.001, 0.5])
+    opt = adam_with_state(m)
+    s = DensifyStrategy(StrategyConfig())
+    s.initialize(m)
+    with pytest.warns(PruningWarning, match="opacity"):  # 2 of 3 pruned
+        report = feed(s, m, opt, 600, [HIGH, HIGH, LOW])
+    assert report["cloned"] == 0 and report["split"] == 0 and report["pruned"] == 2 and m.num_primitives == 1
 
 
 def test_primitives_the_renderer_cannot_see_are_pruned():

@@ -321,12 +321,19 @@ class DensifyStrategy:
         for mask in rules.values():
             prune |= mask
         pruned_by = {name: int(mask.sum()) for name, mask in rules.items()}
-        # Pruned primitives are not densified: their copies would be pruned too (or waste budget).
-        cand = (grads >= cfg.grad_threshold) & ~prune
+        # Grow, then prune, as 3DGS and gsplat: a primitive the world-size rule flags is still split when its
+        # gradient asks for it, and its children (1/split_shrink the size) are tested again below; dropping it
+        # outright leaves a hole that the next refines must regrow (issue 12, the phone capture). Copies of a
+        # primitive that another rule flags would inherit what flagged it, so those are not densified.
+        other_rules = torch.zeros_like(prune)
+        for name, mask in rules.items():
+            if name != "world_size":
+                other_rules |= mask
+        cand = (grads >= cfg.grad_threshold) & ~other_rules
         small = max_scale <= cfg.dense_scale * extent
 
         budget_dropped = 0
-        base = n - int(prune.sum())
+        base = n - int((prune & ~cand).sum())
         cost = torch.where(small, 1, cfg.split_count - 1)
         need = int(cost[cand].sum())
         room = cfg.max_primitives - base
@@ -341,13 +348,22 @@ class DensifyStrategy:
             cand = chosen
         clone = cand & small
         split = cand & ~small
+        # A flagged primitive that is neither split nor kept (budget) goes; a flagged clone goes with its copy.
+        prune = prune & ~split
+        clone = clone & ~prune
 
         new_rows = self._clone_rows(model, clone)
         split_rows = self._split_rows(model, split)
+        children_pruned = 0
+        if pruned_by["world_size"]:
+            fits = torch.exp(split_rows["log_scales"]).amax(1) <= cfg.prune_world_scale * self.world_extent
+            children_pruned = int((~fits).sum())
+            split_rows = {name: rows[fits] for name, rows in split_rows.items()}
         append = {name: torch.cat([new_rows[name], split_rows[name]]) for name in model.params}
         update_rows(model, optimizers, keep=~prune & ~split, append=append)
         self._reset_stats(model.num_primitives, model.device)
-        report = {"step": step, "cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(prune.sum()),
+        report = {"step": step, "cloned": int(clone.sum()), "split": int(split.sum()),
+                  "pruned": int(prune.sum()) + children_pruned,
                   "budget_dropped": budget_dropped, "num_primitives": model.num_primitives, "pruned_by": pruned_by}
         self.last_refine = report
         if report["pruned"] > WARN_PRUNED_FRACTION * n:
