@@ -96,3 +96,14 @@ def test_pose_neighbours_prefer_near_cameras_looking_the_same_way():
     sim = pairs.pose_similarity(centres, forwards)
     np.fill_diagonal(sim, -np.inf)
     assert sim[0].argmax() == 1 and sim[0, 3] < sim[0, 2]
+
+
+def test_small_images_get_the_low_sift_threshold():
+    # 368x640 video frames registered 403/464 with COLMAP's threshold and 454/464 with the low one
+    # (benchmarks/results/sfm_stam464*.json); images above SMALL_IMAGE_SIDE keep COLMAP's default.
+    from warpgs.data.sfm.features import SMALL_IMAGE_PEAK_THRESHOLD, SMALL_IMAGE_SIDE, default_peak_threshold
+
+    assert default_peak_threshold(640) == SMALL_IMAGE_PEAK_THRESHOLD
+    assert default_peak_threshold(SMALL_IMAGE_SIDE) == SMALL_IMAGE_PEAK_THRESHOLD
+    assert default_peak_threshold(SMALL_IMAGE_SIDE + 1) is None
+    assert default_peak_threshold(None) is None

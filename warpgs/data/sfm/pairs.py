@@ -72,7 +72,8 @@ def word_similarity(descriptors: Sequence[np.ndarray], words: int = VOCABULARY_W
                     seed: int = 0) -> np.ndarray:
     """[n, n] cosine similarity of the images' tf-idf visual-word histograms (SIFT descriptors, uint8 [m, 128])."""
     gen = torch.Generator().manual_seed(seed)
-    feats = [torch.nn.functional.normalize(torch.as_tensor(d, dtype=torch.float32).reshape(-1, 128), dim=1)
+    # np.asarray(..., float32) copies: descriptors read from the database are read-only buffers torch warns about.
+    feats = [torch.nn.functional.normalize(torch.from_numpy(np.asarray(d, dtype=np.float32).reshape(-1, 128)), dim=1)
              for d in descriptors]
     pool = torch.cat([f[torch.randperm(len(f), generator=gen)[:200]] for f in feats if len(f)])
     if len(pool) == 0:

@@ -58,8 +58,8 @@ def run_sfm(image_dir: PathLike, out_dir: PathLike, *, matcher: str = "auto", ca
     refine_intrinsics=False they stay fixed, which makes small or low-texture sets far more reliable.
     max_image_size: larger images are downscaled for feature extraction (poses and intrinsics stay in pixels of
     the original images). num_threads: -1 uses every core; 1 makes runs reproducible (with `seed`).
-    peak_threshold: SIFT detection threshold; default COLMAP's 0.0067, or 0.002 for images under 640 px,
-    where the default finds too few features to register every view.
+    peak_threshold: SIFT detection threshold; default COLMAP's 0.0067, or 0.002 for images up to 1024 px
+    (features.SMALL_IMAGE_SIDE), where the default finds too few features to register every view.
     stage times end up in run_sfm.last_times (seconds per stage) for benchmarks.
     """
     import pycolmap
