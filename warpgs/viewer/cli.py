@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
-import time
+import threading
 from typing import List, Optional
 
 EXIT_ERROR = 2
+SHUTDOWN_SECONDS = 30  # after Ctrl-C, the longest the render threads and the server may take to stop
 
 
 def _positive(text: str) -> int:
@@ -57,16 +60,34 @@ def main(argv: Optional[List[str]] = None) -> int:
     res = default_resolution(device)
     res.moving = args.max_res or res.moving
     res.still = args.still_res or res.still
+    # Ctrl-C (or SIGTERM) only sets an event: a KeyboardInterrupt raised wherever the main thread happens to be
+    # could escape the shutdown below (a CI run saw the process end by SIGINT instead of exiting cleanly).
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     viewer = Viewer(source, host=args.host, port=args.port, resolution=res, who="warpgs-view")
     print(f"warpgs-view: {source.status()} on {device}; open {viewer.url} (Ctrl-C to stop)", flush=True)
     try:
-        while True:
-            time.sleep(3600)
-    except KeyboardInterrupt:
-        pass
+        while not stop.wait(3600):
+            pass
     finally:
+        _exit_if_stuck(SHUTDOWN_SECONDS)
         viewer.close()
     return 0
+
+
+def _exit_if_stuck(seconds: float) -> None:
+    """Ends the process after `seconds` if closing the viewer (render threads, then the web server and the
+    interpreter's exit) has not finished by then: the viewer writes nothing, so nothing is lost, and a Ctrl-C that
+    does not end the program is worse. (A CI run once saw the process still alive 90 s after Ctrl-C.)"""
+    def watchdog():
+        print(f"warpgs-view: shutdown took over {seconds:g} s; exiting", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(0)
+
+    timer = threading.Timer(seconds, watchdog)
+    timer.daemon = True
+    timer.start()
 
 
 if __name__ == "__main__":
