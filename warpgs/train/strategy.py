@@ -321,19 +321,17 @@ class DensifyStrategy:
         max_scale = model.scales.amax(1)
 
         rules = self.prune_rules(model, step)
-        prune = torch.zeros(n, dtype=torch.bool, device=max_scale.device)
-        for mask in rules.values():
-            prune |= mask
         pruned_by = {name: int(mask.sum()) for name, mask in rules.items()}
         # Grow, then prune, as 3DGS and gsplat: a primitive the world-size rule flags is still split when its
         # gradient asks for it, and its children (1/split_shrink the size) are tested again below; dropping it
         # outright leaves a hole that the next refines must regrow (issue 12, the phone capture). Copies of a
         # primitive that another rule flags would inherit what flagged it, so those are not densified.
-        other_rules = torch.zeros_like(prune)
+        inherited = torch.zeros(n, dtype=torch.bool, device=max_scale.device)
         for name, mask in rules.items():
             if name != "world_size":
-                other_rules |= mask
-        cand = (grads >= cfg.grad_threshold) & ~other_rules
+                inherited |= mask
+        prune = inherited | rules["world_size"]
+        cand = (grads >= cfg.grad_threshold) & ~inherited
         small = max_scale <= cfg.dense_scale * extent
 
         budget_dropped = 0
@@ -360,7 +358,7 @@ class DensifyStrategy:
         split_rows = self._split_rows(model, split)
         children_pruned = 0
         if pruned_by["world_size"]:
-            fits = torch.exp(split_rows["log_scales"]).amax(1) <= cfg.prune_world_scale * self.world_extent
+            fits = ~self._too_big_for_world(torch.exp(split_rows["log_scales"]).amax(1))
             children_pruned = int((~fits).sum())
             split_rows = {name: rows[fits] for name, rows in split_rows.items()}
         append = {name: torch.cat([new_rows[name], split_rows[name]]) for name in model.params}
@@ -389,7 +387,7 @@ class DensifyStrategy:
                  "world_size": none, "screen_size": none}
         if step > cfg.size_prune_start:
             if cfg.prune_world_scale > 0:
-                rules["world_size"] = model.scales.amax(1) > cfg.prune_world_scale * self.world_extent
+                rules["world_size"] = self._too_big_for_world(model.scales.amax(1))
             screen = none
             if cfg.prune_screen_size > 0:
                 screen = screen | (self.max_screen > cfg.prune_screen_size)
@@ -430,6 +428,10 @@ class DensifyStrategy:
         self.generator.set_state(state["generator"])
 
     # ----- internals -----
+    def _too_big_for_world(self, max_scales: torch.Tensor) -> torch.Tensor:
+        """The world-size rule on largest scales (prune_world_scale > 0 is the caller's check)."""
+        return max_scales > self.config.prune_world_scale * self.world_extent
+
     def _screen_radii(self, model: GaussianModel, viewmat, K, width: int, height: int, near: float) -> torch.Tensor:
         """screen_radii, or zeros when no screen-size rule is on (the default): only those rules read them, and
         projecting every covariance each step is a dozen kernels over N primitives for nothing."""
