@@ -25,6 +25,11 @@ from warpgs.data.formats.image_io import image_size, list_images  # noqa: E402
 from warpgs.data.sfm.run import pycolmap_threads, run_sfm  # noqa: E402
 
 
+def capture_name(folder: Path) -> str:
+    """A capture's name: the folder's, or its parent's for a folder called images/."""
+    return folder.parent.name if folder.name == "images" else folder.name
+
+
 def reconstruct(folder: Path, out: Path, matcher: str, threads: int, peak_threshold=None) -> dict:
     import pycolmap
 
@@ -59,14 +64,11 @@ def main(argv=None) -> list:
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(args.out or tmp)
         for f in map(Path, args.folders):
-            name = f.parent.name if f.name == "images" else f.name
-            rows.append(reconstruct(f, base / name, args.matcher, args.threads, args.peak_threshold))
+            rows.append(reconstruct(f, base / capture_name(f), args.matcher, args.threads, args.peak_threshold))
             print_table([rows[-1]], ["images", "registered", "models", "points", "error_px", "seconds"])
     payload = {"runs": rows, "cores": pycolmap_threads() if args.threads < 1 else args.threads,
                "machine": platform.processor() or platform.machine(), "command": " ".join(sys.argv)}
-    label = args.name or (Path(args.folders[0]).parent.name if Path(args.folders[0]).name == "images"
-                          else Path(args.folders[0]).name)
-    print(f"wrote {write_json(f'sfm_{label}', payload)}")
+    print(f"wrote {write_json('sfm_' + (args.name or capture_name(Path(args.folders[0]))), payload)}")
     return rows
 
 
