@@ -6,7 +6,8 @@ import torch
 
 from warpgs.model.gaussians import GaussianModel, SurfelModel, quat_to_rotmat
 from warpgs.train.optim import build_optimizer
-from warpgs.train.strategy import DensifyStrategy, PruningWarning, StrategyConfig, screen_grads_from_means_grad, screen_radii
+from warpgs.train.screen_geometry import screen_grads_from_means_grad, screen_radii
+from warpgs.train.strategy import DensifyStrategy, PruningWarning, StrategyConfig
 
 W = H = 100
 HIGH = 1e-5  # px gradient -> NDC norm 1e-5 * 50 = 5e-4 > 2e-4

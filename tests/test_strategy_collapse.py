@@ -15,7 +15,8 @@ from warpgs.config.loader import load_config
 from warpgs.data.camera import Camera, intrinsics_matrix, look_at
 from warpgs.model.gaussians import GaussianModel
 from warpgs.train.optim import build_optimizer
-from warpgs.train.strategy import DensifyStrategy, PruningWarning, StrategyConfig, screen_radii
+from warpgs.train.screen_geometry import screen_radii
+from warpgs.train.strategy import DensifyStrategy, PruningWarning, StrategyConfig
 
 PHONE = (540, 960, 760.0)  # the report's 1080x1920 portrait capture at data.downscale=2: width, height, focal px
 

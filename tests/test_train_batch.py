@@ -137,7 +137,7 @@ def test_surfel_batches_project_each_views_share_of_the_means_gradient(tmp_path)
     views = _views_drawn(tr, 2)
     singles = [_single_view_grads(tr, v) for v in views]
     tr.train_step()
-    from warpgs.train.strategy import screen_grads_from_means_grad
+    from warpgs.train.screen_geometry import screen_grads_from_means_grad
 
     W, H = views[0].width, views[0].height
     scale = torch.tensor([0.5 * W, 0.5 * H])

@@ -33,7 +33,7 @@ NDC coordinates, dL/dndc = dL/dpixel * (W/2, H/2), times B for a batch of B came
 them), averaged over the steps in which the primitive was visible. The default threshold 0.0002 therefore
 matches 3DGS for a loss on the same scale (0.8 L1 + 0.2 (1 - SSIM), means over pixels).
 
-Screen radii (for screen-size pruning, so only when a screen rule is on) are computed here from the camera: 3 sqrt(largest eigenvalue) of the
+Screen radii (for screen-size pruning, so only when a screen rule is on) are computed from the camera (screen_geometry.py): 3 sqrt(largest eigenvalue) of the
 projected covariance with the 0.3 px^2 low-pass, as the projection kernel does (3D scales; surfels get 0 for
 the third axis).
 
@@ -60,8 +60,8 @@ import torch
 
 from warpgs.model.gaussians import GaussianModel, quat_to_rotmat
 from warpgs.train.optim import Optimizers, set_param_values, update_rows
+from warpgs.train.screen_geometry import screen_grads_from_means_grad, screen_radii
 
-LOW_PASS = 0.3  # px^2, as kernels/project.py
 WARN_PRUNED_FRACTION = 0.5  # a refine removing more than this share of the primitives warns
 
 
@@ -107,55 +107,6 @@ class StrategyConfig:
         if self.prune_screen_size > 1:
             raise ValueError(f"prune_screen_size: a fraction of the image's larger side (e.g. 0.15), got "
                              f"{self.prune_screen_size}; a threshold in pixels is prune_screen_radius")
-
-
-def _camera_frame(means: torch.Tensor, viewmat: torch.Tensor):
-    R, t = viewmat[:3, :3].to(means), viewmat[:3, 3].to(means)
-    return R, means @ R.T + t
-
-
-def screen_grads_from_means_grad(means: torch.Tensor, means_grad: torch.Tensor, viewmat: torch.Tensor,
-                                 K: torch.Tensor, near: float = 0.01) -> torch.Tensor:
-    """[N,2] pixel-space gradient g2d with J^T g2d = the camera-frame 3D gradient, least squares (see module doc).
-    Primitives behind the near plane get 0."""
-    R, p = _camera_frame(means.detach(), viewmat)
-    g = means_grad.detach() @ R.T  # dL/dp = R dL/dmu
-    z = p[:, 2].clamp_min(near)
-    fx, fy = K[0, 0].to(means), K[1, 1].to(means)
-    u, v = p[:, 0] / z, p[:, 1] / z
-    # J = [[a, 0, -a u], [0, b, -b v]] with a = fx/z, b = fy/z; solve (J J^T) g2 = J g in closed form.
-    a, b = fx / z, fy / z
-    jg = torch.stack([a * (g[:, 0] - u * g[:, 2]), b * (g[:, 1] - v * g[:, 2])], 1)
-    m00, m11, m01 = a * a * (1 + u * u), b * b * (1 + v * v), a * b * u * v
-    det = (m00 * m11 - m01 * m01).clamp_min(1e-30)  # = a^2 b^2 (1 + u^2 + v^2) > 0
-    g2 = torch.stack([(m11 * jg[:, 0] - m01 * jg[:, 1]) / det, (m00 * jg[:, 1] - m01 * jg[:, 0]) / det], 1)
-    return torch.where((p[:, 2] >= near)[:, None], g2, torch.zeros_like(g2))
-
-
-def screen_radii(model: GaussianModel, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
-                 near: float = 0.01) -> torch.Tensor:
-    """[N] 3-sigma screen radius in pixels (0 behind the near plane), mirroring the projection kernel."""
-    with torch.no_grad():
-        means = model.means
-        R, p = _camera_frame(means, viewmat)
-        z = p[:, 2].clamp_min(near)
-        fx, fy, cx, cy = (K[0, 0].item(), K[1, 1].item(), K[0, 2].item(), K[1, 2].item())
-        tx, ty = 0.5 * width / fx, 0.5 * height / fy
-        u = (p[:, 0] / z).clamp(-(cx / fx + 0.3 * tx), (width - cx) / fx + 0.3 * tx)
-        v = (p[:, 1] / z).clamp(-(cy / fy + 0.3 * ty), (height - cy) / fy + 0.3 * ty)
-        zero = torch.zeros_like(z)
-        J = torch.stack([torch.stack([fx / z, zero, -fx * u / z], -1),
-                         torch.stack([zero, fy / z, -fy * v / z], -1)], -2)
-        scales = model.scales
-        if scales.shape[1] < 3:
-            scales = torch.cat([scales, scales.new_zeros(len(scales), 3 - scales.shape[1])], 1)
-        T = J @ R @ (quat_to_rotmat(model.quats) * scales.clamp_max(1e8)[:, None, :])
-        cov = T @ T.transpose(1, 2)
-        a, b, c = cov[:, 0, 0] + LOW_PASS, cov[:, 0, 1], cov[:, 1, 1] + LOW_PASS
-        mid = 0.5 * (a + c)
-        lam = mid + ((0.5 * (a - c)) ** 2 + b * b).sqrt()
-        r = 3.0 * lam.sqrt()
-        return torch.where(p[:, 2] >= near, r, torch.zeros_like(r))
 
 
 class DensifyStrategy:
