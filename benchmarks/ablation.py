@@ -171,6 +171,49 @@ def paired_delta(runs: list[dict], base: list[dict]) -> tuple[Optional[float], O
     return statistics.fmean(d), (statistics.stdev(d) if len(d) > 1 else None)
 
 
+def summarise_settings(settings: dict) -> list[dict]:
+    """Fill each setting's "mean" (over its seeds, PSNR also paired against the baseline's seeds) and return the
+    table rows, in the settings' order."""
+    rows = []
+    base = settings.get("baseline")
+    for key, entry in settings.items():
+        runs = entry["runs"]
+        s = summarise(runs)
+        sd = lambda k: s.get(k + "_std")  # noqa: E731
+        delta, delta_sd = paired_delta(runs, base["runs"]) if base and key != "baseline" else (None, None)
+        s["psnr_vs_baseline"] = delta
+        entry["mean"] = s
+        rows.append({"Setting": entry["label"], "PSNR ↑": fmt(s["psnr"], 2, sd("psnr")),
+                     "Δ PSNR vs 3DGS": fmt(delta, 2, delta_sd) if key != "baseline" else "—",
+                     "SSIM ↑": fmt(s["ssim"], 4, sd("ssim")), "LPIPS ↓": fmt(s["lpips"], 3, sd("lpips")),
+                     "Depth order ↑": fmt(s["depth_order"], 3, sd("depth_order")),
+                     "AbsRel ↓": fmt(s["abs_rel"], 4, sd("abs_rel")), "Coverage": fmt(s["coverage"], 3),
+                     "#Primitives": fmt(s["num_primitives"], 0), "Train s": fmt(s["train_seconds"], 0)})
+    return rows
+
+
+def print_table(payload: dict, rows: list[dict]) -> None:
+    steps, seeds, budget, device = payload["steps"], payload["seeds"], payload["budget"], payload["device"]
+    columns = list(rows[0])
+    if all(r["LPIPS ↓"] == "n/a" for r in rows):
+        columns.remove("LPIPS ↓")
+    if "baseline" not in payload["settings"]:
+        columns.remove("Δ PSNR vs 3DGS")
+    if "data" in payload:
+        info = payload["data"]
+        print(f"\n{Path(info['scene']).name} (LLFF) {info['size'][0]}x{info['size'][1]}: train views "
+              f"{info['train_index']}, test views {info['test_index']}; {steps} steps, seed(s) "
+              f"{','.join(map(str, seeds))}, {device}, primitive budget {budget or 'preset'}; depth order / "
+              f"AbsRel / coverage at the all-view SfM points of the test views\n")
+    else:
+        print(f"\nSynthetic 3x3 light field 128x96: train 9 array views, test 4 off-array views; {steps} steps, "
+              f"seed(s) {','.join(map(str, seeds))}, {device}, primitive budget {budget or 'preset'}\n")
+    print("| " + " | ".join(columns) + " |")
+    print("|" + "|".join("---" for _ in columns) + "|")
+    for r in rows:
+        print("| " + " | ".join(r[c] for c in columns) + " |")
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", default=None,
@@ -210,10 +253,10 @@ def main(argv=None) -> dict:
     print(f"ablation: {len(chosen)} settings x seeds {seeds} = {len(chosen) * len(seeds)} runs, {steps} steps on "
           f"{args.device}, budget {budget}; schedule {schedule_overrides(steps, full) or 'the presets'}",
           file=sys.stderr, flush=True)
-    rows, payload = [], {"steps": steps, "seeds": seeds, "device": args.device,
-                         "torch_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
-                         "schedule_overrides": schedule_overrides(steps, full), "extra_overrides": extra,
-                         "budget": budget, "settings": {}}
+    payload = {"steps": steps, "seeds": seeds, "device": args.device,
+               "torch_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
+               "schedule_overrides": schedule_overrides(steps, full), "extra_overrides": extra,
+               "budget": budget, "settings": {}}
     with tempfile.TemporaryDirectory(prefix="warpgs-ablation-") as tmp:
         reference, prior_folder = None, Path(tmp) / "depth_priors"
         if real:
@@ -234,37 +277,10 @@ def main(argv=None) -> dict:
                 print(f"  {label:16s} seed {seed}: psnr {r['psnr']:.2f} ssim {r['ssim']:.4f} "
                       f"order {r['depth_order']:.3f} absrel {r['abs_rel']:.4f} n {r['num_primitives']} "
                       f"({r['wall_seconds']:.0f} s)", file=sys.stderr, flush=True)
-            s = summarise(runs)
             payload["settings"][key] = {"label": label, "preset": preset, "overrides": setting_overrides,
-                                        "marr": marr_settings, "mean": s, "runs": runs}
-            sd = lambda k: s.get(k + "_std")  # noqa: E731
-            base = payload["settings"].get("baseline")
-            delta, delta_sd = paired_delta(runs, base["runs"]) if base and key != "baseline" else (None, None)
-            s["psnr_vs_baseline"] = delta
-            rows.append({"Setting": label, "PSNR ↑": fmt(s["psnr"], 2, sd("psnr")),
-                         "Δ PSNR vs 3DGS": fmt(delta, 2, delta_sd) if key != "baseline" else "—",
-                         "SSIM ↑": fmt(s["ssim"], 4, sd("ssim")), "LPIPS ↓": fmt(s["lpips"], 3, sd("lpips")),
-                         "Depth order ↑": fmt(s["depth_order"], 3, sd("depth_order")),
-                         "AbsRel ↓": fmt(s["abs_rel"], 4, sd("abs_rel")), "Coverage": fmt(s["coverage"], 3),
-                         "#Primitives": fmt(s["num_primitives"], 0), "Train s": fmt(s["train_seconds"], 0)})
-    columns = list(rows[0])
-    if all(r["LPIPS ↓"] == "n/a" for r in rows):
-        columns.remove("LPIPS ↓")
-    if "baseline" not in payload["settings"]:
-        columns.remove("Δ PSNR vs 3DGS")
-    if real:
-        info = payload["data"]
-        print(f"\n{Path(args.data).name} (LLFF) {info['size'][0]}x{info['size'][1]}: train views "
-              f"{info['train_index']}, test views {info['test_index']}; {steps} steps, seed(s) "
-              f"{','.join(map(str, seeds))}, {args.device}, primitive budget {budget or 'preset'}; depth order / "
-              f"AbsRel / coverage at the all-view SfM points of the test views\n")
-    else:
-        print(f"\nSynthetic 3x3 light field 128x96: train 9 array views, test 4 off-array views; {steps} steps, "
-              f"seed(s) {','.join(map(str, seeds))}, {args.device}, primitive budget {budget or 'preset'}\n")
-    print("| " + " | ".join(columns) + " |")
-    print("|" + "|".join("---" for _ in columns) + "|")
-    for r in rows:
-        print("| " + " | ".join(r[c] for c in columns) + " |")
+                                        "marr": marr_settings, "runs": runs}
+    rows = summarise_settings(payload["settings"])
+    print_table(payload, rows)
     payload["table"] = rows
     scene = f"{Path(args.data).resolve().name}_" if real else ""
     name = args.name or f"ablation_{scene}{args.device.replace(':', '')}_{steps}"

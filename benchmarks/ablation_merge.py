@@ -1,0 +1,75 @@
+"""Merge ablation results that ran as separate processes (one setting or one seed each, e.g. side by side on one
+GPU) into one table: the runs of each setting are pooled over the files, means and the paired PSNR gain against
+the baseline are computed as benchmarks/ablation.py does for a single process.
+
+    python benchmarks/ablation_merge.py OUT_NAME ablation_horns_cuda_10000_s*_*.json
+
+The files must agree on the scene, its split, the step count, the device and the budget; a setting's seed may
+appear once only."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import ablation
+from common import write_json
+
+# What every merged file must share (the run-specific parts, seeds and settings, are pooled).
+SHARED = ("steps", "device", "budget")
+SHARED_DATA = ("scene", "train_index", "test_index", "size")
+
+
+def merge(payloads: list[tuple[str, dict]]) -> dict:
+    first_name, first = payloads[0]
+    merged = {k: first[k] for k in SHARED}
+    merged["merged_from"] = [name for name, _ in payloads]
+    if "data" in first:
+        merged["data"] = first["data"]
+    merged["settings"] = {}
+    for name, p in payloads:
+        for k in SHARED:
+            if p.get(k) != first.get(k):
+                raise SystemExit(f"{name}: {k} is {p.get(k)!r}, {first_name} has {first.get(k)!r}")
+        for k in SHARED_DATA:
+            if ("data" in p) != ("data" in first) or ("data" in p and p["data"].get(k) != first["data"].get(k)):
+                raise SystemExit(f"{name}: data.{k} differs from {first_name}'s: not the same scene or split")
+        for key, entry in p["settings"].items():
+            target = merged["settings"].setdefault(key, {k: v for k, v in entry.items() if k not in ("runs", "mean")}
+                                                   | {"runs": []})
+            seeds = {r["seed"] for r in target["runs"]}
+            for run in entry["runs"]:
+                if run["seed"] in seeds:
+                    raise SystemExit(f"{name}: setting {key!r} seed {run['seed']} is already in an earlier file")
+                target["runs"].append(run)
+    # Baseline first, so the table reads as benchmarks/ablation.py prints it.
+    order = sorted(merged["settings"], key=lambda k: (k != "baseline", k != "full"))
+    merged["settings"] = {k: merged["settings"][k] for k in order}
+    merged["seeds"] = sorted({r["seed"] for e in merged["settings"].values() for r in e["runs"]})
+    return merged
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("name", help="result file name (written to benchmarks/results/, or $OUT)")
+    ap.add_argument("files", nargs="+", help="ablation JSON files written by benchmarks/ablation.py")
+    args = ap.parse_args(argv)
+    payloads = []
+    for f in args.files:
+        try:
+            payloads.append((f, json.loads(Path(f).read_text())))
+        except (OSError, json.JSONDecodeError) as e:
+            raise SystemExit(f"{f}: not a readable ablation result ({e})")
+        if "settings" not in payloads[-1][1]:
+            raise SystemExit(f"{f}: no 'settings' in it: not written by benchmarks/ablation.py")
+    merged = merge(payloads)
+    rows = ablation.summarise_settings(merged["settings"])
+    ablation.print_table(merged, rows)
+    merged["table"] = rows
+    print(f"\nwrote {write_json(args.name, merged)}", file=sys.stderr)
+    return merged
+
+
+if __name__ == "__main__":
+    main()
