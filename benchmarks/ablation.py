@@ -122,14 +122,15 @@ def run_setting(key: str, preset: str, steps: int, seed: int, device: str, extra
             "per_view": {k: {**v, **depth["per_view"].get(k, {})} for k, v in m["per_view"].items()}}
 
 
-def real_scene_setup(data: str, n_train: int, downscale: int, workdir: Path) -> tuple[list[str], dict, dict]:
+def real_scene_setup(data: str, n_train: int, downscale: int, workdir: Path,
+                     prior_fill: float = 0.0) -> tuple[list[str], dict, dict]:
     """(data overrides for every run, the shared prior's report, {test view: sparse reference depth})."""
     from warpgs.data import compute_depth_priors, load_scene
     from warpgs.data.depth.reference_points import sparse_depth_map, view_reference_points
 
     scene = load_scene(data, split="llff", n_train=n_train, downscale=downscale)
     start = time.perf_counter()
-    _, report = compute_depth_priors(scene, out_dir=workdir / "depth_priors")
+    _, report = compute_depth_priors(scene, out_dir=workdir / "depth_priors", fill_confidence=prior_fill)
     report["seconds_total"] = round(time.perf_counter() - start, 1)
     points, per_view = view_reference_points(scene)
     reference = {scene.names[v]: sparse_depth_map(scene.cameras[v], points.xyz[per_view[v]]) for v in scene.test}
@@ -232,6 +233,9 @@ def main(argv=None) -> dict:
                     help=f"strategy.max_primitives for every setting (default: {CPU_BUDGET} on CPU, the presets' on CUDA)")
     ap.add_argument("--pairs", type=int, default=2000, help="probe pairs per test view for the depth judgement")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    ap.add_argument("--prior-fill", type=float, default=0.0,
+                    help="with --data: fill the pixels the stereo prior left invalid and give them this confidence "
+                         "(data.depth_prior_fill; 0: leave them out)")
     ap.add_argument("--name", default=None, help="result file name (default ablation_[<scene>_]<device>_<steps>)")
     ap.add_argument("overrides", nargs="*", help="extra key=value config overrides for every setting")
     args = ap.parse_args(argv)
@@ -256,11 +260,12 @@ def main(argv=None) -> dict:
     payload = {"steps": steps, "seeds": seeds, "device": args.device,
                "torch_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
                "schedule_overrides": schedule_overrides(steps, full), "extra_overrides": extra,
-               "budget": budget, "settings": {}}
+               "budget": budget, "prior_fill": args.prior_fill, "settings": {}}
     with tempfile.TemporaryDirectory(prefix="warpgs-ablation-") as tmp:
         reference, prior_folder = None, Path(tmp) / "depth_priors"
         if real:
-            data_overrides, info, reference = real_scene_setup(args.data, args.n_train, args.downscale, Path(tmp))
+            data_overrides, info, reference = real_scene_setup(args.data, args.n_train, args.downscale, Path(tmp),
+                                                               args.prior_fill)
             payload["data"] = info
             extra = data_overrides + extra
             print(f"  {Path(args.data).name}: train {info['train_index']}, test {info['test_index']}, "

@@ -17,21 +17,23 @@ import ablation
 from common import write_json
 
 # What every merged file must share (the run-specific parts, seeds and settings, are pooled).
-SHARED = ("steps", "device", "budget")
+SHARED = ("steps", "device", "budget", "prior_fill")
+MISSING = {"prior_fill": 0.0}  # what a file from before the key existed meant
 SHARED_DATA = ("scene", "train_index", "test_index", "size")
 
 
 def merge(payloads: list[tuple[str, dict]]) -> dict:
     first_name, first = payloads[0]
-    merged = {k: first[k] for k in SHARED}
+    merged = {k: first.get(k, MISSING.get(k)) for k in SHARED}
     merged["merged_from"] = [name for name, _ in payloads]
     if "data" in first:
         merged["data"] = first["data"]
     merged["settings"] = {}
     for name, p in payloads:
         for k in SHARED:
-            if p.get(k) != first.get(k):
-                raise SystemExit(f"{name}: {k} is {p.get(k)!r}, {first_name} has {first.get(k)!r}")
+            if p.get(k, MISSING.get(k)) != first.get(k, MISSING.get(k)):
+                raise SystemExit(f"{name}: {k} is {p.get(k, MISSING.get(k))!r}, {first_name} has "
+                                 f"{first.get(k, MISSING.get(k))!r}")
         for k in SHARED_DATA:
             if ("data" in p) != ("data" in first) or ("data" in p and p["data"].get(k) != first["data"].get(k)):
                 raise SystemExit(f"{name}: data.{k} differs from {first_name}'s: not the same scene or split")

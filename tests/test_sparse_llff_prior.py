@@ -50,6 +50,13 @@ def plane_scene(root: Path, xs=(-0.3, 0.0, 0.3), unrelated: bool = False, sensor
     return load_scene(root, split="all")
 
 
+def plane_scene_with_points(root: Path):
+    """plane_scene with SfM points on the plane (every 37th pixel's ray of the middle view), to align priors to."""
+    X, Y = _plane_coords(0.0)
+    xyz = np.stack([X.ravel()[::37], Y.ravel()[::37], np.full(X.size, Z0)[::37]], 1)
+    return plane_scene(root).with_points(PointCloud(xyz, np.full((len(xyz), 3), 0.5)))
+
+
 # --- the consistency check ---------------------------------------------------------------------------------------
 def test_depth_maps_of_one_surface_agree_and_others_do_not():
     ref, other = _camera(0.0), _camera(0.4)
@@ -125,10 +132,7 @@ def test_settings_are_checked():
 # --- written with the prior, served with the view ------------------------------------------------------------------
 def test_priors_keep_their_confidence_and_views_serve_it(tmp_path, monkeypatch):
     monkeypatch.setenv("WARPGS_CACHE", str(tmp_path / "cache"))
-    scene = plane_scene(tmp_path / "scene")
-    X, Y = _plane_coords(0.0)
-    xyz = np.stack([X.ravel()[::37], Y.ravel()[::37], np.full(X.size, Z0)[::37]], 1)
-    scene = scene.with_points(PointCloud(xyz, np.full((len(xyz), 3), 0.5)))
+    scene = plane_scene_with_points(tmp_path / "scene")
     estimator = PlaneSweepStereo(near=3.0, far=8.0)
     with_priors, report = compute_depth_priors(scene, estimator, out_dir=tmp_path / "priors")
     assert all(v["confidence"] for v in report["views"].values())

@@ -96,3 +96,13 @@ def test_estimated_priors_are_reused_by_a_later_trainer(tmp_path, monkeypatch):
     again = run(tmp_path, "data.depth_priors=estimate")
     assert all(again.scene.files[v].depth_prior is not None for v in again.scene.train)
     assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "depth_priors").glob("*.exr")} == stamps
+
+
+def test_priors_are_estimated_again_when_the_fill_changes(tmp_path):
+    run(tmp_path, "data.depth_priors=estimate")
+    plain = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "depth_priors").glob("*.exr")}
+    again = run(tmp_path, "data.depth_priors=estimate", "data.depth_prior_fill=0.3")
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "depth_priors").glob("*.exr")} != plain
+    v = again.train_indices[0]
+    conf = again.scene.prior_confidence_np(v)
+    assert conf is not None and np.isclose(conf, 0.3).any()  # filled pixels carry the fill's confidence

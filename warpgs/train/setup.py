@@ -49,7 +49,7 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     elif prior == "estimate":
         if out_dir is None:
             raise ValueError("data.depth_priors: 'estimate' needs an output folder to write the priors to")
-        scene = _estimated_priors(scene, Path(out_dir) / "depth_priors", compute_depth_priors)
+        scene = _estimated_priors(scene, Path(out_dir) / "depth_priors", compute_depth_priors, data.depth_prior_fill)
     elif prior != "auto":
         folder = Path(prior)
         if not folder.is_absolute() and not folder.is_dir():
@@ -60,16 +60,19 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     return scene
 
 
-def _estimated_priors(scene, folder: Path, compute):
-    """The priors already estimated into `folder` when complete (format.json is written last), else new ones."""
+def _estimated_priors(scene, folder: Path, compute, fill_confidence: float = 0.0):
+    """The priors already estimated into `folder` when complete (format.json is written last) and made with the
+    same fill, else new ones."""
     from warpgs.data.scene import MapFormat
     from warpgs.data.formats.view_files import FORMAT_FILE
+    from warpgs.data.errors import read_json
 
     if (folder / FORMAT_FILE).is_file():
         done = scene.with_depth_priors(folder, MapFormat("inverse_depth"))
-        if all(done.files[v].depth_prior is not None for v in scene.train):
+        same_fill = float(read_json(folder / FORMAT_FILE).get("fill_confidence", 0.0)) == float(fill_confidence)
+        if same_fill and all(done.files[v].depth_prior is not None for v in scene.train):
             return done
-    return compute(scene, out_dir=folder)[0]
+    return compute(scene, out_dir=folder, fill_confidence=fill_confidence)[0]
 
 
 def resolve_background(spec, scene, device) -> torch.Tensor:

@@ -15,6 +15,7 @@ import numpy as np
 
 from warpgs.data.depth.align import align_depth_to_points
 from warpgs.data.depth.estimators import CONFIDENCE_CHANNEL, DepthEstimator
+from warpgs.data.depth.fill import fill_inverse_depth
 from warpgs.data.depth import files as depth_files
 from warpgs.data.scene import MapFormat, Scene
 from warpgs.data.formats.view_files import write_map_format
@@ -45,9 +46,21 @@ def _with_training_points(scene: Scene, out_dir: Path) -> Scene:
     return scene.with_points(tri.points)
 
 
+def _filled(scene: Scene, v: int, inv: np.ndarray, valid: np.ndarray, confidence: Optional[np.ndarray],
+            fill_confidence: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The prior with its invalid pixels filled (fill_confidence there), and the share of pixels filled."""
+    image = scene.image_np(v)[0]
+    inv_filled, filled = fill_inverse_depth(inv, valid, image)
+    filled &= inv_filled > 0  # a fill never invents a point behind the camera
+    base = np.ones(valid.shape, np.float32) if confidence is None else confidence
+    conf = np.where(filled, np.float32(fill_confidence), np.where(valid, base, 0.0)).astype(np.float32)
+    return np.where(filled, inv_filled, inv), valid | filled, conf, float(filled.mean())
+
+
 def compute_depth_priors(scene: Scene, estimator: Optional[DepthEstimator] = None, *,
                          views: Optional[Sequence[int]] = None, out_dir: Optional[Path] = None,
-                         align: bool = True, min_points: int = 10, triangulate: bool = True) -> tuple[Scene, dict]:
+                         align: bool = True, min_points: int = 10, triangulate: bool = True,
+                         fill_confidence: float = 0.0) -> tuple[Scene, dict]:
     """Estimate, align and write priors for `views` (default: training views) into out_dir (default
     <scene root>/depth_priors). Returns the scene with priors attached and a report:
     {"estimator", "seconds", "views": {name: {"alignment": {...} or None, "valid_fraction"}}}.
@@ -56,7 +69,13 @@ def compute_depth_priors(scene: Scene, estimator: Optional[DepthEstimator] = Non
     too when points exist, and the report's scale/shift then shows how well they already agreed. A scene without
     points gets them from its training views (triangulate=True, see the module doc); the returned scene is the
     one given (without those points), so a trainer still chooses its own initial points.
+
+    fill_confidence > 0 fills the pixels the estimator left invalid from the valid ones (warpgs.data.depth.fill,
+    edge-aware harmonic interpolation of inverse depth) and gives them this confidence (valid pixels keep the
+    estimator's, or 1); 0 leaves them out, as before.
     """
+    if not 0.0 <= fill_confidence <= 1.0:
+        raise ValueError(f"fill_confidence: expected a confidence in [0, 1], got {fill_confidence}")
     from warpgs.data.depth.plane_sweep import PlaneSweepStereo
 
     estimator = estimator or PlaneSweepStereo()
@@ -80,11 +99,14 @@ def compute_depth_priors(scene: Scene, estimator: Optional[DepthEstimator] = Non
         elif not est.metric:
             raise ValueError(f"view {scene.names[v]!r}: a relative depth estimate needs at least {min_points} "
                              f"SfM points to align to, the view sees {len(seen)}")
-        write_prior(out_dir / f"{Path(scene.names[v]).stem}.exr", inv, valid, est.confidence)
+        confidence, filled_fraction = est.confidence, 0.0
+        if fill_confidence > 0:
+            inv, valid, confidence, filled_fraction = _filled(scene, v, inv, valid, confidence, fill_confidence)
+        write_prior(out_dir / f"{Path(scene.names[v]).stem}.exr", inv, valid, confidence)
         report["views"][scene.names[v]] = {"alignment": None if alignment is None else alignment.as_dict(),
-                                           "valid_fraction": float(valid.mean()),
-                                           "confidence": est.confidence is not None}
+                                           "valid_fraction": float(valid.mean()), "filled_fraction": filled_fraction,
+                                           "confidence": confidence is not None}
     report["seconds"] = round(time.perf_counter() - start, 3)
     write_map_format(out_dir, MapFormat("inverse_depth"), estimator=estimator.name, aligned=align,
-                     views=report["views"])
+                     fill_confidence=fill_confidence, views=report["views"])
     return bare.with_depth_priors(out_dir, MapFormat("inverse_depth")), report
