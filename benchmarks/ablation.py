@@ -46,9 +46,10 @@ import torch
 
 from common import ROOT, write_json
 
-from warpgs.config.loader import load_config
+from warpgs.config.loader import load_config, parse_override
 from warpgs.losses import marr
 from warpgs.metrics.depth import evaluate_depth
+from warpgs.train.setup import plane_sweep
 from warpgs.train.trainer import Trainer
 
 # (label in the table, preset in configs/), in the paper's order.
@@ -122,15 +123,17 @@ def run_setting(key: str, preset: str, steps: int, seed: int, device: str, extra
             "per_view": {k: {**v, **depth["per_view"].get(k, {})} for k, v in m["per_view"].items()}}
 
 
-def real_scene_setup(data: str, n_train: int, downscale: int, workdir: Path,
-                     prior_fill: float = 0.0) -> tuple[list[str], dict, dict]:
+def real_scene_setup(data: str, n_train: int, downscale: int, workdir: Path, prior_fill: float = 0.0,
+                     prior_options: Optional[dict] = None) -> tuple[list[str], dict, dict]:
     """(data overrides for every run, the shared prior's report, {test view: sparse reference depth})."""
     from warpgs.data import compute_depth_priors, load_scene
     from warpgs.data.depth.reference_points import sparse_depth_map, view_reference_points
 
     scene = load_scene(data, split="llff", n_train=n_train, downscale=downscale)
     start = time.perf_counter()
-    _, report = compute_depth_priors(scene, out_dir=workdir / "depth_priors", fill_confidence=prior_fill)
+    _, report = compute_depth_priors(scene, plane_sweep(prior_options), out_dir=workdir / "depth_priors",
+                                     fill_confidence=prior_fill)
+    report["options"] = dict(prior_options or {})
     report["seconds_total"] = round(time.perf_counter() - start, 1)
     points, per_view = view_reference_points(scene)
     reference = {scene.names[v]: sparse_depth_map(scene.cameras[v], points.xyz[per_view[v]]) for v in scene.test}
@@ -236,10 +239,14 @@ def main(argv=None) -> dict:
     ap.add_argument("--prior-fill", type=float, default=0.0,
                     help="with --data: fill the pixels the stereo prior left invalid and give them this confidence "
                          "(data.depth_prior_fill; 0: leave them out)")
+    ap.add_argument("--prior-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --data: a PlaneSweepStereo setting for the prior, e.g. window=7 (repeatable; "
+                         "data.depth_prior_options)")
     ap.add_argument("--name", default=None, help="result file name (default ablation_[<scene>_]<device>_<steps>)")
     ap.add_argument("overrides", nargs="*", help="extra key=value config overrides for every setting")
     args = ap.parse_args(argv)
     real = args.data is not None
+    prior_options = dict(parse_override(o) for o in args.prior_option)
     cuda = args.device.startswith("cuda")
     full = FULL_STEPS["real" if real else "synthetic"]
     steps = args.steps or (full if cuda else (CPU_STEPS_REAL if real else CPU_STEPS))
@@ -260,12 +267,12 @@ def main(argv=None) -> dict:
     payload = {"steps": steps, "seeds": seeds, "device": args.device,
                "torch_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
                "schedule_overrides": schedule_overrides(steps, full), "extra_overrides": extra,
-               "budget": budget, "prior_fill": args.prior_fill, "settings": {}}
+               "budget": budget, "prior_fill": args.prior_fill, "prior_options": prior_options, "settings": {}}
     with tempfile.TemporaryDirectory(prefix="warpgs-ablation-") as tmp:
         reference, prior_folder = None, Path(tmp) / "depth_priors"
         if real:
             data_overrides, info, reference = real_scene_setup(args.data, args.n_train, args.downscale, Path(tmp),
-                                                               args.prior_fill)
+                                                               args.prior_fill, prior_options)
             payload["data"] = info
             extra = data_overrides + extra
             print(f"  {Path(args.data).name}: train {info['train_index']}, test {info['test_index']}, "

@@ -17,8 +17,8 @@ import ablation
 from common import write_json
 
 # What every merged file must share (the run-specific parts, seeds and settings, are pooled).
-SHARED = ("steps", "device", "budget", "prior_fill")
-MISSING = {"prior_fill": 0.0}  # what a file from before the key existed meant
+SHARED = ("steps", "device", "budget", "prior_fill", "prior_options")
+MISSING = {"prior_fill": 0.0, "prior_options": {}}  # what a file from before the key existed meant
 SHARED_DATA = ("scene", "train_index", "test_index", "size")
 
 

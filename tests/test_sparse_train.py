@@ -106,3 +106,18 @@ def test_priors_are_estimated_again_when_the_fill_changes(tmp_path):
     v = again.train_indices[0]
     conf = again.scene.prior_confidence_np(v)
     assert conf is not None and np.isclose(conf, 0.3).any()  # filled pixels carry the fill's confidence
+
+
+def test_prior_options_reach_the_estimator_and_a_change_re_estimates(tmp_path):
+    import json
+
+    import pytest
+
+    run(tmp_path, "data.depth_priors=estimate")
+    before = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "depth_priors").glob("*.exr")}
+    run(tmp_path, "data.depth_priors=estimate", "data.depth_prior_options={window: 7}")
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "depth_priors").glob("*.exr")} != before
+    made = json.loads((tmp_path / "depth_priors" / "format.json").read_text())
+    assert made["estimator_settings"]["window"] == 7
+    with pytest.raises(ValueError, match="data.depth_prior_options"):
+        run(tmp_path / "bad", "data.depth_priors=estimate", "data.depth_prior_options={windows: 7}")

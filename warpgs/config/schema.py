@@ -33,6 +33,8 @@ class DataConfig:
     depth_priors: Optional[str] = "auto"  # "auto": the scene's prior files if any; "none"; "estimate": plane-sweep
     #                                       stereo aligned to the SfM points, written to <output>/depth_priors;
     #                                       or a folder of priors
+    depth_prior_options: Dict[str, Any] = field(default_factory=dict)  # with "estimate": PlaneSweepStereo's keyword
+    #                                arguments, e.g. {window: 7, num_planes: 192} (warpgs/data/depth/plane_sweep.py)
     depth_prior_fill: float = 0.0  # with "estimate": fill the pixels the stereo left invalid (edge-aware, from the
     #                                valid ones) and give them this confidence in the depth terms; 0: leave them out
     preload: bool = True  # keep all training views on the device

@@ -49,7 +49,8 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     elif prior == "estimate":
         if out_dir is None:
             raise ValueError("data.depth_priors: 'estimate' needs an output folder to write the priors to")
-        scene = _estimated_priors(scene, Path(out_dir) / "depth_priors", compute_depth_priors, data.depth_prior_fill)
+        scene = _estimated_priors(scene, Path(out_dir) / "depth_priors", compute_depth_priors,
+                                  plane_sweep(data.depth_prior_options), data.depth_prior_fill)
     elif prior != "auto":
         folder = Path(prior)
         if not folder.is_absolute() and not folder.is_dir():
@@ -60,19 +61,32 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     return scene
 
 
-def _estimated_priors(scene, folder: Path, compute, fill_confidence: float = 0.0):
-    """The priors already estimated into `folder` when complete (format.json is written last) and made with the
-    same fill, else new ones."""
-    from warpgs.data.scene import MapFormat
-    from warpgs.data.formats.view_files import FORMAT_FILE
+def plane_sweep(options: Optional[dict]):
+    """The built-in estimator with data.depth_prior_options; a bad option is named."""
+    from warpgs.data import PlaneSweepStereo
+
+    try:
+        return PlaneSweepStereo(**(options or {}))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"data.depth_prior_options: {exc}") from exc
+
+
+def _estimated_priors(scene, folder: Path, compute, estimator, fill_confidence: float = 0.0):
+    """The priors already estimated into `folder` when complete (format.json is written last) and made by the same
+    estimator settings and fill, else new ones."""
+    from warpgs.data.depth.priors import estimator_settings
     from warpgs.data.errors import read_json
+    from warpgs.data.formats.view_files import FORMAT_FILE
+    from warpgs.data.scene import MapFormat
 
     if (folder / FORMAT_FILE).is_file():
         done = scene.with_depth_priors(folder, MapFormat("inverse_depth"))
-        same_fill = float(read_json(folder / FORMAT_FILE).get("fill_confidence", 0.0)) == float(fill_confidence)
-        if same_fill and all(done.files[v].depth_prior is not None for v in scene.train):
+        made = read_json(folder / FORMAT_FILE)
+        same = (float(made.get("fill_confidence", 0.0)) == float(fill_confidence)
+                and made.get("estimator_settings", estimator_settings(estimator)) == estimator_settings(estimator))
+        if same and all(done.files[v].depth_prior is not None for v in scene.train):
             return done
-    return compute(scene, out_dir=folder, fill_confidence=fill_confidence)[0]
+    return compute(scene, estimator, out_dir=folder, fill_confidence=fill_confidence)[0]
 
 
 def resolve_background(spec, scene, device) -> torch.Tensor:

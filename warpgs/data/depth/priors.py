@@ -32,6 +32,13 @@ def write_prior(path: Path, inv_depth: np.ndarray, valid: np.ndarray, confidence
     return depth_files.write_exr_channels(path, channels, {depth_files._KIND_ATTRIBUTE: "inverse_depth"})
 
 
+def estimator_settings(estimator: DepthEstimator) -> dict:
+    """The estimator's plain settings (numbers, strings, flags), as recorded in the prior folder's format.json: a
+    trainer re-estimates when they differ from the estimator it would use now."""
+    return {k: v for k, v in sorted(vars(estimator).items())
+            if not k.startswith("_") and (v is None or isinstance(v, (bool, int, float, str)))}
+
+
 def _with_training_points(scene: Scene, out_dir: Path) -> Scene:
     """The scene with points triangulated from its training views; unchanged (with a note) when that fails, so
     an estimator given near/far still runs and one that needs points says so."""
@@ -108,5 +115,6 @@ def compute_depth_priors(scene: Scene, estimator: Optional[DepthEstimator] = Non
                                            "confidence": confidence is not None}
     report["seconds"] = round(time.perf_counter() - start, 3)
     write_map_format(out_dir, MapFormat("inverse_depth"), estimator=estimator.name, aligned=align,
-                     fill_confidence=fill_confidence, views=report["views"])
+                     estimator_settings=estimator_settings(estimator), fill_confidence=fill_confidence,
+                     views=report["views"])
     return bare.with_depth_priors(out_dir, MapFormat("inverse_depth")), report
