@@ -65,11 +65,15 @@ def main(argv=None) -> dict:
             raise SystemExit(f"{f}: not a readable ablation result ({e})")
         if "settings" not in payloads[-1][1]:
             raise SystemExit(f"{f}: no 'settings' in it: not written by benchmarks/ablation.py")
-    merged = merge(payloads)
+    return write_table(args.name, merge(payloads))
+
+
+def write_table(name: str, merged: dict) -> dict:
+    """Means and paired gains of the merged settings, printed as ablation.py prints them and written as `name`."""
     rows = ablation.summarise_settings(merged["settings"])
     ablation.print_table(merged, rows)
     merged["table"] = rows
-    print(f"\nwrote {write_json(args.name, merged)}", file=sys.stderr)
+    print(f"\nwrote {write_json(name, merged)}", file=sys.stderr)
     return merged
 
 

@@ -52,3 +52,17 @@ def test_files_of_different_scenes_or_steps_or_a_repeated_seed_are_refused(tmp_p
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(SystemExit, match="bad.json"):
         ablation_merge.main(["m", a, str(tmp_path / "bad.json")])
+
+
+def test_the_parallel_runner_checks_its_arguments():
+    import ablation_jobs
+
+    args, rest, keys, seeds = ablation_jobs.parse(["--name", "n", "--only", "baseline,full", "--seeds", "0,2", "--",
+                                                   "--data", "d", "--device", "cuda"])
+    assert rest == ["--data", "d", "--device", "cuda"] and keys == ["baseline", "full"] and seeds == [0, 2]
+    _, _, every, _ = ablation_jobs.parse(["--name", "n", "--", "--data", "d"])
+    assert every[0] == "baseline" and "wo_confidence" in every  # the real settings when --data is given
+    with pytest.raises(SystemExit, match="--seeds"):
+        ablation_jobs.parse(["--name", "n", "--", "--data", "d", "--seeds", "1"])
+    with pytest.raises(SystemExit, match="not settings"):
+        ablation_jobs.parse(["--name", "n", "--only", "full,wo_magic"])
