@@ -1,0 +1,101 @@
+"""One optimisation step of the Trainer: draw the step's views, render and score each (view_pass), reduce over the
+ranks, step the optimizers, let the strategy densify. Functions of the trainer, whose Trainer.train_step and
+Trainer.view_pass are the public spelling."""
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+
+from warpgs.train import setup as train_setup
+from warpgs.train.batch import ViewPass, batch_result, batch_summary, local_sums, scalar_names
+from warpgs.train.optim import update_learning_rates
+
+
+def train_step(trainer) -> dict:
+    """One optimisation step at trainer.step over train.batch_size views (this rank's share of them when
+    distributed); returns info for logging and hooks. The loss is the mean over the batch's views; each view is
+    rendered, scored and back-propagated in turn (ViewPass, train/batch.py), gradients and densification
+    statistics are summed over the ranks, then every rank takes the same optimizer and strategy step. With one
+    view on one process this is the single-view step exactly (tests/test_train_batch.py checks bit for bit)."""
+    cfg, model, step = trainer.config, trainer.model, trainer.step
+    t0 = time.perf_counter()
+    drawn = trainer.views.draw(trainer.batch_size)  # the global batch, drawn alike on every rank
+    mine = [trainer.view(i) for i in drawn[trainer.ranks.shard(len(drawn))]]
+    model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
+    update_learning_rates(trainer.optimizer, step, cfg.optim, trainer.extent, trainer.max_steps, trainer.lr_scale)
+    densify = step < cfg.strategy.refine_stop
+    passes = []
+    for view in mine:
+        # Through the method, so a Trainer subclass that overrides view_pass is honoured.
+        passes.append(trainer.view_pass(view, step, views_in_loss=len(drawn), densify=densify, first=not passes))
+    names = scalar_names(passes)
+    # A Ctrl-C on any rank rides along with the sums, so all ranks learn of it at the same step.
+    sums = trainer.ranks.all_reduce_gradients([p for _, p in trainer.named_parameters()],
+                                           local_sums(passes, names) + [float(trainer.stop_requested)], step)
+    stop = trainer.ranks.enabled and sums.pop() > 0
+    if len(drawn) == 1:
+        result, summary = passes[0].result, {"loss": passes[0].loss, "values": passes[0].values,
+                                             "psnr": passes[0].psnr}
+    else:
+        summary = batch_summary(sums, names, len(drawn))
+        result = batch_result(summary, passes[0].result)
+    if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied
+        trainer.check_finite(step, result)
+    for opt in trainer.optimizers:
+        opt.step()
+    report = None
+    if densify:  # after the optimizer step, as 3DGS: the screen radii are those of the updated model
+        observed = trainer.strategy.merge_observations(
+            trainer.strategy.observe(model, visible=p.visible, viewmat=p.view.viewmat, K=p.view.K,
+                                  width=p.view.width, height=p.view.height, grad2d=p.grad2d,
+                                  means_grad=p.means_grad, near=cfg.train.near, views_in_loss=len(drawn))
+            for p in passes)
+        trainer.strategy.add_observations(trainer.ranks.all_reduce_observations(observed, step))
+        report = trainer.strategy.maybe_refine(model, trainer.optimizer, step)
+        if report is not None and trainer.ranks.enabled:
+            trainer.ranks.check_same(model.num_primitives, f"the number of primitives after step {step}")
+    for opt in trainer.optimizers:
+        opt.zero_grad(set_to_none=True)
+    model.zero_grad(set_to_none=True)
+    trainer.counters.train_seconds += time.perf_counter() - t0
+    trainer.counters.step = step + 1
+    trainer.counters.last_loss = summary["loss"]
+    return {"step": step, "loss": summary["loss"], "values": summary["values"], "psnr": summary["psnr"],
+            "num_primitives": model.num_primitives, "densify": report, "view": passes[0].view.name,
+            "views": [trainer.scene.cameras[i].name for i in drawn], "stop": stop}
+
+
+def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool = False,
+              first: bool = True) -> ViewPass:
+    """Render one view of the step, score it, and back-propagate its share (loss / views_in_loss) into the
+    parameters' .grad; returns what the rest of the step needs from it. `first`: the step's first view (the
+    strategy checks the model before the first backward)."""
+    model = trainer.model
+    batch = trainer.make_batch(view, step)
+    out = trainer.render(view, trainer.outputs_at(step), batch, track_means2d=densify, step=step)
+    result = trainer.loss_set(out, batch, model, step, trainer.max_steps)
+    if first:
+        trainer.strategy.step_pre_backward(model, step)
+    # Surfels give no means2d: this view's share of means.grad is what the strategy projects instead (with a
+    # single view, means.grad itself, read after the step as before).
+    own_means_grad = densify and out.means2d is None and views_in_loss > 1
+    before = model.means.grad.clone() if own_means_grad and model.means.grad is not None else None
+    (result.total if views_in_loss == 1 else result.total / views_in_loss).backward()
+    # The scalars for the log and the progress line in one device-to-host copy (one sync, not one per value).
+    names = list(result.values)
+    scalars = [result.total.detach().reshape(())] + [result.values[k].detach().reshape(()) for k in names]
+    if out.rgb is not None:  # read now: the next view's render may reuse the output buffers
+        scalars.append(((out.rgb.detach() - view.image) ** 2).mean())
+    host = torch.stack([v.float() for v in scalars]).tolist()
+    p = ViewPass(view=view, result=result, loss=host[0], values=dict(zip(names, host[1:1 + len(names)])))
+    if densify:
+        p.visible = out.visible
+        p.grad2d = out.means2d.grad if out.means2d is not None else None
+        if own_means_grad:
+            g = model.means.grad
+            p.means_grad = g.clone() if before is None else g - before
+    if out.rgb is not None:
+        p.psnr = 10.0 * math.log10(1.0 / max(host[-1], 1e-10))
+    return p
