@@ -46,7 +46,7 @@ import torch
 
 from common import ROOT, write_json
 
-from warpgs.config.loader import load_config, parse_override
+from warpgs.config.loader import load_config, parse_key_value
 from warpgs.losses import marr
 from warpgs.metrics.depth import evaluate_depth
 from warpgs.train.setup import plane_sweep
@@ -246,7 +246,7 @@ def main(argv=None) -> dict:
     ap.add_argument("overrides", nargs="*", help="extra key=value config overrides for every setting")
     args = ap.parse_args(argv)
     real = args.data is not None
-    prior_options = dict(parse_override(o) for o in args.prior_option)
+    prior_options = dict(parse_key_value(o) for o in args.prior_option)  # estimator keywords: no config aliases
     cuda = args.device.startswith("cuda")
     full = FULL_STEPS["real" if real else "synthetic"]
     steps = args.steps or (full if cuda else (CPU_STEPS_REAL if real else CPU_STEPS))

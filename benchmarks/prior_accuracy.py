@@ -46,7 +46,6 @@ def score_fill(scene, v: int, aligned: np.ndarray, valid: np.ndarray, pix: np.nd
     """The pixels the estimator left invalid, filled as compute_depth_priors(fill_confidence>0) fills them: AbsRel
     and delta<1.25 at the reference points on those pixels only, their count, and the share of pixels filled."""
     filled_inv, filled = fill_inverse_depth(aligned, valid, scene.image_np(v)[0])
-    filled &= filled_inv > 0
     m = point_depth_metrics(filled_inv, filled, pix, z)
     return {"abs_rel_filled": m["abs_rel"], "delta_1_25_filled": m["delta_1_25"], "n_filled": m["n"],
             "pixel_filled": float(filled.mean())}

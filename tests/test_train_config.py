@@ -123,3 +123,15 @@ def test_alpha_min_above_the_opacity_reset_is_refused():
     # The same threshold is fine when resets are off or reset above it.
     load_config(None, ["train.alpha_min=0.02", "strategy.reset_every=0"])
     load_config(None, ["train.alpha_min=0.02", "strategy.reset_opacity=0.05"])
+
+
+def test_key_values_keep_their_key_and_overrides_expand_aliases():
+    from warpgs.config.loader import parse_key_value, parse_override
+
+    # An estimator keyword such as `device` is not the config alias train.device (ablation.py --prior-option).
+    assert parse_key_value("device=cpu") == ("device", "cpu")
+    assert parse_key_value("window=7") == ("window", 7)
+    assert parse_override("device=cpu") == ("train.device", "cpu")
+    assert parse_override("data.path=x") == ("data.path", "x")
+    with pytest.raises(ConfigError, match="key=value"):
+        parse_key_value("window")

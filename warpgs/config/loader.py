@@ -70,21 +70,27 @@ def read_yaml(path, _seen: tuple = ()) -> dict:
     return deep_merge(read_yaml(path.parent / base, _seen + (path.resolve(),)), data)
 
 
-def parse_override(item: str) -> tuple:
-    """'a.b=value' -> ('a.b', parsed value); the key's alias is expanded."""
+def parse_key_value(item: str) -> tuple:
+    """'key=value' -> ('key', the value read as YAML, else the text); no alias expansion."""
     if not isinstance(item, str) or "=" not in item:
         raise ConfigError(str(item), "overrides look like key=value (e.g. steps=500, model.kind=surfels)")
     key, text = item.split("=", 1)
     key = key.strip()
     if not key:
         raise ConfigError("", f"override {item!r} has no key")
-    head, _, rest = key.partition(".")
-    if head in ALIASES and not rest:
-        key = ALIASES[head]
     try:
         value = yaml.safe_load(text) if text.strip() else None
     except yaml.YAMLError:
         value = text
+    return key, value
+
+
+def parse_override(item: str) -> tuple:
+    """'a.b=value' -> ('a.b', parsed value); the key's alias is expanded."""
+    key, value = parse_key_value(item)
+    head, _, rest = key.partition(".")
+    if head in ALIASES and not rest:
+        key = ALIASES[head]
     return key, value
 
 

@@ -81,9 +81,10 @@ def _estimated_priors(scene, folder: Path, compute, estimator, fill_confidence: 
 
     if (folder / FORMAT_FILE).is_file():
         done = scene.with_depth_priors(folder, MapFormat("inverse_depth"))
-        made = read_json(folder / FORMAT_FILE)
+        made, settings = read_json(folder / FORMAT_FILE), estimator_settings(estimator)
+        # A folder from before settings were recorded counts as made by these ones.
         same = (float(made.get("fill_confidence", 0.0)) == float(fill_confidence)
-                and made.get("estimator_settings", estimator_settings(estimator)) == estimator_settings(estimator))
+                and made.get("estimator_settings", settings) == settings)
         if same and all(done.files[v].depth_prior is not None for v in scene.train):
             return done
     return compute(scene, estimator, out_dir=folder, fill_confidence=fill_confidence)[0]

@@ -51,7 +51,8 @@ def _jacobi(value: torch.Tensor, fixed: torch.Tensor, wx: torch.Tensor, wy: torc
 def fill_inverse_depth(inv_depth: np.ndarray, valid: np.ndarray, image: np.ndarray, *,
                        sweeps: int = DEFAULT_SWEEPS, sigma_color: float = DEFAULT_SIGMA_COLOR,
                        device=None) -> tuple[np.ndarray, np.ndarray]:
-    """(inverse depth [H, W] with every invalid pixel filled, filled-pixel mask [H, W] bool).
+    """(inverse depth [H, W] with the invalid pixels filled, filled-pixel mask [H, W] bool: every invalid pixel
+    whose fill is positive, i.e. all of them when the valid values are, as fills are weighted means of those).
 
     inv_depth: [H, W], values at valid pixels (others ignored); valid: [H, W] bool; image: [H, W, 3] in [0, 1],
     the view the prior belongs to (its edges stop the fill). With no valid pixel there is nothing to fill from:
@@ -85,4 +86,5 @@ def fill_inverse_depth(inv_depth: np.ndarray, valid: np.ndarray, image: np.ndarr
         wx, wy = _edge_weights(im, sigma_color)
         filled = _jacobi(torch.where(fixed, v, filled), fixed, wx, wy, sweeps)
     out = filled[0, 0].cpu().numpy().astype(inv_depth.dtype, copy=False)
-    return np.where(valid, inv_depth, out), ~valid
+    filled_mask = ~valid & (out > 0)  # a fill never puts a point behind the camera
+    return np.where(filled_mask, out, inv_depth), filled_mask

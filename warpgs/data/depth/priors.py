@@ -58,10 +58,9 @@ def _filled(scene: Scene, v: int, inv: np.ndarray, valid: np.ndarray, confidence
     """The prior with its invalid pixels filled (fill_confidence there), and the share of pixels filled."""
     image = scene.image_np(v)[0]
     inv_filled, filled = fill_inverse_depth(inv, valid, image)
-    filled &= inv_filled > 0  # a fill never invents a point behind the camera
     base = np.ones(valid.shape, np.float32) if confidence is None else confidence
     conf = np.where(filled, np.float32(fill_confidence), np.where(valid, base, 0.0)).astype(np.float32)
-    return np.where(filled, inv_filled, inv), valid | filled, conf, float(filled.mean())
+    return inv_filled, valid | filled, conf, float(filled.mean())
 
 
 def compute_depth_priors(scene: Scene, estimator: Optional[DepthEstimator] = None, *,
