@@ -13,6 +13,8 @@ equal work. Reported per run, from rank 0's log.jsonl and metrics.json:
 
 - views_per_s: training views rendered per second of training (steps x batch / train_seconds; evaluation and
   checkpoints excluded; on CUDA the loss read-back of every view synchronises the GPU, so the time is real);
+- steady_views_per_s and steady_speedup (over 1 process): the same after the first evaluation, without each
+  process's one-off start-up (about 2 s on an H100), which a long run amortises and a 3000-view run does not;
 - time_to_target_s: training seconds until a periodic held-out evaluation first reached --target-psnr
   (null when none did), and the PSNR/time of every evaluation;
 - final held-out PSNR, primitives, steps and the scaling efficiency views_per_s(N) / (N x views_per_s(1)).
@@ -37,6 +39,15 @@ from common import ROOT, print_table, write_json
 
 def scaled(value: int, factor: int, minimum: int = 1) -> int:
     return max(minimum, int(round(value / factor)))
+
+
+def steady_views_per_s(evals: list) -> float | None:
+    """Views per training second after the first evaluation: the rate without the start-up each process pays
+    once (Warp loading its cached kernels, CUDA and NCCL set-up, the first launches), which does not shrink with
+    more processes and would hide the scaling of a long run. None with fewer than two evaluations."""
+    if len(evals) < 2 or evals[-1]["train_seconds"] <= evals[0]["train_seconds"]:
+        return None
+    return (evals[-1]["views_seen"] - evals[0]["views_seen"]) / (evals[-1]["train_seconds"] - evals[0]["train_seconds"])
 
 
 def run_one(nproc: int, args, out: Path) -> dict:
@@ -77,6 +88,7 @@ def run_one(nproc: int, args, out: Path) -> dict:
     return {"nproc": nproc, "batch_size": batch, "steps": metrics["steps"], "views_seen": metrics["steps"] * batch,
             "train_seconds": metrics["train_seconds"], "wall_seconds": round(wall, 2),
             "views_per_s": metrics["steps"] * batch / max(metrics["train_seconds"], 1e-9),
+            "steady_views_per_s": steady_views_per_s(evals),
             "final_psnr": metrics["psnr"], "num_primitives": metrics["num_primitives"],
             "time_to_target_s": None if reached is None else reached["train_seconds"],
             "views_to_target": None if reached is None else reached["views_seen"], "evals": evals}
@@ -131,6 +143,8 @@ def main(argv=None) -> dict:
     base = next((r for r in runs if r["nproc"] == 1), None)
     for r in runs:
         r["scaling_efficiency"] = (r["views_per_s"] / (r["nproc"] * base["views_per_s"])) if base else None
+        steady = base and r["steady_views_per_s"] and base["steady_views_per_s"]
+        r["steady_speedup"] = r["steady_views_per_s"] / base["steady_views_per_s"] if steady else None
     payload = {"device": args.device, "data": args.data, "downscale": args.downscale,
                "size": None if args.data else [width, height],
                "megapixels": None if args.data else width * height / 1e6,
@@ -144,7 +158,8 @@ def main(argv=None) -> dict:
         import torch
 
         payload["gpu"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
-    print_table(runs, ["nproc", "batch_size", "steps", "views_per_s", "scaling_efficiency", "final_psnr",
+    print_table(runs, ["nproc", "batch_size", "steps", "views_per_s", "scaling_efficiency", "steady_views_per_s",
+                       "steady_speedup", "final_psnr",
                        "time_to_target_s", "num_primitives"])
     name = f"distributed_{args.device.split(':')[0]}" + (f"_{args.tag}" if args.tag else "")
     print(f"wrote {write_json(name, payload)}")

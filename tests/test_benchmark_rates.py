@@ -1,0 +1,36 @@
+"""Figures the GPU benchmarks derive from their runs: the distributed benchmark's rate after start-up and the
+real-capture benchmark's evaluation period (both computed on the CPU from stored numbers)."""
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import distributed  # noqa: E402
+import real_capture  # noqa: E402
+
+
+def _evals(points):
+    return [{"step": v, "views_seen": v, "psnr": 20.0, "train_seconds": t} for v, t in points]
+
+
+def test_steady_rate_leaves_out_the_first_interval():
+    # 250 views in 6 s (start-up included), then 250 views every 4 s.
+    evals = _evals([(250, 6.0), (500, 10.0), (750, 14.0)])
+    assert distributed.steady_views_per_s(evals) == pytest.approx(500 / 8.0)
+    whole = 750 / 14.0
+    assert distributed.steady_views_per_s(evals) > whole
+
+
+def test_steady_rate_needs_two_evaluations():
+    assert distributed.steady_views_per_s(_evals([(250, 6.0)])) is None
+    assert distributed.steady_views_per_s([]) is None
+
+
+@pytest.mark.parametrize("every, marks, period", [(5000, [7000, 30000], 1000), (1000, [7000], 1000),
+                                                  (1000, [500], 500), (5000, [30000], 5000)])
+def test_every_mark_is_an_evaluation_step(every, marks, period):
+    got = real_capture.evaluation_period(every, marks)
+    assert got == period
+    assert all(m % got == 0 for m in marks) and every % got == 0
