@@ -53,6 +53,49 @@ def _to_wp(t: torch.Tensor, dtype, grad: Optional[torch.Tensor] = None):
     return wp.from_torch(t.detach().contiguous(), dtype=dtype, grad=grad)
 
 
+def set_image_outputs(out: RenderOutput, wanted, color, alpha, zacc, inv, fout, background) -> RenderOutput:
+    """Fills the image outputs every primitive kind shares: rgb (over `background`), depth (accumulated z over
+    alpha), inverse depth and features, each only if `wanted`."""
+    if wanted.color:
+        out.rgb = color if background is None else color + (1.0 - alpha) * background
+    if wanted.depth:
+        out.depth = zacc / alpha.clamp_min(DEPTH_EPS)
+    if wanted.inv_depth:
+        out.inv_depth = inv
+    if wanted.num_features:
+        out.features = fout
+    return out
+
+
+def blended_images(fwd, settings, wanted) -> tuple:
+    """(color, alpha, depth accumulation, inverse depth, features) of a blend forward as torch views [H, W, C]
+    (None where not wanted)."""
+    H, W = settings.height, settings.width
+    color = wp.to_torch(fwd.color).view(-1, 3)[: H * W].view(H, W, 3) if wanted.color else None
+    alpha = wp.to_torch(fwd.alpha).view(H, W, 1)
+    depth = wp.to_torch(fwd.depth).view(H, W, 1) if wanted.depth else None
+    inv_depth = wp.to_torch(fwd.inv_depth).view(H, W, 1) if wanted.inv_depth else None
+    feats = wp.to_torch(fwd.features).view(H, W, -1) if wanted.num_features else None
+    return color, alpha, depth, inv_depth, feats
+
+
+def upstream_image_gradients(g_color, g_alpha, g_depth, g_inv, g_feat, settings, wanted, device) -> tuple:
+    """The output gradients as the blend adjoint takes them (flat per pixel; outputs that were not computed get a
+    1-element dummy the kernel never reads). Call inside the Warp device scope."""
+    npix = settings.width * settings.height
+
+    def upstream(g, shape):
+        return (torch.zeros(shape, device=device) if g is None else g).contiguous().view(shape)
+
+    gc = wp.from_torch(upstream(g_color, (npix, 3)), dtype=wp.vec3) if wanted.color else wp.zeros(1, dtype=wp.vec3)
+    ga = wp.from_torch(upstream(g_alpha, (npix,)))
+    gd = wp.from_torch(upstream(g_depth, (npix,))) if wanted.depth else wp.zeros(1, dtype=float)
+    gi = wp.from_torch(upstream(g_inv, (npix,))) if wanted.inv_depth else wp.zeros(1, dtype=float)
+    nf = wanted.num_features
+    gf = wp.from_torch(upstream(g_feat, (npix, nf))) if nf else wp.zeros((1, 1), dtype=float)
+    return gc, ga, gd, gi, gf
+
+
 class _RasterizeFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, settings, wanted, means, quats, scales, opacities, coeffs, features, viewmat, intrinsics,
@@ -84,12 +127,7 @@ class _RasterizeFunction(torch.autograd.Function):
         bins = pipeline.bin_gaussians(proj, w_opac, settings)
         fwd = pipeline.blend_forward(proj, bins, w_opac, w_feat, settings, wanted)
 
-        H, W = settings.height, settings.width
-        color = wp.to_torch(fwd.color).view(-1, 3)[: H * W].view(H, W, 3) if wanted.color else None
-        alpha = wp.to_torch(fwd.alpha).view(H, W, 1)
-        depth = wp.to_torch(fwd.depth).view(H, W, 1) if wanted.depth else None
-        inv_depth = wp.to_torch(fwd.inv_depth).view(H, W, 1) if wanted.inv_depth else None
-        feats = wp.to_torch(fwd.features).view(H, W, -1) if wanted.num_features else None
+        color, alpha, depth, inv_depth, feats = blended_images(fwd, settings, wanted)
         visible = wp.to_torch(bins.counts) > 0
         if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
             means2d_probe.data.copy_(wp.to_torch(proj.means2d).view(-1, 2))
@@ -104,25 +142,16 @@ class _RasterizeFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count):
         tape, proj, bins, fwd, w_opac, w_feat, settings, wanted, grads = ctx.state
-        npix = settings.width * settings.height
         device = ctx.device
         if proj.means2d.shape[0] == 0:  # empty scene: nothing to differentiate (Warp has no grads for size 0)
             ctx.state = None
             probe_grad = torch.zeros(0, 2, device=device) if ctx.needs_input_grad[10] else None
             return (None, None) + tuple(grads) + (probe_grad,)
 
-        def upstream(g, shape):
-            return (torch.zeros(shape, device=device) if g is None else g).contiguous().view(shape)
-
         stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
         with wp.ScopedDevice(proj.means2d.device), stream:  # on torch's stream: no race with its kernels
-            # Outputs that were not computed get a 1-element dummy the kernel never reads.
-            gc = wp.from_torch(upstream(g_color, (npix, 3)), dtype=wp.vec3) if wanted.color else wp.zeros(1, dtype=wp.vec3)
-            ga = wp.from_torch(upstream(g_alpha, (npix,)))
-            gd = wp.from_torch(upstream(g_depth, (npix,))) if wanted.depth else wp.zeros(1, dtype=float)
-            gi = wp.from_torch(upstream(g_inv, (npix,))) if wanted.inv_depth else wp.zeros(1, dtype=float)
-            nf = wanted.num_features
-            gf = wp.from_torch(upstream(g_feat, (npix, nf))) if nf else wp.zeros((1, 1), dtype=float)
+            gc, ga, gd, gi, gf = upstream_image_gradients(g_color, g_alpha, g_depth, g_inv, g_feat, settings, wanted,
+                                                          device)
 
             g2d = []
 
@@ -222,15 +251,7 @@ def rasterize(
                     probe)
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible,
                        num_intersections=int(count), means2d=probe)
-    if wanted.color:
-        out.rgb = color if background is None else color + (1.0 - alpha) * background
-    if wanted.depth:
-        out.depth = zacc / alpha.clamp_min(DEPTH_EPS)
-    if wanted.inv_depth:
-        out.inv_depth = inv
-    if wanted.num_features:
-        out.features = fout
-    return out
+    return set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background)
 
 
 def _stack(per_camera: list) -> RenderOutput:

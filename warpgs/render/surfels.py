@@ -15,8 +15,8 @@ import warp as wp
 from warpgs.render import pipeline_surfels as surfel_pipeline
 from warpgs.render.pipeline_gaussians import Settings
 from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
-from warpgs.render.gaussians import (DEPTH_EPS, RenderOutput, _intrinsics_vector, _stack, _to_wp, _wp_device, _zero_grad,
-                           checked_call)
+from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, _wp_device, _zero_grad,
+                                     checked_call, set_image_outputs)
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "normal", "median_depth", "distortion", "features")
 # 2DGS measures distortion on NDC depth m = f/(f-n) (1 - n/z) with these fixed planes; the constant part
@@ -168,20 +168,13 @@ def rasterize_surfels(
                 _RasterizeSurfelsFunction.apply(settings, wanted, means, quats, scales, opacities, coeffs, feats,
                                                 viewmat, _intrinsics_vector(K))
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible, num_intersections=int(count))
-    if wanted.color:
-        out.rgb = color if background is None else color + (1.0 - alpha) * background
-    if wanted.depth:
-        out.depth = zacc / alpha.clamp_min(DEPTH_EPS)
-    if wanted.inv_depth:
-        out.inv_depth = inv
+    set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background)
     if wanted.normal:
         out.normal = normal
     if wanted.median:
         out.median_depth = median
     if wanted.distortion:
         out.distortion = distortion
-    if wanted.num_features:
-        out.features = fout
     return out
 
 

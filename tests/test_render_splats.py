@@ -1,0 +1,133 @@
+"""The render op cut at the projected splats (warpgs/render/splats.py) renders and differentiates what
+`rasterize` does, and model-parallel rendering (warpgs/render/sharded.py) over two gloo processes, each holding
+half of the primitives and one camera, gives each camera the image and every primitive the gradient of one
+process rendering both cameras from all primitives."""
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from random_scenes import look_at, random_scene
+from warpgs import rasterize
+from warpgs.render.splats import Splats, blend_splats, project_splats
+
+ROOT = Path(__file__).resolve().parent.parent
+PARAMS = ("means", "quats", "scales", "opacities", "colors", "features")
+OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
+
+
+def _leaves(scene):
+    return {k: scene[k].float().clone().requires_grad_(True) for k in PARAMS if scene[k] is not None}
+
+
+def _loss(out, seed):
+    """A fixed random linear function of every output (so each output's adjoint is exercised)."""
+    g = torch.Generator().manual_seed(seed)
+    total = 0.0
+    for name in OUTPUTS:
+        img = getattr(out, name)
+        total = total + (img * torch.rand(img.shape, generator=g)).sum()
+    return total
+
+
+def _render_whole(p, scene, viewmat):
+    return rasterize(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"], viewmat.float(),
+                     scene["K"].float(), scene["width"], scene["height"], sh_degree=scene["sh_degree"],
+                     features=p["features"], outputs=OUTPUTS)
+
+
+def test_projecting_then_blending_is_rasterize():
+    scene = random_scene(n=64, sh_degree=2, num_features=3, seed=3)
+    ref, cut = _leaves(scene), _leaves(scene)
+    want = _render_whole(ref, scene, scene["viewmat"])
+    splats = project_splats(cut["means"], cut["quats"], cut["scales"], cut["opacities"], cut["colors"],
+                            scene["viewmat"].float(), scene["K"].float(), scene["width"], scene["height"],
+                            sh_degree=scene["sh_degree"], features=cut["features"])
+    assert 0 < int(splats.valid.sum()) < 64  # the scene has a primitive behind the camera
+    got = blend_splats(Splats.unpack(splats.select(splats.valid).pack()), scene["width"], scene["height"],
+                       outputs=OUTPUTS)
+    for name in OUTPUTS:
+        torch.testing.assert_close(getattr(got, name), getattr(want, name), atol=1e-5, rtol=1e-5, msg=name)
+    _loss(want, 0).backward()
+    _loss(got, 0).backward()
+    for k in PARAMS:
+        assert cut[k].grad is not None and torch.isfinite(cut[k].grad).all(), k
+        assert ref[k].grad.abs().sum() > 0, k
+        torch.testing.assert_close(cut[k].grad, ref[k].grad, atol=1e-4, rtol=1e-4, msg=k)
+
+
+def test_blend_splats_refuses_unknown_outputs():
+    with pytest.raises(ValueError, match="outputs"):
+        blend_splats(Splats.unpack(torch.zeros(0, 13)), 8, 8, outputs=("rgb", "normals"))
+
+
+WORKER = r'''
+import sys, torch, torch.distributed as dist
+sys.path.insert(0, sys.argv[2])
+from random_scenes import random_scene
+from warpgs.render.sharded import render_sharded
+dist.init_process_group("gloo")
+rank = dist.get_rank()
+payload = torch.load(sys.argv[1])
+scene, cams, outputs = payload["scene"], payload["viewmats"], payload["outputs"]
+mine = slice(0, 40) if rank == 0 else slice(40, None)  # unequal shares; rank 1's has the one behind camera 1
+p = {k: scene[k][mine].float().clone().requires_grad_(True) for k in payload["params"]}
+out = render_sharded(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"], cams.float(),
+                     scene["K"].float().expand(2, 3, 3), scene["width"], scene["height"],
+                     sh_degree=scene["sh_degree"], features=p["features"], outputs=outputs)
+g = torch.Generator().manual_seed(100 + rank)
+loss = sum((getattr(out, n) * torch.rand(getattr(out, n).shape, generator=g)).sum() for n in outputs)
+loss.backward()
+torch.save({"images": {n: getattr(out, n).detach() for n in outputs}, "grads": {k: v.grad for k, v in p.items()}},
+           sys.argv[3] + f".rank{rank}")
+dist.destroy_process_group()
+'''
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_two_ranks_with_half_the_primitives_each_render_and_differentiate_as_one(tmp_path):
+    scene = random_scene(n=72, sh_degree=1, num_features=2, seed=5)
+    viewmats = torch.stack([scene["viewmat"], look_at((1.5, -0.5, -3.5), (0.0, 0.2, 0.0))])
+    (tmp_path / "worker.py").write_text(WORKER)
+    torch.save({"scene": scene, "viewmats": viewmats, "outputs": OUTPUTS, "params": PARAMS}, tmp_path / "in.pt")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+               OMP_NUM_THREADS="1", WORLD_SIZE="2", MASTER_ADDR="127.0.0.1", MASTER_PORT=str(_free_port()))
+    procs = [subprocess.Popen([sys.executable, str(tmp_path / "worker.py"), str(tmp_path / "in.pt"),
+                               str(ROOT / "tests"), str(tmp_path / "out")],
+                              env=dict(env, RANK=str(r), LOCAL_RANK=str(r)), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for r in (0, 1)]
+    try:
+        results = [p.communicate(timeout=300) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for p, (_, err) in zip(procs, results):
+        assert p.returncode == 0, err[-3000:]
+    ranks = [torch.load(tmp_path / f"out.rank{r}") for r in (0, 1)]
+
+    # One process: both cameras from all primitives, the same two losses.
+    whole = _leaves(scene)
+    total = 0.0
+    for r in (0, 1):
+        out = _render_whole(whole, scene, viewmats[r])
+        for name in OUTPUTS:
+            torch.testing.assert_close(ranks[r]["images"][name], getattr(out, name), atol=1e-5, rtol=1e-5,
+                                       msg=f"camera {r}: {name}")
+        g = torch.Generator().manual_seed(100 + r)
+        total = total + sum((getattr(out, n) * torch.rand(getattr(out, n).shape, generator=g)).sum()
+                            for n in OUTPUTS)
+    total.backward()
+    for k in PARAMS:
+        got = torch.cat([ranks[0]["grads"][k], ranks[1]["grads"][k]])
+        assert whole[k].grad.abs().sum() > 0, k
+        torch.testing.assert_close(got, whole[k].grad, atol=1e-4, rtol=1e-4, msg=k)

@@ -1,0 +1,54 @@
+"""Differentiable all-to-all of row blocks whose sizes differ between ranks: rank r sends sends[j] to rank j and
+receives one block from every rank; the backward pass sends each received block's gradient back to its sender.
+gloo's all-to-all takes only equal blocks, so every block travels padded to the largest one in the group (the
+cost of the padding is the rows the busiest rank would send anyway; NCCL could take uneven splits directly)."""
+from __future__ import annotations
+
+from typing import List, Optional, Sequence
+
+import torch
+import torch.distributed as dist
+
+
+def _all_to_all_rows(sends: Sequence[torch.Tensor], group) -> List[torch.Tensor]:
+    world = dist.get_world_size(group)
+    if len(sends) != world:
+        raise ValueError(f"sends: expected one block per rank ({world}), got {len(sends)}")
+    columns = sends[0].shape[1]
+    if any(s.dim() != 2 or s.shape[1] != columns for s in sends):
+        raise ValueError(f"sends: every block must be [rows, {columns}], got {[tuple(s.shape) for s in sends]}")
+    device, dtype = sends[0].device, sends[0].dtype
+    counts = torch.tensor([s.shape[0] for s in sends], dtype=torch.int64, device=device)
+    received_counts = torch.empty_like(counts)
+    dist.all_to_all_single(received_counts, counts, group=group)
+    longest = counts.max().clone()
+    dist.all_reduce(longest, op=dist.ReduceOp.MAX, group=group)
+    rows = int(longest)
+    outgoing = torch.zeros(world, rows, columns, dtype=dtype, device=device)
+    for j, block in enumerate(sends):
+        outgoing[j, : block.shape[0]] = block
+    incoming = torch.empty_like(outgoing)
+    dist.all_to_all_single(incoming, outgoing, group=group)
+    return [incoming[j, : int(n)] for j, n in enumerate(received_counts.tolist())]
+
+
+class _ExchangeRows(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, group, *sends):
+        ctx.group, ctx.device, ctx.dtype = group, sends[0].device, sends[0].dtype
+        received = _all_to_all_rows(sends, group)
+        ctx.received_shapes = [tuple(r.shape) for r in received]
+        return tuple(received)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        filled = [g.contiguous() if g is not None else torch.zeros(shape, dtype=ctx.dtype, device=ctx.device)
+                  for g, shape in zip(grads, ctx.received_shapes)]
+        returned = _all_to_all_rows(filled, ctx.group)
+        return (None,) + tuple(returned)
+
+
+def exchange_rows(sends: Sequence[torch.Tensor], group: Optional[dist.ProcessGroup] = None) -> List[torch.Tensor]:
+    """Block sends[j] ([n_j, C], same C and dtype everywhere) goes to rank j; returns the block each rank sent here,
+    in rank order. Differentiable: gradients of the returned blocks flow back to the senders' blocks."""
+    return list(_ExchangeRows.apply(group, *sends))

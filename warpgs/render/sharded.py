@@ -1,0 +1,39 @@
+"""Model-parallel rendering of 3D Gaussians: each rank holds its own share of the primitives and renders its own
+camera from everybody's. Every rank projects its primitives into every rank's camera, keeps the splats that are
+in front of it, and sends them to that camera's rank (an all-to-all); each rank bins and blends what it received.
+Gradients take the way back: the blend adjoint on the camera's rank, the reverse all-to-all, the projection adjoint
+on the primitives' owner. Memory per rank then scales with its share of the primitives, not with all of them
+(docs/distributed.md, "Model parallelism")."""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import torch
+import torch.distributed as dist
+
+from warpgs.render.exchange import exchange_rows
+from warpgs.render.gaussians import RenderOutput
+from warpgs.render.splats import Splats, blend_splats, project_splats
+
+
+def render_sharded(means, quats, scales, opacities, colors, viewmats, Ks, width: int, height: int, *,
+                   sh_degree: Optional[int] = None, features: Optional[torch.Tensor] = None,
+                   background: Optional[torch.Tensor] = None, outputs: Sequence[str] = ("rgb", "alpha"),
+                   near: float = 0.01, far: float = 1e10, group: Optional[dist.ProcessGroup] = None) -> RenderOutput:
+    """This rank's camera (viewmats[rank], Ks[rank]) rendered from the primitives of every rank in `group`.
+
+    means ... features: this rank's shard, as `rasterize` takes them (every rank the same SH layout and feature
+    width; a shard may be empty). viewmats [R,4,4] and Ks [R,3,3]: one camera per rank, the same tensors on every
+    rank. The result is what `rasterize` gives for that camera on all primitives, up to the blend order of
+    primitives at exactly equal depth; `out.visible` counts received splats, not this rank's primitives."""
+    world = dist.get_world_size(group)
+    if viewmats.dim() != 3 or viewmats.shape[0] != world or Ks.shape[0] != world:
+        raise ValueError(f"viewmats/Ks: expected one camera per rank ([{world},4,4] and [{world},3,3]), got "
+                         f"{tuple(viewmats.shape)} and {tuple(Ks.shape)}")
+    sends = []
+    for j in range(world):
+        splats = project_splats(means, quats, scales, opacities, colors, viewmats[j], Ks[j], width, height,
+                                sh_degree=sh_degree, features=features, near=near, far=far)
+        sends.append(splats.select(splats.valid.nonzero().squeeze(1)).pack())
+    received = exchange_rows(sends, group)
+    return blend_splats(Splats.unpack(torch.cat(received)), width, height, background=background, outputs=outputs)
