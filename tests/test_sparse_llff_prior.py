@@ -208,3 +208,26 @@ def test_the_depth_loss_reads_confidence_from_the_batch_or_its_view():
         marr.depth(_render_out(inv), {**base, "inv_depth_confidence": conf[:4]}, None, 0)
     with pytest.raises(ValueError, match="inv_depth_confidence.*NaN"):
         marr.depth(_render_out(inv), {**base, "inv_depth_confidence": conf * float("nan")}, None, 0)
+
+
+# --- initial points from the prior (model.prior_points) ----------------------------------------------------------
+def test_prior_points_lie_on_the_surface_and_only_where_confident(tmp_path, monkeypatch):
+    from warpgs.config import load_config
+    from warpgs.train.setup import initial_points, prior_points
+
+    monkeypatch.setenv("WARPGS_CACHE", str(tmp_path / "cache"))
+    scene = plane_scene_with_points(tmp_path / "scene")
+    with_priors, _ = compute_depth_priors(scene, PlaneSweepStereo(near=3.0, far=8.0), out_dir=tmp_path / "priors")
+    xyz, rgb, note = prior_points(with_priors, 600, 0.5)
+    assert len(xyz) == 600 and rgb.shape == (600, 3) and "confidence >= 0.5" in note
+    assert float((xyz[:, 2] - Z0).abs().median()) < 0.02 * Z0  # on the plane the views see
+    # Only pixels at least that confident: the flat square in the middle has no texture to match, so no point.
+    central = (xyz[:, 0].abs() < 0.4) & (xyz[:, 1].abs() < 0.4)
+    anywhere, _, _ = prior_points(with_priors, 600, 0.0)
+    assert int(central.sum()) < int(((anywhere[:, 0].abs() < 0.4) & (anywhere[:, 1].abs() < 0.4)).sum())
+    # Added to model.init's points; a scene without priors is refused by the key's name.
+    cfg = load_config(None, ["model.init=sfm", "model.prior_points=300", "train.device=cpu"])
+    got, _, source = initial_points(with_priors, cfg)
+    assert len(got) == len(scene.points) + 300 and "300 from depth priors" in source
+    with pytest.raises(ValueError, match="model.prior_points=300"):
+        initial_points(scene, cfg)

@@ -55,6 +55,8 @@ def test_unknown_key_names_it_and_suggests(override, key, words):
     ("losses.l1.wieght=1", "losses.l1.wieght"),
     ("train.progress=maybe", "train.progress"),
     ("model.init_opacity=1.5", "model.init_opacity"),
+    ("model.prior_points=-5", "model.prior_points"),
+    ("model.prior_points_confidence=1.5", "model.prior_points_confidence"),
     ("train.alpha_min=0", "train.alpha_min"),
     ("train.transmittance_min=1", "train.transmittance_min"),
     ("train.transmittance_min=0", "train.transmittance_min"),

@@ -48,6 +48,9 @@ class ModelConfig:
     init: str = "auto"  # "auto" (SfM points, else depth priors, else triangulated from the known poses, else
     #                     random), "sfm", "depth", "triangulate", "random"
     init_points: int = 100_000  # points drawn for depth/random initialisation
+    prior_points: int = 0  # extra initial points lifted from the depth priors' pixels of the training views, added
+    #                         to what model.init gave (few views: triangulation finds few points; 0: none)
+    prior_points_confidence: float = 0.5  # ... from pixels whose prior confidence is at least this
     init_opacity: float = 0.1
     background_points: int = 0  # extra points on a far sphere, where sky/background can live (0: none, as 3DGS)
     background_radius: float = 3.0  # that sphere's radius, in multiples of the scene's radius
@@ -153,7 +156,7 @@ CHOICES = {
 }
 POSITIVE = {"data.width", "data.height", "data.downscale", "data.n_train", "model.init_points", "model.init_knn",
             "train.steps", "train.tile_size", "train.batch_size", "train.dist_timeout"}
-NON_NEGATIVE = {"model.sh_interval", "model.background_points", "train.checkpoint_every", "train.log_every", "train.threads", "eval.every",
+NON_NEGATIVE = {"model.sh_interval", "model.background_points", "model.prior_points", "train.checkpoint_every", "train.log_every", "train.threads", "eval.every",
                 "eval.max_views"}
 # Mappings whose keys are free (user names), not fields.
 FREE_MAPPINGS = {"losses", "extensions", "model.features", "optim.extras_lr"}

@@ -136,11 +136,33 @@ def initial_points(scene, config: Config):
             cloud, source = PointCloud(rng.uniform(lo, hi, (n, 3)), rng.uniform(0, 1, (n, 3))), "random (box)"
     xyz, rgb = cloud.tensors()
     xyz, rgb = xyz.float(), rgb.float()
+    if config.model.prior_points:
+        px, pc, note = prior_points(scene, config.model.prior_points, config.model.prior_points_confidence, seed)
+        xyz, rgb = torch.cat([xyz, px]), torch.cat([rgb, pc])
+        source += f" + {note}"
     if config.model.background_points:
         bx, bc = background_points(scene, xyz, config.model.background_points, config.model.background_radius, seed)
         xyz, rgb = torch.cat([xyz, bx]), torch.cat([rgb, bc])
         source += f" + {len(bx)} background"
     return xyz, rgb, source
+
+
+def prior_points(scene, n: int, min_confidence: float, seed: int = 0):
+    """(xyz, rgb, description) of n points lifted from the training views' depth priors at pixels of at least
+    min_confidence (model.prior_points): the dense 2.5D sketch as a starting point where triangulating a few
+    views finds only hundreds of points. A scene without priors is an error naming the key."""
+    from warpgs.data.sfm import init_points as ip
+
+    if not any(scene.files[v].depth_prior is not None for v in scene.train):
+        raise ValueError(f"model.prior_points={n}: the scene at {scene.root} has no depth priors for its training "
+                         f"views (set data.depth_priors, e.g. 'estimate', or model.prior_points=0)")
+    try:
+        cloud = ip.points_from_depth(scene, n=n, source="prior", seed=seed + 1, min_confidence=min_confidence)
+    except ValueError:
+        raise ValueError(f"model.prior_points: no training-view prior pixel has confidence >= "
+                         f"{min_confidence} (lower model.prior_points_confidence)") from None
+    xyz, rgb = cloud.tensors()
+    return xyz.float(), rgb.float(), f"{len(xyz)} from depth priors (confidence >= {min_confidence:g})"
 
 
 def background_points(scene, points: torch.Tensor, n: int, radius: float, seed: int = 0):

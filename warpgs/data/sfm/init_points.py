@@ -25,9 +25,10 @@ def _backproject(cam, rows: np.ndarray, cols: np.ndarray, depth: np.ndarray) -> 
 
 
 def points_from_depth(scene: Scene, n: int = 100_000, views: Optional[Sequence[int]] = None,
-                      source: str = "prior", seed: int = 0) -> PointCloud:
+                      source: str = "prior", seed: int = 0, min_confidence: float = 0.0) -> PointCloud:
     """Lift `n` random valid pixels of the views' depth priors (source="prior") or reference depth
-    (source="depth") into world points with their image colours."""
+    (source="depth") into world points with their image colours. min_confidence: with priors that carry a
+    confidence, only pixels at least that confident."""
     rng = np.random.default_rng(seed)
     views = list(scene.train if views is None else views)
     per_view = -(-n // max(len(views), 1))
@@ -39,6 +40,9 @@ def points_from_depth(scene: Scene, n: int = 100_000, views: Optional[Sequence[i
                 continue
             inv, valid = got
             valid = valid & (inv > 0)
+            confidence = scene.prior_confidence_np(v) if min_confidence > 0 else None
+            if confidence is not None:
+                valid = valid & (confidence >= min_confidence)
             depth = np.where(valid, 1.0 / np.where(valid, inv, 1.0), 0.0)
         elif source == "depth":
             got = scene.depth_np(v)
