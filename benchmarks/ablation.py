@@ -63,11 +63,16 @@ SETTINGS = [
     ("wo_count", "w/o count", "sparse_wo_count"),
     ("full", "Ours (full)", "sparse_lightfield"),
 ]
-# Real captures (--data): (key, label, preset, overrides, Marr settings); the terms as in SETTINGS.
+# Real captures (--data): (key, label, preset, overrides, Marr settings); the terms as in SETTINGS, plus the
+# initial points lifted from the prior (model.prior_points): removed from the method, and given to 3DGS alone.
+PRIOR_POINTS = 20_000  # configs/sparse_llff.yaml's
 REAL_TERMS = ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")
 REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
+                 + [("baseline_prior_points", "3DGS + prior points", "sparse_llff_baseline",
+                     [f"model.prior_points={PRIOR_POINTS}"], {})]
                  + [(f"wo_{t}", f"w/o {t}", "sparse_llff", [f"losses.{t}=0"], {}) for t in REAL_TERMS]
-                 + [("wo_confidence", "w/o confidence", "sparse_llff", [], {"confidence_power": 0.0}),
+                 + [("wo_prior_points", "w/o prior points", "sparse_llff", ["model.prior_points=0"], {}),
+                    ("wo_confidence", "w/o confidence", "sparse_llff", [], {"confidence_power": 0.0}),
                     ("full", "Ours (full)", "sparse_llff", [], {})])
 CPU_STEPS = 500
 CPU_STEPS_REAL = 300  # a smoke run: 504x378 views cost ~1 s a step on 2 cores
@@ -88,6 +93,36 @@ def schedule_overrides(steps: int, full: int = 30_000) -> list[str]:
             f"strategy.reset_every={0 if steps < full / 3 else int(round(3000 * f))}",
             f"strategy.size_prune_start={max(start, int(round(3000 * f)))}",
             f"model.sh_interval={max(1, int(round(1000 * f)))}"]
+
+
+def uses_prior(preset: str, overrides: list) -> bool:
+    """Whether a real-capture setting reads the shared depth prior: the method's presets, and any setting that
+    lifts initial points from it."""
+    return preset != "sparse_llff_baseline" or any(o.startswith("model.prior_points=") and not o.endswith("=0")
+                                                   for o in overrides)
+
+
+def prior_points_for_budget(preset: str, overrides: list, budget: Optional[int]) -> list[str]:
+    """With a primitive budget other than the preset's (CPU runs), the prior points shrink with it, so that they
+    stay the same share of the budget (20k of 200k -> 1k of 10k). [] when the setting sets none."""
+    given = [o for o in overrides if o.startswith("model.prior_points=")]
+    count = int(given[-1].split("=", 1)[1]) if given else load_config(ROOT / "configs" / f"{preset}.yaml").model.prior_points
+    if not budget or not count:
+        return []
+    preset_budget = load_config(ROOT / "configs" / f"{preset}.yaml").strategy.max_primitives
+    return [f"model.prior_points={max(1, round(count * budget / preset_budget))}"]
+
+
+def setting_overrides_for_run(preset: str, setting: list, budget: Optional[int], user: list) -> list[str]:
+    """The overrides of one setting's run, later ones winning: the preset's prior points scaled to the budget
+    (the user's overrides may change them), the user's, then the setting's own (which the user's do not undo;
+    a prior-point count the setting sets is scaled to the budget too)."""
+    key = "model.prior_points="
+    scaled = prior_points_for_budget(preset, setting, budget)
+    if any(o.startswith(key) for o in setting):
+        own = [o for o in setting if not o.startswith(key)]
+        return user + own + (scaled or [o for o in setting if o.startswith(key)][-1:])
+    return scaled + user + setting
 
 
 def run_setting(key: str, preset: str, steps: int, seed: int, device: str, extra: list[str], workdir: Path,
@@ -281,8 +316,9 @@ def main(argv=None) -> dict:
         for key, label, preset, setting_overrides, marr_settings in chosen:
             runs = []
             for seed in seeds:
-                uses_prior = real and preset != "sparse_llff_baseline"
-                run_extra = extra + setting_overrides + ([f"data.depth_priors={prior_folder}"] if uses_prior else [])
+                prior = real and uses_prior(preset, setting_overrides)
+                run_extra = (setting_overrides_for_run(preset, setting_overrides, budget, extra)
+                             + ([f"data.depth_priors={prior_folder}"] if prior else []))
                 r = run_setting(key, preset, steps, seed, args.device, run_extra, Path(tmp), args.pairs, full,
                                 marr_settings, reference)
                 runs.append(r)

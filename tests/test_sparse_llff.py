@@ -175,10 +175,14 @@ def test_the_preset_pair_differs_only_in_the_method():
     assert base.data.depth_priors in (None, "none") and method.data.depth_priors == "estimate"
     assert set(base.losses) == {"l1", "dssim"}
     assert set(method.losses) == {"l1", "dssim", "depth", "depth_grad", "depth_local", "opacity", "scale", "count"}
+    # The method also starts from points lifted from its prior; the baseline, which has none, from the
+    # triangulated points alone.
+    assert method.model.prior_points > 0 and base.model.prior_points == 0
     a, b = method.to_dict(), base.to_dict()
     for cfg in (a, b):
         cfg.pop("losses")
         cfg["data"].pop("depth_priors")
+        cfg["model"].pop("prior_points")
     assert a == b
 
 
@@ -190,8 +194,24 @@ def test_the_real_ablation_removes_each_term_once():
 
     keys = [s[0] for s in ablation.REAL_SETTINGS]
     assert keys[0] == "baseline" and keys[-1] == "full" and len(set(keys)) == len(keys)
-    removed = [o for _, _, preset, overrides, _ in ablation.REAL_SETTINGS for o in overrides]
-    assert removed == [f"losses.{t}=0" for t in ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")]
+    removed = [o for _, _, preset, overrides, _ in ablation.REAL_SETTINGS if preset == "sparse_llff" for o in overrides]
+    assert removed == [f"losses.{t}=0" for t in ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")] \
+        + ["model.prior_points=0"]
+    # The initialisation's share: 3DGS with the method's initial points and prior, none of its losses.
+    plus = [s for s in ablation.REAL_SETTINGS if s[0] == "baseline_prior_points"]
+    assert plus and plus[0][2] == "sparse_llff_baseline" and ablation.uses_prior(*plus[0][2:4])
+    assert not ablation.uses_prior("sparse_llff_baseline", [])
+    # A CPU budget scales the prior points with it (20k of 200k -> 1k of 10k), before the user's overrides.
+    assert ablation.prior_points_for_budget("sparse_llff", [], 10_000) == ["model.prior_points=1000"]
+    assert ablation.prior_points_for_budget("sparse_llff", [], None) == []
+    assert ablation.prior_points_for_budget("sparse_llff", ["model.prior_points=0"], 10_000) == []
+    assert ablation.prior_points_for_budget("sparse_llff_baseline", [], 10_000) == []
+    run = ablation.setting_overrides_for_run
+    assert run("sparse_llff", ["losses.depth=0"], 10_000, ["u=1"]) == ["model.prior_points=1000", "u=1",
+                                                                        "losses.depth=0"]
+    assert run("sparse_llff", ["model.prior_points=0"], 10_000, ["u=1"]) == ["u=1", "model.prior_points=0"]
+    assert run("sparse_llff_baseline", ["model.prior_points=20000"], None, []) == ["model.prior_points=20000"]
+    assert run("sparse_llff_baseline", ["model.prior_points=20000"], 10_000, []) == ["model.prior_points=1000"]
     # The scaled schedule of a short real run keeps the preset's shape: densify until half the run.
     assert "strategy.refine_stop=150" in ablation.schedule_overrides(300, 10_000)
     assert ablation.schedule_overrides(10_000, 10_000) == []
