@@ -2,20 +2,14 @@
 `rasterize` does, and model-parallel rendering (warpgs/render/sharded.py) over two gloo processes, each holding
 half of the primitives and one camera, gives each camera the image and every primitive the gradient of one
 process rendering both cameras from all primitives."""
-import os
-import socket
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
+from gloo_helpers import run_two_ranks
 from random_scenes import look_at, random_scene
 from warpgs import rasterize
 from warpgs.render.splats import Splats, blend_splats, project_splats
 
-ROOT = Path(__file__).resolve().parent.parent
 PARAMS = ("means", "quats", "scales", "opacities", "colors", "features")
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
 
@@ -67,7 +61,6 @@ def test_blend_splats_refuses_unknown_outputs():
 
 WORKER = r'''
 import sys, torch, torch.distributed as dist
-sys.path.insert(0, sys.argv[2])
 from random_scenes import random_scene
 from warpgs.render.sharded import render_sharded
 dist.init_process_group("gloo")
@@ -83,36 +76,16 @@ g = torch.Generator().manual_seed(100 + rank)
 loss = sum((getattr(out, n) * torch.rand(getattr(out, n).shape, generator=g)).sum() for n in outputs)
 loss.backward()
 torch.save({"images": {n: getattr(out, n).detach() for n in outputs}, "grads": {k: v.grad for k, v in p.items()}},
-           sys.argv[3] + f".rank{rank}")
+           sys.argv[2] + f".rank{rank}")
 dist.destroy_process_group()
 '''
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_two_ranks_with_half_the_primitives_each_render_and_differentiate_as_one(tmp_path):
     scene = random_scene(n=72, sh_degree=1, num_features=2, seed=5)
     viewmats = torch.stack([scene["viewmat"], look_at((1.5, -0.5, -3.5), (0.0, 0.2, 0.0))])
-    (tmp_path / "worker.py").write_text(WORKER)
     torch.save({"scene": scene, "viewmats": viewmats, "outputs": OUTPUTS, "params": PARAMS}, tmp_path / "in.pt")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
-               OMP_NUM_THREADS="1", WORLD_SIZE="2", MASTER_ADDR="127.0.0.1", MASTER_PORT=str(_free_port()))
-    procs = [subprocess.Popen([sys.executable, str(tmp_path / "worker.py"), str(tmp_path / "in.pt"),
-                               str(ROOT / "tests"), str(tmp_path / "out")],
-                              env=dict(env, RANK=str(r), LOCAL_RANK=str(r)), stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for r in (0, 1)]
-    try:
-        results = [p.communicate(timeout=300) for p in procs]
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-    for p, (_, err) in zip(procs, results):
-        assert p.returncode == 0, err[-3000:]
+    run_two_ranks(WORKER, [tmp_path / "in.pt", tmp_path / "out"], tmp_path)
     ranks = [torch.load(tmp_path / f"out.rank{r}") for r in (0, 1)]
 
     # One process: both cameras from all primitives, the same two losses.

@@ -1,0 +1,35 @@
+"""Two gloo processes for a test: a worker script started as rank 0 and rank 1 with torchrun's environment (no
+torchrun agent), each bounded by a timeout so a hang fails the test instead of stalling CI."""
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run_two_ranks(script: str, args: list, tmp_path: Path, timeout: float = 300.0) -> None:
+    """Writes `script` to tmp_path and runs it as ranks 0 and 1 (argv: the script, then `args`); asserts both
+    exit 0, showing the stderr of a rank that did not."""
+    path = tmp_path / "worker.py"
+    path.write_text(script)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")]),
+               OMP_NUM_THREADS="1", WORLD_SIZE="2", MASTER_ADDR="127.0.0.1", MASTER_PORT=str(free_port()))
+    procs = [subprocess.Popen([sys.executable, str(path), *map(str, args)],
+                              env=dict(env, RANK=str(r), LOCAL_RANK=str(r)), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for r in (0, 1)]
+    try:
+        results = [p.communicate(timeout=timeout) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for rank, (p, (_, err)) in enumerate(zip(procs, results)):
+        assert p.returncode == 0, f"rank {rank}: {err[-3000:]}"

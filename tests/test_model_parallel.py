@@ -1,0 +1,99 @@
+"""Model-parallel training (warpgs/train/model_parallel.py) on two gloo processes: each rank owns half of the
+primitives and one camera; after a few optimizer steps the gathered model equals one process training the whole
+model on both cameras with the same summed loss, and sharding then gathering a model gives it back."""
+import math
+
+import torch
+
+from gloo_helpers import run_two_ranks
+from random_scenes import look_at, random_scene
+from warpgs import rasterize
+from warpgs.model.gaussians import GaussianModel
+from warpgs.train.distributed import Ranks
+from warpgs.train.model_parallel import gather_model, shard_model
+
+STEPS, LR = 4, 0.05
+
+
+def start_model(seed: int = 7) -> GaussianModel:
+    s = random_scene(n=60, sh_degree=1, seed=seed)
+    logit = torch.log(s["opacities"] / (1 - s["opacities"]))
+    sh0, shN = s["colors"][:, :1], s["colors"][:, 1:]
+    return GaussianModel(s["means"].float(), s["scales"].log().float(), s["quats"].float(), logit.float(),
+                         sh0.float(), shN.float(), active_sh_degree=1)
+
+
+def cameras():
+    s = random_scene(n=1)
+    viewmats = torch.stack([s["viewmat"], look_at((1.2, -0.4, -3.6), (0.0, 0.1, 0.0))]).float()
+    return viewmats, s["K"].float().expand(2, 3, 3).contiguous(), s["width"], s["height"]
+
+
+def targets():
+    """What the views should show: another random model's images, the same in every process."""
+    viewmats, Ks, w, h = cameras()
+    other = start_model(seed=11).render_inputs()
+    with torch.no_grad():
+        return [rasterize(viewmat=viewmats[r], K=Ks[r], width=w, height=h, outputs=("rgb",), **other).rgb
+                for r in (0, 1)]
+
+
+WORKER = r'''
+import sys, torch, torch.distributed as dist
+from test_model_parallel import LR, STEPS, cameras, start_model, targets
+from warpgs.train.distributed import Ranks
+from warpgs.train.model_parallel import gather_model, render_shard, shard_model
+dist.init_process_group("gloo")
+ranks = Ranks(dist.get_rank(), dist.get_world_size(), backend="gloo")
+shard = shard_model(start_model(), ranks)
+opt = torch.optim.SGD(shard.parameters(), lr=LR)
+viewmats, Ks, w, h = cameras()
+target = targets()[ranks.rank]
+for _ in range(STEPS):
+    out = render_shard(shard, viewmats, Ks, w, h, outputs=("rgb",))
+    loss = (out.rgb - target).abs().mean() / 2   # this rank's view of the two-view mean
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+whole = gather_model(shard, ranks)
+if ranks.rank == 0:
+    torch.save({n: p.detach() for n, p in whole.params.items()}, sys.argv[1])
+dist.destroy_process_group()
+'''
+
+
+def test_two_shards_train_as_one_model(tmp_path):
+    run_two_ranks(WORKER, [tmp_path / "trained.pt"], tmp_path)
+    got = torch.load(tmp_path / "trained.pt")
+
+    model = start_model()
+    opt = torch.optim.SGD(model.parameters(), lr=LR)
+    viewmats, Ks, w, h = cameras()
+    want_images = targets()
+    for _ in range(STEPS):
+        loss = 0.0
+        for r in (0, 1):
+            out = rasterize(viewmat=viewmats[r], K=Ks[r], width=w, height=h, outputs=("rgb",), **model.render_inputs())
+            loss = loss + (out.rgb - want_images[r]).abs().mean() / 2
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    start = start_model()
+    moved = 0.0
+    for name, p in model.params.items():
+        torch.testing.assert_close(got[name], p.detach(), atol=2e-5, rtol=1e-4, msg=name)
+        moved = max(moved, float((p.detach() - start.params[name].detach()).abs().max()))
+    assert moved > 1e-3  # the steps changed the model, so the comparison tests the training
+
+
+def test_shards_gather_back_into_the_model():
+    model = start_model()
+    one = Ranks()  # one process: its shard is the whole model
+    again = gather_model(shard_model(model, one), one)
+    for name, p in model.params.items():
+        assert torch.equal(again.params[name], p)
+    # The shards of two ranks cover the rows once, in order.
+    parts = [shard_model(model, Ranks(rank=r, world_size=2)) for r in (0, 1)]
+    assert [p.num_primitives for p in parts] == [30, 30]
+    assert torch.equal(torch.cat([p.means for p in parts]), model.means)
+    assert math.isclose(float(parts[1].opacities[0].detach()), float(model.opacities[30].detach()))

@@ -1,0 +1,68 @@
+"""Model-parallel training of 3D Gaussians, the pieces a trainer step needs (docs/distributed.md, "Model
+parallelism"): each rank owns a contiguous shard of the primitives (parameters and optimizer state), renders
+its own view of the step from every rank's primitives (`render_sharded`), and back-propagates; the gradients of
+its shard arrive from every rank's view through the splat exchange, so no parameter gradient is all-reduced and
+each rank's optimizer steps its own rows. `gather_model` puts the shards together for checkpoints, PLY files and
+evaluation. Not yet wired into the Trainer (densification and checkpoints per owner are the next step)."""
+from __future__ import annotations
+
+from typing import List, Optional, Sequence
+
+import torch
+import torch.distributed as dist
+
+from warpgs.model.gaussians import GaussianModel
+from warpgs.render.gaussians import RenderOutput
+from warpgs.render.sharded import render_sharded
+from warpgs.train.distributed import Ranks
+
+
+def shard_model(model: GaussianModel, ranks: Ranks) -> GaussianModel:
+    """This rank's contiguous share of `model`'s primitives, as a model of its own (Ranks.shard: sizes differ by
+    at most one). Every rank must pass the same model."""
+    if model.kind != "gaussians":
+        raise ValueError(f"model.kind={model.kind}: model-parallel rendering exists for 3D Gaussians only")
+    rows = ranks.shard(model.num_primitives)
+    state = model.to_dict()
+    state["params"] = {name: t[rows] for name, t in state["params"].items()}
+    return GaussianModel.from_dict(state, device=model.means.device)
+
+
+def gather_rows(tensor: torch.Tensor, ranks: Ranks) -> torch.Tensor:
+    """Every rank's rows of `tensor` ([n_r, ...], same trailing shape and dtype everywhere) concatenated in rank
+    order, on every rank. Blocks travel padded to the longest (all_gather takes equal sizes)."""
+    if not ranks.enabled:
+        return tensor
+    counts = [int(c) for c in ranks.all_gather_object(int(tensor.shape[0]), what="gathering the shard sizes")]
+    padded = tensor.new_zeros((max(counts),) + tuple(tensor.shape[1:]))
+    padded[: tensor.shape[0]] = tensor.detach()
+    blocks = [torch.empty_like(padded) for _ in counts]
+    ranks._call("gathering a model's shards", lambda: dist.all_gather(blocks, padded))
+    return torch.cat([b[:c] for b, c in zip(blocks, counts)])
+
+
+def gather_model(shard: GaussianModel, ranks: Ranks) -> GaussianModel:
+    """The whole model from every rank's shard (on every rank), for checkpoints, PLY files and evaluation."""
+    state = shard.to_dict()
+    device = shard.means.device
+    state["params"] = {name: gather_rows(p.detach(), ranks).cpu() for name, p in shard.params.items()}
+    return GaussianModel.from_dict(state, device=device)
+
+
+def render_shard(shard: GaussianModel, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,
+                 outputs: Sequence[str] = ("rgb", "alpha"), background: Optional[torch.Tensor] = None,
+                 near: float = 0.01, far: float = 1e10, group: Optional[dist.ProcessGroup] = None) -> RenderOutput:
+    """This rank's camera (one of viewmats [R,4,4] / Ks [R,3,3], the same on every rank) from every rank's
+    shard; differentiable into this rank's shard from every rank's loss."""
+    inputs = shard.render_inputs()
+    return render_sharded(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"], inputs["colors"],
+                          viewmats, Ks, width, height, sh_degree=inputs["sh_degree"], background=background,
+                          outputs=outputs, near=near, far=far, group=group)
+
+
+def stacked_cameras(cameras: List) -> tuple:
+    """(viewmats [R,4,4], Ks [R,3,3]) float32 tensors of the step's cameras, one a rank, from objects with
+    .viewmat and .K (scene cameras or train views)."""
+    viewmats = torch.stack([torch.as_tensor(c.viewmat, dtype=torch.float32) for c in cameras])
+    Ks = torch.stack([torch.as_tensor(c.K, dtype=torch.float32) for c in cameras])
+    return viewmats, Ks
