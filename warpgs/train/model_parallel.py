@@ -6,7 +6,7 @@ each rank's optimizer steps its own rows. `gather_model` puts the shards togethe
 evaluation. Not yet wired into the Trainer (densification and checkpoints per owner are the next step)."""
 from __future__ import annotations
 
-from typing import List, Optional, Sequence
+from typing import Optional, Sequence
 
 import torch
 import torch.distributed as dist
@@ -59,10 +59,3 @@ def render_shard(shard: GaussianModel, viewmats: torch.Tensor, Ks: torch.Tensor,
                           viewmats, Ks, width, height, sh_degree=inputs["sh_degree"], background=background,
                           outputs=outputs, near=near, far=far, group=group)
 
-
-def stacked_cameras(cameras: List) -> tuple:
-    """(viewmats [R,4,4], Ks [R,3,3]) float32 tensors of the step's cameras, one a rank, from objects with
-    .viewmat and .K (scene cameras or train views)."""
-    viewmats = torch.stack([torch.as_tensor(c.viewmat, dtype=torch.float32) for c in cameras])
-    Ks = torch.stack([torch.as_tensor(c.K, dtype=torch.float32) for c in cameras])
-    return viewmats, Ks
