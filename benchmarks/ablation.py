@@ -316,7 +316,7 @@ def main(argv=None) -> dict:
         for key, label, preset, setting_overrides, marr_settings in chosen:
             runs = []
             for seed in seeds:
-                prior = real and uses_prior(preset, setting_overrides)
+                prior = real and uses_prior(preset, extra + setting_overrides)
                 run_extra = (setting_overrides_for_run(preset, setting_overrides, budget, extra)
                              + ([f"data.depth_priors={prior_folder}"] if prior else []))
                 r = run_setting(key, preset, steps, seed, args.device, run_extra, Path(tmp), args.pairs, full,

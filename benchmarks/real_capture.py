@@ -88,6 +88,9 @@ def main(argv=None) -> dict:
     if not marks or marks[0] < 1:
         raise SystemExit(f"--steps: expected positive step counts, got {args.steps!r}")
     eval_every = evaluation_period(args.eval_every, marks)
+    if eval_every < min(args.eval_every, marks[0]) and eval_every < 100:
+        raise SystemExit(f"--steps {args.steps} and --eval-every {args.eval_every}: the only evaluation period that "
+                         f"lands on every mark is {eval_every} steps; pick marks that share a larger one")
     out = args.out or tempfile.mkdtemp(prefix="warpgs-bench-real-")
     overrides = [f"data.path={data.resolve()}", "data.split=llff", f"train.device={args.device}",
                  f"train.seed={args.seed}", f"train.steps={marks[-1]}", f"eval.every={eval_every}",

@@ -34,3 +34,8 @@ def test_every_mark_is_an_evaluation_step(every, marks, period):
     got = real_capture.evaluation_period(every, marks)
     assert got == period
     assert all(m % got == 0 for m in marks) and every % got == 0
+
+
+def test_marks_without_a_useful_common_period_are_refused(tmp_path):
+    with pytest.raises(SystemExit, match="lands on every mark is 1 steps"):
+        real_capture.main([str(tmp_path), "--steps", "7001", "--eval-every", "1000"])

@@ -104,3 +104,26 @@ def test_two_ranks_with_half_the_primitives_each_render_and_differentiate_as_one
         got = torch.cat([ranks[0]["grads"][k], ranks[1]["grads"][k]])
         assert whole[k].grad.abs().sum() > 0, k
         torch.testing.assert_close(got, whole[k].grad, atol=1e-4, rtol=1e-4, msg=k)
+
+
+@pytest.mark.parametrize("rows", [0, 1, 2])
+def test_a_handful_of_splats_blend_and_differentiate(rows):
+    # One row of packed splats is a slice torch calls contiguous with the packed row stride (it broke Warp's grad).
+    scene = random_scene(n=24, seed=9)
+    p = _leaves(scene)
+    splats = project_splats(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"], scene["viewmat"].float(),
+                            scene["K"].float(), scene["width"], scene["height"])
+    centre = splats.means2d.detach()
+    on_screen = (centre[:, 0] > 0) & (centre[:, 0] < scene["width"]) & (centre[:, 1] > 0) & (centre[:, 1] < scene["height"])
+    keep = (splats.valid & on_screen).nonzero().squeeze(1)[:rows]
+    assert len(keep) == rows
+    out = blend_splats(Splats.unpack(splats.select(keep).pack()), scene["width"], scene["height"],
+                       outputs=("rgb", "alpha", "depth"))
+    (out.rgb.sum() + out.alpha.sum() + out.depth.sum()).backward()
+    assert p["means"].grad is not None and torch.isfinite(p["means"].grad).all()
+    touched = p["opacities"].grad  # None when no splat reached the blend
+    assert (0 if touched is None else int((touched != 0).sum())) <= rows
+    if rows:
+        assert int((touched != 0).sum()) > 0
+    with pytest.raises(ValueError, match="no feature columns"):
+        blend_splats(Splats.unpack(splats.select(keep).pack()), 8, 8, outputs=("rgb", "features"))

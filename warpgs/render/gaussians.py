@@ -50,7 +50,12 @@ def _zero_grad(t: torch.Tensor) -> torch.Tensor:
 
 
 def _to_wp(t: torch.Tensor, dtype, grad: Optional[torch.Tensor] = None):
-    return wp.from_torch(t.detach().contiguous(), dtype=dtype, grad=grad)
+    t = t.detach().contiguous()
+    if grad is not None and t.stride() != grad.stride():
+        # torch calls a slice with a size-1 or size-0 dimension contiguous and keeps its strides (a 1-row column
+        # slice of packed rows); Warp wants the value and its grad laid out alike.
+        t = t.clone(memory_format=torch.contiguous_format)
+    return wp.from_torch(t, dtype=dtype, grad=grad)
 
 
 def set_image_outputs(out: RenderOutput, wanted, color, alpha, zacc, inv, fout, background) -> RenderOutput:

@@ -177,9 +177,9 @@ def blend_splats(splats: Splats, width: int, height: int, *, background: Optiona
         raise ValueError(f"outputs: unknown {unknown}; expected some of {OUTPUTS}")
     if not bool(splats.valid.all()):
         splats = splats.select(splats.valid)
+    if "features" in outputs and splats.features.shape[1] == 0:
+        raise ValueError("outputs: 'features' asked for, but the splats carry no feature columns")
     feats = splats.features if "features" in outputs else splats.features[:, :0]
-    if feats.shape[1] == 0:  # a fresh [M, 0]: a column slice of packed rows keeps strides Warp's grad cannot match
-        feats = splats.means2d.new_zeros(splats.means2d.shape[0], 0)
     settings = _settings(width, height, None, 0.01, 1e10, tile_size or DEFAULT_TILE_SIZE, alpha_min,
                          transmittance_min)
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,

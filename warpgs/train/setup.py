@@ -162,7 +162,9 @@ def prior_points(scene, n: int, min_confidence: float, seed: int = 0):
         raise ValueError(f"model.prior_points: no training-view prior pixel has confidence >= "
                          f"{min_confidence} (lower model.prior_points_confidence)") from None
     xyz, rgb = cloud.tensors()
-    return xyz.float(), rgb.float(), f"{len(xyz)} from depth priors (confidence >= {min_confidence:g})"
+    has_confidence = any(scene.prior_confidence_np(v) is not None for v in scene.train)
+    which = f"confidence >= {min_confidence:g}" if has_confidence else "the prior files carry no confidence: any valid pixel"
+    return xyz.float(), rgb.float(), f"{len(xyz)} from depth priors ({which})"
 
 
 def background_points(scene, points: torch.Tensor, n: int, radius: float, seed: int = 0):
