@@ -127,3 +127,17 @@ def test_a_handful_of_splats_blend_and_differentiate(rows):
         assert int((touched != 0).sum()) > 0
     with pytest.raises(ValueError, match="no feature columns"):
         blend_splats(Splats.unpack(splats.select(keep).pack()), 8, 8, outputs=("rgb", "features"))
+
+
+def test_only_splats_that_can_reach_the_image_are_sent():
+    from warpgs.render.sharded import reaches_image
+
+    scene = random_scene(n=64, seed=3, num_features=1)
+    p = _leaves(scene)
+    splats = project_splats(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"], scene["viewmat"].float(),
+                            scene["K"].float(), scene["width"], scene["height"])
+    send = reaches_image(splats, scene["width"], scene["height"])
+    used = _render_whole(p, scene, scene["viewmat"]).visible  # what the binning kept
+    assert bool(send[used].all())  # nothing the blend uses is left behind
+    assert not bool(send[0]) and not bool(send[1])  # behind the camera; far off-screen right
+    assert int(send.sum()) < int(splats.valid.sum())

@@ -1,6 +1,6 @@
 """Model-parallel rendering of 3D Gaussians: each rank holds its own share of the primitives and renders its own
 camera from everybody's. Every rank projects its primitives into every rank's camera, keeps the splats that are
-in front of it, and sends them to that camera's rank (an all-to-all); each rank bins and blends what it received.
+that can reach its image, and sends them to that camera's rank (an all-to-all); each rank bins and blends what it received.
 Gradients take the way back: the blend adjoint on the camera's rank, the reverse all-to-all, the projection adjoint
 on the primitives' owner. Memory per rank then scales with its share of the primitives, not with all of them
 (docs/distributed.md, "Model parallelism")."""
@@ -11,9 +11,25 @@ from typing import Optional, Sequence
 import torch
 import torch.distributed as dist
 
+from warpgs.render.defaults import DEFAULT_ALPHA_MIN
 from warpgs.render.exchange import exchange_rows
 from warpgs.render.gaussians import RenderOutput
 from warpgs.render.splats import Splats, blend_splats, project_splats
+
+
+@torch.no_grad()
+def reaches_image(splats: Splats, width: int, height: int, alpha_min: float = DEFAULT_ALPHA_MIN) -> torch.Tensor:
+    """[N] bool: the splats worth sending to a camera's rank: valid, opaque enough to be blended at all, and with
+    a footprint box that meets the image. The box is the binning's (alpha >= alpha_min ellipse, its axis-aligned
+    extent) made a little larger, so nothing the blend would use is left behind; the rest is traffic saved."""
+    opacity = splats.opacities.detach()
+    q = 2.0 * torch.log(opacity.clamp_min(alpha_min) / alpha_min)
+    cov = splats.cov2d
+    ex = torch.sqrt(q * cov[:, 0].clamp_min(0)) * 1.01 + 1.0
+    ey = torch.sqrt(q * cov[:, 2].clamp_min(0)) * 1.01 + 1.0
+    x, y = splats.means2d.detach().unbind(1)
+    return (splats.valid & (opacity >= alpha_min) & (x + ex >= 0) & (x - ex <= width) & (y + ey >= 0)
+            & (y - ey <= height))
 
 
 def render_sharded(means, quats, scales, opacities, colors, viewmats, Ks, width: int, height: int, *,
@@ -34,6 +50,6 @@ def render_sharded(means, quats, scales, opacities, colors, viewmats, Ks, width:
     for j in range(world):
         splats = project_splats(means, quats, scales, opacities, colors, viewmats[j], Ks[j], width, height,
                                 sh_degree=sh_degree, features=features, near=near, far=far)
-        sends.append(splats.select(splats.valid.nonzero().squeeze(1)).pack())
+        sends.append(splats.select(reaches_image(splats, width, height).nonzero().squeeze(1)).pack())
     received = exchange_rows(sends, group)
     return blend_splats(Splats.unpack(torch.cat(received)), width, height, background=background, outputs=outputs)
