@@ -141,3 +141,15 @@ def test_only_splats_that_can_reach_the_image_are_sent():
     assert bool(send[used].all())  # nothing the blend uses is left behind
     assert not bool(send[0]) and not bool(send[1])  # behind the camera; far off-screen right
     assert int(send.sum()) < int(splats.valid.sum())
+
+
+def test_bad_arguments_are_named():
+    scene = random_scene(n=8)
+    p = _leaves(scene)
+    with pytest.raises(ValueError, match="quats"):
+        project_splats(p["means"], p["quats"][:, :3], p["scales"], p["opacities"], p["colors"],
+                       scene["viewmat"].float(), scene["K"].float(), 40, 30)
+    splats = project_splats(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"],
+                            scene["viewmat"].float(), scene["K"].float(), 40, 30)
+    with pytest.raises(ValueError, match="alpha_min"):
+        blend_splats(splats, 40, 30, alpha_min=0.0)

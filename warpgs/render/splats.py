@@ -15,7 +15,8 @@ import warp as wp
 from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.render.gaussians import (OUTPUTS, RenderOutput, _intrinsics_vector, _to_wp, _wp_device, _zero_grad,
-                                     blended_images, set_image_outputs, upstream_image_gradients)
+                                     blended_images, check_blend_knobs, checked_call, set_image_outputs,
+                                     upstream_image_gradients)
 
 # Float columns of a packed splat row (pack / unpack): means2d 2, conics 3, cov2d 3, depth 1, colour 3, opacity 1,
 # then the features.
@@ -153,7 +154,9 @@ def project_splats(means, quats, scales, opacities, colors, viewmat, K, width: i
                    sh_degree: Optional[int] = None, features: Optional[torch.Tensor] = None, near: float = 0.01,
                    far: float = 1e10) -> Splats:
     """The splats of N 3D Gaussians seen from one camera (viewmat [4,4], K [3,3]); arguments as `rasterize`.
-    Gradients flow from the splats back to every input."""
+    Gradients flow from the splats back to every input. Arguments are checked as `rasterize` checks them."""
+    checked_call(OUTPUTS, ("rgb",), means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree,
+                 features, None, near, far, None, True, 0.0, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, scale_dims=3)
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
     settings = _settings(width, height, sh_degree, near, far, DEFAULT_TILE_SIZE, DEFAULT_ALPHA_MIN,
@@ -175,6 +178,9 @@ def blend_splats(splats: Splats, width: int, height: int, *, background: Optiona
     unknown = [o for o in outputs if o not in OUTPUTS]
     if unknown:
         raise ValueError(f"outputs: unknown {unknown}; expected some of {OUTPUTS}")
+    check_blend_knobs(0.0, alpha_min, transmittance_min)
+    if splats.means2d.dim() != 2 or splats.means2d.shape[1] != 2:
+        raise ValueError(f"splats.means2d: expected [N, 2], got {list(splats.means2d.shape)}")
     if not bool(splats.valid.all()):
         splats = splats.select(splats.valid)
     if "features" in outputs and splats.features.shape[1] == 0:
