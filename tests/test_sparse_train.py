@@ -121,3 +121,14 @@ def test_prior_options_reach_the_estimator_and_a_change_re_estimates(tmp_path):
     assert made["estimator_settings"]["window"] == 7
     with pytest.raises(ValueError, match="data.depth_prior_options"):
         run(tmp_path / "bad", "data.depth_priors=estimate", "data.depth_prior_options={windows: 7}")
+
+
+def test_prior_points_join_the_initial_model_after_the_prior_is_estimated(tmp_path):
+    """model.prior_points (configs/sparse_llff.yaml's start): the prior is estimated first, then its confident
+    pixels become initial primitives on top of the scene's points, and the run trains."""
+    plain = run(tmp_path / "plain", "data.depth_priors=estimate")
+    trainer = run(tmp_path / "lifted", "data.depth_priors=estimate", "model.prior_points=300")
+    assert trainer.model.num_primitives == plain.model.num_primitives + 300
+    assert "300 from depth priors" in trainer.init_source
+    info = trainer.train_step()
+    assert math.isfinite(info["loss"])
