@@ -28,10 +28,10 @@ def _loss(out, seed):
     return total
 
 
-def _render_whole(p, scene, viewmat):
+def _render_whole(p, scene, viewmat, track_means2d=False):
     return rasterize(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"], viewmat.float(),
                      scene["K"].float(), scene["width"], scene["height"], sh_degree=scene["sh_degree"],
-                     features=p["features"], outputs=OUTPUTS)
+                     features=p["features"], outputs=OUTPUTS, track_means2d=track_means2d)
 
 
 def test_projecting_then_blending_is_rasterize():
@@ -71,11 +71,12 @@ mine = slice(0, 40) if rank == 0 else slice(40, None)  # unequal shares; rank 1'
 p = {k: scene[k][mine].float().clone().requires_grad_(True) for k in payload["params"]}
 out = render_sharded(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"], cams.float(),
                      scene["K"].float().expand(2, 3, 3), scene["width"], scene["height"],
-                     sh_degree=scene["sh_degree"], features=p["features"], outputs=outputs)
+                     sh_degree=scene["sh_degree"], features=p["features"], outputs=outputs, track_means2d=True)
 g = torch.Generator().manual_seed(100 + rank)
 loss = sum((getattr(out, n) * torch.rand(getattr(out, n).shape, generator=g)).sum() for n in outputs)
 loss.backward()
-torch.save({"images": {n: getattr(out, n).detach() for n in outputs}, "grads": {k: v.grad for k, v in p.items()}},
+torch.save({"images": {n: getattr(out, n).detach() for n in outputs}, "grads": {k: v.grad for k, v in p.items()},
+            "means2d_grad": out.means2d.grad, "sent": out.sent},
            sys.argv[2] + f".rank{rank}")
 dist.destroy_process_group()
 '''
@@ -91,8 +92,10 @@ def test_two_ranks_with_half_the_primitives_each_render_and_differentiate_as_one
     # One process: both cameras from all primitives, the same two losses.
     whole = _leaves(scene)
     total = 0.0
+    probes = []
     for r in (0, 1):
-        out = _render_whole(whole, scene, viewmats[r])
+        out = _render_whole(whole, scene, viewmats[r], track_means2d=True)
+        probes.append(out)
         for name in OUTPUTS:
             torch.testing.assert_close(ranks[r]["images"][name], getattr(out, name), atol=1e-5, rtol=1e-5,
                                        msg=f"camera {r}: {name}")
@@ -104,6 +107,12 @@ def test_two_ranks_with_half_the_primitives_each_render_and_differentiate_as_one
         got = torch.cat([ranks[0]["grads"][k], ranks[1]["grads"][k]])
         assert whole[k].grad.abs().sum() > 0, k
         torch.testing.assert_close(got, whole[k].grad, atol=1e-4, rtol=1e-4, msg=k)
+    # Densification's inputs per owner: each camera's dL/dmeans2d and footprint-on-screen mask of its own rows.
+    for cam in (0, 1):
+        g = torch.cat([ranks[0]["means2d_grad"][cam], ranks[1]["means2d_grad"][cam]])
+        torch.testing.assert_close(g, probes[cam].means2d.grad, atol=1e-4, rtol=1e-4, msg=f"means2d, camera {cam}")
+        sent = torch.cat([ranks[0]["sent"][cam], ranks[1]["sent"][cam]])
+        assert bool(sent[probes[cam].visible].all())
 
 
 @pytest.mark.parametrize("rows", [0, 1, 2])

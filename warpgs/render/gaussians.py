@@ -37,6 +37,7 @@ class RenderOutput:
     visible: Optional[torch.Tensor] = None  # [N] (or [B, N]) bool: touched at least one tile
     means2d: Optional[torch.Tensor] = None  # with track_means2d: projected centres; .grad = dL/dmeans2d
     num_intersections: int = 0  # Gaussian-tile pairs (summed over a batch)
+    sent: Optional[torch.Tensor] = None  # render_sharded with track_means2d: [R, N] this rank's splats sent per camera
 
 
 def _wp_device(device: torch.device) -> str:

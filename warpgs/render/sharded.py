@@ -35,21 +35,34 @@ def reaches_image(splats: Splats, width: int, height: int, alpha_min: float = DE
 def render_sharded(means, quats, scales, opacities, colors, viewmats, Ks, width: int, height: int, *,
                    sh_degree: Optional[int] = None, features: Optional[torch.Tensor] = None,
                    background: Optional[torch.Tensor] = None, outputs: Sequence[str] = ("rgb", "alpha"),
-                   near: float = 0.01, far: float = 1e10, group: Optional[dist.ProcessGroup] = None) -> RenderOutput:
+                   near: float = 0.01, far: float = 1e10, group: Optional[dist.ProcessGroup] = None,
+                   track_means2d: bool = False) -> RenderOutput:
     """This rank's camera (viewmats[rank], Ks[rank]) rendered from the primitives of every rank in `group`.
 
     means ... features: this rank's shard, as `rasterize` takes them (every rank the same SH layout and feature
     width; a shard may be empty). viewmats [R,4,4] and Ks [R,3,3]: one camera per rank, the same tensors on every
     rank. The result is what `rasterize` gives for that camera on all primitives, up to the blend order of
-    primitives at exactly equal depth; `out.visible` counts received splats, not this rank's primitives."""
+    primitives at exactly equal depth; `out.visible` counts received splats, not this rank's primitives.
+
+    track_means2d (what densification needs, per owner): `out.means2d` is then a [R, N, 2] leaf whose .grad after
+    backward is dL/dmeans2d of this rank's primitives in every rank's camera, and `out.sent` the [R, N] bool mask of
+    those that reached each camera's image (visible in gsplat's sense: a footprint on screen)."""
     world = dist.get_world_size(group)
     if viewmats.dim() != 3 or viewmats.shape[0] != world or Ks.shape[0] != world:
         raise ValueError(f"viewmats/Ks: expected one camera per rank ([{world},4,4] and [{world},3,3]), got "
                          f"{tuple(viewmats.shape)} and {tuple(Ks.shape)}")
-    sends = []
+    probe = means.new_zeros(world, means.shape[0], 2, requires_grad=True) if track_means2d else None
+    sends, sent = [], []
     for j in range(world):
         splats = project_splats(means, quats, scales, opacities, colors, viewmats[j], Ks[j], width, height,
                                 sh_degree=sh_degree, features=features, near=near, far=far)
-        sends.append(splats.select(reaches_image(splats, width, height).nonzero().squeeze(1)).pack())
+        if probe is not None:  # adds zero; its gradient is the projected centres' (as rasterize's probe)
+            splats.means2d = splats.means2d + probe[j]
+        reach = reaches_image(splats, width, height)
+        sent.append(reach)
+        sends.append(splats.select(reach.nonzero().squeeze(1)).pack())
     received = exchange_rows(sends, group)
-    return blend_splats(Splats.unpack(torch.cat(received)), width, height, background=background, outputs=outputs)
+    out = blend_splats(Splats.unpack(torch.cat(received)), width, height, background=background, outputs=outputs)
+    if probe is not None:
+        out.means2d, out.sent = probe, torch.stack(sent)
+    return out
