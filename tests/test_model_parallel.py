@@ -97,3 +97,25 @@ def test_shards_gather_back_into_the_model():
     assert [p.num_primitives for p in parts] == [30, 30]
     assert torch.equal(torch.cat([p.means for p in parts]), model.means)
     assert math.isclose(float(parts[1].opacities[0].detach()), float(model.opacities[30].detach()))
+
+
+BENCH = r'''
+import sys
+sys.argv = ["sharded_render.py", "--device", "cpu", "--primitives", "400", "--size", "64x48", "--rounds", "1",
+            "--tag", "test"]
+import runpy
+runpy.run_path(SCRIPT, run_name="__main__")
+'''
+
+
+def test_the_sharded_render_benchmark_runs_on_two_gloo_ranks(tmp_path, monkeypatch):
+    import json
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parent.parent / "benchmarks" / "sharded_render.py"
+    monkeypatch.setenv("OUT", str(tmp_path))
+    run_two_ranks(BENCH.replace("SCRIPT", repr(str(script))), [], tmp_path)
+    result = json.loads((tmp_path / "sharded_render_cpu_test.json").read_text())
+    assert result["ranks"] == 2 and len(result["per_rank"]) == 2
+    assert [r["primitives"] for r in result["per_rank"]] == [200, 200]
+    assert 0 < result["bytes_sent_per_step"] <= result["bytes_with_padding_per_step"]
