@@ -99,6 +99,21 @@ def test_shards_gather_back_into_the_model():
     assert math.isclose(float(parts[1].opacities[0].detach()), float(model.opacities[30].detach()))
 
 
+SCENES = r'''
+import torch
+
+
+def random_scene(n, width, height, device="cpu", seed=0):
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g) * torch.tensor([1.0, 0.6, 0.5]) + torch.tensor([0.0, 0.0, 4.0])
+    quats, scales = torch.randn(n, 4, generator=g), torch.rand(n, 3, generator=g) * 0.05 + 0.01
+    opacities, colors = torch.rand(n, generator=g) * 0.9 + 0.05, torch.rand(n, 3, generator=g)
+    f = float(width)
+    K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    out = [t.to(device) for t in (means, quats, scales, opacities, colors, torch.eye(4), K)]
+    return (*out, width, height)
+'''
+
 BENCH = r'''
 import sys
 sys.argv = ["sharded_render.py", "--device", "cpu", "--primitives", "400", "--size", "64x48", "--rounds", "1",
@@ -114,6 +129,10 @@ def test_the_sharded_render_benchmark_runs_on_two_gloo_ranks(tmp_path, monkeypat
 
     script = Path(__file__).resolve().parent.parent / "benchmarks" / "sharded_render.py"
     monkeypatch.setenv("OUT", str(tmp_path))
+    # The benchmark's scenes come from ../shared/bench, which a CI checkout lacks: a stand-in with the same call.
+    (tmp_path / "bench").mkdir()
+    (tmp_path / "bench" / "scenes.py").write_text(SCENES)
+    monkeypatch.setenv("WARPGS_BENCH_SCENES", str(tmp_path / "bench"))
     run_two_ranks(BENCH.replace("SCRIPT", repr(str(script))), [], tmp_path)
     result = json.loads((tmp_path / "sharded_render_cpu_test.json").read_text())
     assert result["ranks"] == 2 and len(result["per_rank"]) == 2
