@@ -5,7 +5,7 @@ Conventions follow gsplat so users can swap: OpenCV camera (x right, y down, z f
 """
 from __future__ import annotations
 
-from contextlib import nullcontext
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, fields
 from typing import Optional, Sequence
 
@@ -42,6 +42,23 @@ class RenderOutput:
 
 def _wp_device(device: torch.device) -> str:
     return "cpu" if device.type == "cpu" else f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"
+
+
+@contextmanager
+def on_torch_stream(device: torch.device):
+    """Warp launches on `device` and, on CUDA, on torch's current stream there (no race with torch's kernels)."""
+    with wp.ScopedDevice(_wp_device(device)):
+        with wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext():
+            yield
+
+
+def raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,
+                    transmittance_min) -> pipeline.Settings:
+    """The pipeline's Settings from a render call's arguments (sh_degree None: plain colours)."""
+    return pipeline.Settings(width=int(width), height=int(height), near=float(near), far=float(far),
+                             tile_size=int(tile_size), max_sigmas=float(max_sigmas),
+                             sh_degree=-1 if sh_degree is None else int(sh_degree), alpha_min=float(alpha_min),
+                             transmittance_min=float(transmittance_min))
 
 
 def _zero_grad(t: torch.Tensor) -> torch.Tensor:
@@ -154,8 +171,7 @@ class _RasterizeFunction(torch.autograd.Function):
             probe_grad = torch.zeros(0, 2, device=device) if ctx.needs_input_grad[10] else None
             return (None, None) + tuple(grads) + (probe_grad,)
 
-        stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
-        with wp.ScopedDevice(proj.means2d.device), stream:  # on torch's stream: no race with its kernels
+        with on_torch_stream(device):
             gc, ga, gd, gi, gf = upstream_image_gradients(g_color, g_alpha, g_depth, g_inv, g_feat, settings, wanted,
                                                           device)
 
@@ -236,10 +252,7 @@ def rasterize(
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
     feats = features if (features is not None and "features" in outputs) else means.new_zeros(n, 0)
-    settings = pipeline.Settings(width=int(width), height=int(height), near=float(near), far=float(far),
-                                 tile_size=int(tile_size), max_sigmas=float(max_sigmas),
-                                 sh_degree=-1 if sh_degree is None else int(sh_degree), alpha_min=float(alpha_min),
-                                 transmittance_min=float(transmittance_min))
+    settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min, transmittance_min)
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1])
     device = means.device
@@ -249,12 +262,10 @@ def rasterize(
             settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
             probe)
     else:
-        with wp.ScopedDevice(_wp_device(device)):
-            stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
-            with stream:
-                color, alpha, zacc, inv, fout, visible, count = _RasterizeFunction.apply(
-                    settings, wanted, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
-                    probe)
+        with on_torch_stream(device):
+            color, alpha, zacc, inv, fout, visible, count = _RasterizeFunction.apply(
+                settings, wanted, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
+                probe)
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible,
                        num_intersections=int(count), means2d=probe)
     return set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background)

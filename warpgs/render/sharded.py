@@ -1,6 +1,6 @@
 """Model-parallel rendering of 3D Gaussians: each rank holds its own share of the primitives and renders its own
-camera from everybody's. Every rank projects its primitives into every rank's camera, keeps the splats that are
-that can reach its image, and sends them to that camera's rank (an all-to-all); each rank bins and blends what it received.
+camera from everybody's. Every rank projects its primitives into every rank's camera, keeps the splats that can
+reach that camera's image, and sends them to its rank (an all-to-all); each rank bins and blends what it received.
 Gradients take the way back: the blend adjoint on the camera's rank, the reverse all-to-all, the projection adjoint
 on the primitives' owner. Memory per rank then scales with its share of the primitives, not with all of them
 (docs/distributed.md, "Model parallelism")."""

@@ -14,9 +14,9 @@ import warp as wp
 
 from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
-from warpgs.render.gaussians import (OUTPUTS, RenderOutput, _intrinsics_vector, _to_wp, _wp_device, _zero_grad,
-                                     blended_images, check_blend_knobs, checked_call, set_image_outputs,
-                                     upstream_image_gradients)
+from warpgs.render.gaussians import (OUTPUTS, RenderOutput, _intrinsics_vector, _to_wp, _zero_grad,
+                                     blended_images, check_blend_knobs, checked_call, on_torch_stream,
+                                     raster_settings, set_image_outputs, upstream_image_gradients)
 
 # Float columns of a packed splat row (pack / unpack): means2d 2, conics 3, cov2d 3, depth 1, colour 3, opacity 1,
 # then the features.
@@ -54,20 +54,6 @@ class Splats:
                                                           "opacities", "features")))
 
 
-def _settings(width, height, sh_degree, near, far, tile_size, alpha_min, transmittance_min) -> pipeline.Settings:
-    return pipeline.Settings(width=int(width), height=int(height), near=float(near), far=float(far),
-                             tile_size=int(tile_size), max_sigmas=0.0,
-                             sh_degree=-1 if sh_degree is None else int(sh_degree), alpha_min=float(alpha_min),
-                             transmittance_min=float(transmittance_min))
-
-
-def _on_device(device: torch.device):
-    """Warp's device and torch's current stream (no race with torch's kernels)."""
-    scope = wp.ScopedDevice(_wp_device(device))
-    stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
-    return scope, stream
-
-
 class _ProjectFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, settings, means, quats, scales, coeffs, viewmat, intrinsics):
@@ -103,8 +89,7 @@ class _ProjectFunction(torch.autograd.Function):
                                     (proj.depths, g_depths, wp.float32), (proj.colors, g_colors, wp.vec3)):
                 if g is not None:
                     upstream[array] = wp.from_torch(g.contiguous(), dtype=dtype)
-            scope, stream = _on_device(ctx.device)
-            with scope, stream:
+            with on_torch_stream(ctx.device):
                 tape.backward(grads=upstream)
         return (None,) + tuple(grads)
 
@@ -141,8 +126,7 @@ class _BlendFunction(torch.autograd.Function):
         proj, bins, fwd, w_opac, w_feat, settings, wanted, grads, learn_rows = ctx.state
         ctx.state = None
         if learn_rows:
-            scope, stream = _on_device(ctx.device)
-            with scope, stream:
+            with on_torch_stream(ctx.device):
                 gc, ga, gd, gi, gf = upstream_image_gradients(g_color, g_alpha, g_depth, g_inv, g_feat, settings,
                                                               wanted, ctx.device)
                 pipeline.blend_backward(proj, bins, w_opac, w_feat, settings, wanted, fwd, gc, ga, gd, gi, gf)
@@ -159,10 +143,9 @@ def project_splats(means, quats, scales, opacities, colors, viewmat, K, width: i
                  features, None, near, far, None, True, 0.0, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, scale_dims=3)
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
-    settings = _settings(width, height, sh_degree, near, far, DEFAULT_TILE_SIZE, DEFAULT_ALPHA_MIN,
-                         DEFAULT_TRANSMITTANCE_MIN)
-    scope, stream = _on_device(means.device)
-    with scope, stream:
+    settings = raster_settings(width, height, near, far, DEFAULT_TILE_SIZE, 0.0, sh_degree, DEFAULT_ALPHA_MIN,
+                               DEFAULT_TRANSMITTANCE_MIN)
+    with on_torch_stream(means.device):
         means2d, conics, cov2d, depths, rgb, valid = _ProjectFunction.apply(
             settings, means, quats, scales, coeffs, viewmat, _intrinsics_vector(K))
     feats = features if features is not None else means.new_zeros(n, 0)
@@ -186,12 +169,11 @@ def blend_splats(splats: Splats, width: int, height: int, *, background: Optiona
     if "features" in outputs and splats.features.shape[1] == 0:
         raise ValueError("outputs: 'features' asked for, but the splats carry no feature columns")
     feats = splats.features if "features" in outputs else splats.features[:, :0]
-    settings = _settings(width, height, None, 0.01, 1e10, tile_size or DEFAULT_TILE_SIZE, alpha_min,
-                         transmittance_min)
+    settings = raster_settings(width, height, 0.01, 1e10, tile_size or DEFAULT_TILE_SIZE, 0.0, None, alpha_min,
+                               transmittance_min)
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1])
-    scope, stream = _on_device(splats.means2d.device)
-    with scope, stream:
+    with on_torch_stream(splats.means2d.device):
         color, alpha, zacc, inv, fout, visible = _BlendFunction.apply(
             settings, wanted, splats.means2d, splats.conics, splats.cov2d, splats.depths, splats.colors,
             splats.opacities, feats)

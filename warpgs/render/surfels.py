@@ -6,7 +6,6 @@ third rotation column is the normal) and the extra outputs normal, median_depth 
 """
 from __future__ import annotations
 
-from contextlib import nullcontext
 from typing import Optional, Sequence
 
 import torch
@@ -16,7 +15,7 @@ from warpgs.render import pipeline_surfels as surfel_pipeline
 from warpgs.render.pipeline_gaussians import Settings
 from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, _wp_device, _zero_grad,
-                                     checked_call, set_image_outputs)
+                                     checked_call, on_torch_stream, raster_settings, set_image_outputs)
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "normal", "median_depth", "distortion", "features")
 # 2DGS measures distortion on NDC depth m = f/(f-n) (1 - n/z) with these fixed planes; the constant part
@@ -78,8 +77,7 @@ class _RasterizeSurfelsFunction(torch.autograd.Function):
         tape, proj, bins, fwd, w_opac, w_feat, settings, wanted, grads = ctx.state
         npix = settings.width * settings.height
         device = ctx.device
-        stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
-        with wp.ScopedDevice(proj.means2d.device), stream:  # on torch's stream: no race with its kernels
+        with on_torch_stream(device):
             g = {}
             for (name, c, dtype), up in zip(_IMAGES, upstream):
                 if not _wanted(wanted, name):  # outputs that were not computed: a dummy the kernel never reads
@@ -152,21 +150,16 @@ def rasterize_surfels(
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
     feats = features if (features is not None and "features" in outputs) else means.new_zeros(n, 0)
-    settings = Settings(width=int(width), height=int(height), near=float(near), far=float(far),
-                        tile_size=int(tile_size), max_sigmas=float(max_sigmas),
-                        sh_degree=-1 if sh_degree is None else int(sh_degree), alpha_min=float(alpha_min),
-                        transmittance_min=float(transmittance_min))
+    settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min, transmittance_min)
     wanted = surfel_pipeline.SurfelWanted(
         color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
         normal="normal" in outputs, median="median_depth" in outputs, distortion="distortion" in outputs,
         num_features=feats.shape[1], distortion_scale=DISTORTION_SCALE)
     device = means.device
-    with wp.ScopedDevice(_wp_device(device)):
-        stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext()
-        with stream:
-            color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = \
-                _RasterizeSurfelsFunction.apply(settings, wanted, means, quats, scales, opacities, coeffs, feats,
-                                                viewmat, _intrinsics_vector(K))
+    with on_torch_stream(device):
+        color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = \
+            _RasterizeSurfelsFunction.apply(settings, wanted, means, quats, scales, opacities, coeffs, feats,
+                                            viewmat, _intrinsics_vector(K))
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible, num_intersections=int(count))
     set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background)
     if wanted.normal:

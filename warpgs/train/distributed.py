@@ -109,6 +109,18 @@ class Ranks:
         self._call(what, lambda: dist.all_gather_object(out, obj))
         return out
 
+    def all_gather_rows(self, tensor: torch.Tensor, what: str = "all_gather") -> torch.Tensor:
+        """Every rank's rows of `tensor` ([n_r, ...], same trailing shape and dtype everywhere) concatenated in rank
+        order, on every rank. Blocks travel padded to the longest (all_gather takes equal sizes)."""
+        if not self.enabled:
+            return tensor
+        counts = [int(c) for c in self.all_gather_object(int(tensor.shape[0]), what=f"{what}: the sizes")]
+        padded = tensor.new_zeros((max(counts),) + tuple(tensor.shape[1:]))
+        padded[: tensor.shape[0]] = tensor.detach()
+        blocks = [torch.empty_like(padded) for _ in counts]
+        self._call(what, lambda: dist.all_gather(blocks, padded))
+        return torch.cat([b[:c] for b, c in zip(blocks, counts)])
+
     def barrier(self, what: str = "barrier") -> None:
         """Wait for every rank. On gloo a monitored barrier, whose error names the ranks that did not arrive."""
         if not self.enabled:

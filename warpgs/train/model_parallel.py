@@ -28,24 +28,12 @@ def shard_model(model: GaussianModel, ranks: Ranks) -> GaussianModel:
     return GaussianModel.from_dict(state, device=model.means.device)
 
 
-def gather_rows(tensor: torch.Tensor, ranks: Ranks) -> torch.Tensor:
-    """Every rank's rows of `tensor` ([n_r, ...], same trailing shape and dtype everywhere) concatenated in rank
-    order, on every rank. Blocks travel padded to the longest (all_gather takes equal sizes)."""
-    if not ranks.enabled:
-        return tensor
-    counts = [int(c) for c in ranks.all_gather_object(int(tensor.shape[0]), what="gathering the shard sizes")]
-    padded = tensor.new_zeros((max(counts),) + tuple(tensor.shape[1:]))
-    padded[: tensor.shape[0]] = tensor.detach()
-    blocks = [torch.empty_like(padded) for _ in counts]
-    ranks._call("gathering a model's shards", lambda: dist.all_gather(blocks, padded))
-    return torch.cat([b[:c] for b, c in zip(blocks, counts)])
-
-
 def gather_model(shard: GaussianModel, ranks: Ranks) -> GaussianModel:
     """The whole model from every rank's shard (on every rank), for checkpoints, PLY files and evaluation."""
     state = shard.to_dict()
     device = shard.means.device
-    state["params"] = {name: gather_rows(p.detach(), ranks).cpu() for name, p in shard.params.items()}
+    state["params"] = {name: ranks.all_gather_rows(p.detach(), what=f"gathering the model's {name}").cpu()
+                       for name, p in shard.params.items()}
     return GaussianModel.from_dict(state, device=device)
 
 
