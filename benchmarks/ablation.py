@@ -65,7 +65,7 @@ SETTINGS = [
 ]
 # Real captures (--data): (key, label, preset, overrides, Marr settings); the terms as in SETTINGS, plus the
 # initial points lifted from the prior (model.prior_points): removed from the method, and given to 3DGS alone.
-PRIOR_POINTS = 20_000  # configs/sparse_llff.yaml's
+PRIOR_POINTS = load_config(ROOT / "configs" / "sparse_llff.yaml").model.prior_points  # the method's count
 REAL_TERMS = ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")
 REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
                  + [("baseline_prior_points", "3DGS + prior points", "sparse_llff_baseline",
@@ -105,12 +105,14 @@ def uses_prior(preset: str, overrides: list) -> bool:
 def prior_points_for_budget(preset: str, overrides: list, budget: Optional[int]) -> list[str]:
     """With a primitive budget other than the preset's (CPU runs), the prior points shrink with it, so that they
     stay the same share of the budget (20k of 200k -> 1k of 10k). [] when the setting sets none."""
-    given = [o for o in overrides if o.startswith("model.prior_points=")]
-    count = int(given[-1].split("=", 1)[1]) if given else load_config(ROOT / "configs" / f"{preset}.yaml").model.prior_points
-    if not budget or not count:
+    if not budget:
         return []
-    preset_budget = load_config(ROOT / "configs" / f"{preset}.yaml").strategy.max_primitives
-    return [f"model.prior_points={max(1, round(count * budget / preset_budget))}"]
+    cfg = load_config(ROOT / "configs" / f"{preset}.yaml")
+    given = [o for o in overrides if o.startswith("model.prior_points=")]
+    count = int(given[-1].split("=", 1)[1]) if given else cfg.model.prior_points
+    if not count:
+        return []
+    return [f"model.prior_points={max(1, round(count * budget / cfg.strategy.max_primitives))}"]
 
 
 def setting_overrides_for_run(preset: str, setting: list, budget: Optional[int], user: list) -> list[str]:

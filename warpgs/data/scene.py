@@ -205,9 +205,11 @@ class Scene(ViewMaps):
     def camera(self, i: int) -> Camera:
         return self.cameras[i]
 
-    def has(self, what: str) -> bool:
-        """Whether any view has a file of this kind: depth, depth_prior, mask, labels, features."""
-        return any(getattr(f, what) is not None for f in self.files)
+    def has(self, what: str, views: Optional[Sequence[int]] = None) -> bool:
+        """Whether any view (of `views`, default all) has a file of this kind: depth, depth_prior, mask, labels,
+        features."""
+        files = self.files if views is None else [self.files[v] for v in views]
+        return any(getattr(f, what) is not None for f in files)
 
     def camera_extent(self) -> float:
         """Radius of the training cameras' centres around their mean, times 1.1 (the usual 3DGS scene scale,

@@ -153,7 +153,7 @@ def prior_points(scene, n: int, min_confidence: float, seed: int = 0):
     views finds only hundreds of points. A scene without priors is an error naming the key."""
     from warpgs.data.sfm import init_points as ip
 
-    if not any(scene.files[v].depth_prior is not None for v in scene.train):
+    if not scene.has("depth_prior", scene.train):
         raise ValueError(f"model.prior_points={n}: the scene at {scene.root} has no depth priors for its training "
                          f"views (set data.depth_priors, e.g. 'estimate', or model.prior_points=0)")
     try:

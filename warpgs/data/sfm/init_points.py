@@ -130,7 +130,7 @@ def initial_points(scene: Scene, n: int = 100_000, seed: int = 0,
     folder that caches them) or "random"."""
     if scene.points is not None and len(scene.points) > 0:
         return scene.points, "sfm"
-    if any(scene.files[v].depth_prior is not None for v in scene.train):
+    if scene.has("depth_prior", scene.train):
         return points_from_depth(scene, n, source="prior", seed=seed), "depth_prior"
     if triangulate_dir is not None:
         got = triangulated_points(scene, Path(triangulate_dir))
