@@ -10,6 +10,7 @@ configs/default.yaml: the built-in synthetic scene, about two minutes on a 2-cor
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -75,6 +76,20 @@ def _error(prog: str, message: str, code: int) -> int:
     return code
 
 
+def _exit_with_broken_group(code: int) -> int:
+    """End the process now when a collective failed. A normal interpreter exit races the process group's worker
+    thread, which still holds the failed work: it is killed while taking the GIL and the process aborts with
+    SIGABRT instead of `code` (seen on CI). No clean-up is lost: checkpoints and outputs are written atomically.
+    Without a live group (the error came from elsewhere, or in-process callers) the code is returned as usual."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
 # ----- warpgs-train -------------------------------------------------------------------------------------------
 def train_main(argv: Optional[List[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog="warpgs-train", description="Train Gaussians or surfels on a scene.",
@@ -128,7 +143,8 @@ def train_main(argv: Optional[List[str]] = None) -> int:
     except (ValueError, FileNotFoundError) as e:  # bad config, scene or checkpoint: the message names it
         return _error("warpgs-train", str(e), EXIT_CONFIG)
     except DistributedError as e:
-        return _error("warpgs-train", str(e), EXIT_DISTRIBUTED)
+        _error("warpgs-train", str(e), EXIT_DISTRIBUTED)
+        return _exit_with_broken_group(EXIT_DISTRIBUTED)
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
     try:
@@ -144,7 +160,9 @@ def train_main(argv: Optional[List[str]] = None) -> int:
         return _error("warpgs-train", str(e), EXIT_CONFIG)
     except DistributedError as e:  # the group is broken: leave it to the process's exit, not a collective teardown
         # Rank 0's loop has said it already; the other ranks are quiet, so their error is printed here.
-        return _error("warpgs-train", str(e), EXIT_DISTRIBUTED) if trainer.quiet else EXIT_DISTRIBUTED
+        if trainer.quiet:
+            _error("warpgs-train", str(e), EXIT_DISTRIBUTED)
+        return _exit_with_broken_group(EXIT_DISTRIBUTED)
     trainer.close()
     if not trainer.ranks.is_main:  # rank 0 prints the summary
         return 0
