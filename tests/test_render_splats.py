@@ -76,7 +76,7 @@ g = torch.Generator().manual_seed(100 + rank)
 loss = sum((getattr(out, n) * torch.rand(getattr(out, n).shape, generator=g)).sum() for n in outputs)
 loss.backward()
 torch.save({"images": {n: getattr(out, n).detach() for n in outputs}, "grads": {k: v.grad for k, v in p.items()},
-            "means2d_grad": out.means2d.grad, "sent": out.sent},
+            "means2d_grad": out.means2d.grad, "sent": out.sent, "seen": out.seen},
            sys.argv[2] + f".rank{rank}")
 dist.destroy_process_group()
 '''
@@ -113,6 +113,9 @@ def test_two_ranks_with_half_the_primitives_each_render_and_differentiate_as_one
         torch.testing.assert_close(g, probes[cam].means2d.grad, atol=1e-4, rtol=1e-4, msg=f"means2d, camera {cam}")
         sent = torch.cat([ranks[0]["sent"][cam], ranks[1]["sent"][cam]])
         assert bool(sent[probes[cam].visible].all())
+        # What each camera's blend binned, returned to the owners, is exactly one process's visibility.
+        seen = torch.cat([ranks[0]["seen"][cam], ranks[1]["seen"][cam]])
+        assert torch.equal(seen, probes[cam].visible) and 0 < int(seen.sum()) < int(sent.sum()) + 1
 
 
 @pytest.mark.parametrize("rows", [0, 1, 2])

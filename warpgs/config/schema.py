@@ -87,6 +87,10 @@ class TrainConfig:
     batch_scaling: str = "sqrt"  # Adam for the batch: "sqrt" (lr x sqrt(B), eps / sqrt(B), betas as gsplat) or "none"
     dist_backend: str = "auto"  # under torchrun: "auto" (nccl on CUDA, gloo on the CPU), "nccl" or "gloo"
     dist_timeout: int = 900  # seconds a rank waits in a collective before it stops with an error
+    # Under torchrun: "data" (every rank holds the whole model and renders its share of the views; gradients are
+    # all-reduced) or "model" (3D Gaussians: each rank owns a share of the primitives and renders one view of each
+    # round from everybody's, through a splat exchange; docs/distributed.md, "Model parallelism").
+    parallel: str = "data"
     viewer: bool = False  # serve a browser viewer of the model as it trains (pip install 'warpgs[viewer]')
     viewer_port: int = 8080  # its port on 127.0.0.1 (0: any free one)
 
@@ -153,6 +157,7 @@ CHOICES = {
     "eval.lpips_net": ("alex", "vgg", "squeeze"),
     "train.batch_scaling": ("sqrt", "none"),
     "train.dist_backend": ("auto", "nccl", "gloo"),
+    "train.parallel": ("data", "model"),
 }
 POSITIVE = {"data.width", "data.height", "data.downscale", "data.n_train", "model.init_points", "model.init_knn",
             "train.steps", "train.tile_size", "train.batch_size", "train.dist_timeout"}

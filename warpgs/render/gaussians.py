@@ -38,6 +38,7 @@ class RenderOutput:
     means2d: Optional[torch.Tensor] = None  # with track_means2d: projected centres; .grad = dL/dmeans2d
     num_intersections: int = 0  # Gaussian-tile pairs (summed over a batch)
     sent: Optional[torch.Tensor] = None  # render_sharded with track_means2d: [R, N] this rank's splats sent per camera
+    seen: Optional[torch.Tensor] = None  # ... and [R, N] those each camera's blend binned (its `visible`)
 
 
 def _wp_device(device: torch.device) -> str:

@@ -72,7 +72,7 @@ class TrainingLoop:
                                  log_every=cfg.train.log_every)
         if tr.step == 0 or tr.init_source != "checkpoint":
             self.say(f"warpgs: {tr.scene.summary()}")
-            self.say(f"warpgs: {tr.model.num_primitives} {tr.model.kind} from {tr.init_source}; "
+            self.say(f"warpgs: {tr.num_primitives} {tr.model.kind} from {tr.init_source}; "
                      f"losses {tr.loss_set.names} render {list(tr.outputs)}; "
                      f"{tr.max_steps} steps on {tr.device}; output {tr.out_dir}")
         else:
@@ -109,7 +109,7 @@ class TrainingLoop:
             ext.after_step(tr, info["step"], info)
         last = tr.history[-1] if tr.history else {}
         self.progress.update(tr.step, loss=self.loss_mean.update(info["loss"]),
-                             psnr=self.psnr_mean.update(info["psnr"]), n=tr.model.num_primitives,
+                             psnr=self.psnr_mean.update(info["psnr"]), n=tr.num_primitives,
                              test=last.get("psnr"))
         if tr.log.due(tr.step, tr.max_steps):
             tr.log.train(tr.step, info, tr.learning_rates(), tr.train_seconds)
@@ -142,26 +142,28 @@ class TrainingLoop:
 
     def _periodic_eval(self) -> None:
         tr = self.trainer
-        entry, m = tr.evaluator.periodic(tr.step, tr.model.num_primitives, tr.train_seconds,
-                                         keep_images=tr.log.images)
+        with tr.whole_model():  # train.parallel=model: gathered for the evaluation
+            entry, m = tr.evaluator.periodic(tr.step, tr.model.num_primitives, tr.train_seconds,
+                                             keep_images=tr.log.images)
         tr.log.eval(tr.step, m, num_primitives=entry["num_primitives"], train_seconds=tr.train_seconds)
         lp = f" lpips {m['lpips']:.4f}" if m["lpips"] is not None else ""
         self.say(f"[eval {m['split']} @ {tr.step}] psnr {m['psnr']:.2f} ssim {m['ssim']:.4f}{lp} "
-                 f"n {tr.model.num_primitives} ({tr.train_seconds:.1f} s)")
+                 f"n {tr.num_primitives} ({tr.train_seconds:.1f} s)")
 
     def finish(self) -> "TrainResult":
         """Final checkpoint, PLY, test renders, metrics.json and the final log entry."""
         tr, cfg = self.trainer, self.trainer.config
         if tr.step != tr.checkpointer.last_step:
             tr.save_checkpoint()
-        if tr.ranks.is_main:
-            tr.model.save_ply(tr.out_dir / cfg.output.ply)
-        m = tr.evaluator.evaluate(save_images=cfg.eval.save_images, keep_images=tr.log.images)
-        tr.log.eval(tr.step, m, num_primitives=tr.model.num_primitives, train_seconds=tr.train_seconds, final=True)
+        with tr.whole_model():  # train.parallel=model: the PLY and the evaluation are of the gathered model
+            if tr.ranks.is_main:
+                tr.model.save_ply(tr.out_dir / cfg.output.ply)
+            m = tr.evaluator.evaluate(save_images=cfg.eval.save_images, keep_images=tr.log.images)
+        tr.log.eval(tr.step, m, num_primitives=tr.num_primitives, train_seconds=tr.train_seconds, final=True)
         metrics = {"split": m["split"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"]}
         if "lpips_unavailable" in m:
             metrics["lpips_unavailable"] = m["lpips_unavailable"]
-        metrics.update({"num_primitives": tr.model.num_primitives, "steps": tr.step,
+        metrics.update({"num_primitives": tr.num_primitives, "steps": tr.step,
                         "train_seconds": round(tr.train_seconds, 3), "num_views": m["num_views"],
                         "model_kind": tr.model.kind, "device": str(tr.device), "scene": str(tr.scene.root),
                         "final_loss": tr.last_loss, "history": tr.history, "per_view": m["per_view"]})
@@ -170,9 +172,9 @@ class TrainingLoop:
         tr.ranks.barrier("waiting for rank 0 to write the final outputs")
         lp = f" lpips {m['lpips']:.4f}" if m["lpips"] is not None else " lpips unavailable"
         self.say(f"warpgs: {m['split']} psnr {m['psnr']:.2f} ssim {m['ssim']:.4f}{lp}; "
-                 f"{tr.model.num_primitives} primitives; {tr.step} steps in {tr.train_seconds:.1f} s")
+                 f"{tr.num_primitives} primitives; {tr.step} steps in {tr.train_seconds:.1f} s")
         return TrainResult(tr.out_dir, tr.step, tr.last_loss, metrics, tr.train_seconds,
-                           tr.model.num_primitives, list(tr.history))
+                           tr.num_primitives, list(tr.history))
 
 
 class StopOnSigint:

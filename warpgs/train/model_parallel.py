@@ -3,9 +3,13 @@ parallelism"): each rank owns a contiguous shard of the primitives (parameters a
 its own view of the step from every rank's primitives (`render_sharded`), and back-propagates; the gradients of
 its shard arrive from every rank's view through the splat exchange, so no parameter gradient is all-reduced and
 each rank's optimizer steps its own rows. `gather_model` puts the shards together for checkpoints, PLY files and
-evaluation. Not yet wired into the Trainer (densification and checkpoints per owner are the next step)."""
+evaluation. The Trainer's `train.parallel=model` (train/sharded_step.py) is built on these: `shard_training`
+after the whole model is built or resumed, `gathered_training` wherever the whole model is needed (checkpoints in
+the single-process format, PLY files, evaluation)."""
 from __future__ import annotations
 
+import copy
+import dataclasses
 from typing import Optional, Sequence
 
 import torch
@@ -15,6 +19,9 @@ from warpgs.model.gaussians import GaussianModel
 from warpgs.render.gaussians import RenderOutput
 from warpgs.render.sharded import render_sharded
 from warpgs.train.distributed import Ranks
+from warpgs.train.optim import update_rows
+
+MOMENTS = ("exp_avg", "exp_avg_sq")  # Adam's per-row state; "step" is a scalar, the same on every rank
 
 
 def shard_model(model: GaussianModel, ranks: Ranks) -> GaussianModel:
@@ -37,13 +44,60 @@ def gather_model(shard: GaussianModel, ranks: Ranks) -> GaussianModel:
     return GaussianModel.from_dict(state, device=device)
 
 
-def render_shard(shard: GaussianModel, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,
+def render_shard(shard: GaussianModel, viewmats: torch.Tensor, Ks: torch.Tensor, width, height, *,
                  outputs: Sequence[str] = ("rgb", "alpha"), background: Optional[torch.Tensor] = None,
-                 near: float = 0.01, far: float = 1e10, group: Optional[dist.ProcessGroup] = None) -> RenderOutput:
+                 inputs: Optional[dict] = None, group: Optional[dist.ProcessGroup] = None,
+                 track_means2d: bool = False, **options) -> RenderOutput:
     """This rank's camera (one of viewmats [R,4,4] / Ks [R,3,3], the same on every rank) from every rank's
-    shard; differentiable into this rank's shard from every rank's loss."""
-    inputs = shard.render_inputs()
+    shard; differentiable into this rank's shard from every rank's loss. `inputs` (default: the shard's
+    render_inputs) may carry features; `options` are render_sharded's (near, far, tile_size, alpha_min, ...)."""
+    inputs = dict(shard.render_inputs() if inputs is None else inputs)
     return render_sharded(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"], inputs["colors"],
-                          viewmats, Ks, width, height, sh_degree=inputs["sh_degree"], background=background,
-                          outputs=outputs, near=near, far=far, group=group)
+                          viewmats, Ks, width, height, sh_degree=inputs.get("sh_degree"),
+                          features=inputs.get("features"), background=background, outputs=outputs, group=group,
+                          track_means2d=track_means2d, **options)
 
+
+def shard_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strategy, ranks: Ranks) -> slice:
+    """Turn a whole model's training state into this rank's share, in place: its rows of the model (Ranks.shard),
+    of the optimizer's moments and of the strategy's statistics; the strategy's budget becomes this rank's share of
+    it. Every rank must hold the same whole state. Returns the rows kept."""
+    if model.kind != "gaussians":
+        raise ValueError(f"train.parallel=model: model.kind={model.kind}; model-parallel rendering exists for 3D "
+                         f"Gaussians only (use train.parallel=data)")
+    rows = ranks.shard(model.num_primitives)
+    keep = torch.arange(rows.start, rows.stop, device=model.means.device)
+    update_rows(model, optimizer, keep=keep)
+    strategy.select_statistics(keep)
+    budget = strategy.config.max_primitives
+    share = ranks.shard(budget)
+    strategy.config = dataclasses.replace(strategy.config, max_primitives=share.stop - share.start)
+    return rows
+
+
+def gathered_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strategy, ranks: Ranks, *,
+                      budget: int):
+    """(whole model, an optimizer over it with every rank's moments, a strategy with every rank's statistics and
+    the whole `budget`), on every rank: the state a single process would hold, for a checkpoint that resumes on any
+    number of processes (and in either parallel mode). A collective: every rank calls it. The strategy's random
+    generator is this rank's (rank 0's goes into a checkpoint)."""
+    whole = gather_model(model, ranks)
+    groups, state = [], {}
+    for group in optimizer.param_groups:
+        name, (mine,) = group["name"], group["params"]
+        p = whole.params[name]
+        groups.append({**{k: v for k, v in group.items() if k != "params"}, "params": [p]})
+        local = optimizer.state.get(mine, {})
+        state[p] = {k: v for k, v in local.items() if k not in MOMENTS}
+        for key in MOMENTS:  # every rank gathers both, present or not, so the collectives line up
+            rows = local[key] if key in local else torch.zeros_like(mine)
+            state[p][key] = ranks.all_gather_rows(rows, what=f"gathering Adam's {key} of {name}").to(p.device)
+    whole_optimizer = type(optimizer)(groups, **optimizer.defaults)
+    for p, st in state.items():
+        if "step" in st:
+            whole_optimizer.state[p] = st
+    whole_strategy = copy.copy(strategy)
+    whole_strategy.config = dataclasses.replace(strategy.config, max_primitives=int(budget))
+    for key in ("grad_accum", "count", "max_radii", "max_screen"):
+        setattr(whole_strategy, key, ranks.all_gather_rows(getattr(strategy, key), what=f"gathering the {key}"))
+    return whole, whole_optimizer, whole_strategy

@@ -56,14 +56,19 @@ def train_step(trainer) -> dict:
         report = trainer.strategy.maybe_refine(model, trainer.optimizer, step)
         if report is not None and trainer.ranks.enabled:
             trainer.ranks.check_same(model.num_primitives, f"the number of primitives after step {step}")
+    return end_step(trainer, step, t0, summary, report, passes, drawn, stop)
+
+
+def end_step(trainer, step: int, t0: float, summary: dict, report, passes, drawn, stop: bool) -> dict:
+    """Clear the gradients, advance the run's counters, and return the step's info (train_step's result)."""
     for opt in trainer.optimizers:
         opt.zero_grad(set_to_none=True)
-    model.zero_grad(set_to_none=True)
+    trainer.model.zero_grad(set_to_none=True)
     trainer.counters.train_seconds += time.perf_counter() - t0
     trainer.counters.step = step + 1
     trainer.counters.last_loss = summary["loss"]
     return {"step": step, "loss": summary["loss"], "values": summary["values"], "psnr": summary["psnr"],
-            "num_primitives": model.num_primitives, "densify": report, "view": passes[0].view.name,
+            "num_primitives": trainer.num_primitives, "densify": report, "view": passes[0].view.name,
             "views": [trainer.scene.cameras[i].name for i in drawn], "stop": stop}
 
 

@@ -378,6 +378,13 @@ class DensifyStrategy:
             self.max_screen = torch.zeros_like(self.max_radii)
         self.generator.set_state(state["generator"])
 
+    @torch.no_grad()
+    def select_statistics(self, rows: torch.Tensor) -> None:
+        """Keep the statistics of `rows` only (index tensor), as update_rows keeps a model's rows: a model-parallel
+        rank's share of a whole model's statistics."""
+        self.grad_accum, self.count = self.grad_accum[rows], self.count[rows]
+        self.max_radii, self.max_screen = self.max_radii[rows], self.max_screen[rows]
+
     # ----- internals -----
     def _too_big_for_world(self, max_scales: torch.Tensor) -> torch.Tensor:
         """The world-size rule on largest scales (prune_world_scale > 0 is the caller's check)."""

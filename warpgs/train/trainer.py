@@ -25,6 +25,7 @@ NonFiniteGuard (guard.py), Checkpointer (state.py), TrainLog (log.py). It owns t
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 from pathlib import Path
 from typing import Callable, Dict, Iterable, List, Optional, Sequence, Union
@@ -44,6 +45,8 @@ from warpgs.data.extent import scene_content_extent
 from warpgs.model import environment  # noqa: F401  (registers the built-in "environment" extension)
 from warpgs.train import setup as train_setup
 from warpgs.train import step as training_step
+from warpgs.train import sharded_step
+from warpgs.train.model_parallel import gather_model, gathered_training, shard_training
 from warpgs.train.batch import ViewPass
 from warpgs.train.distributed import DistributedError, setup_ranks, sync_model
 from warpgs.train.evaluation import Evaluator
@@ -80,6 +83,11 @@ class Trainer:
             raise ValueError(f"train.batch_size: {self.batch_size} is less than the {self.ranks.world_size} "
                              f"processes; it counts the views of a step over all of them (each renders its "
                              f"share), e.g. train.batch_size={self.ranks.world_size}")
+        # train.parallel=model: each rank owns a share of the primitives (train/sharded_step.py); on one process
+        # there is nothing to share and the run is the usual one.
+        self.model_parallel = cfg.train.parallel == "model" and self.ranks.enabled
+        if self.model_parallel:
+            sharded_step.check_batch(self.batch_size, self.ranks.world_size)
         terms = resolve_terms(cfg.losses)
 
         if out_dir is not None:
@@ -164,6 +172,11 @@ class Trainer:
                 # Trained with another batch size: the restored Adam groups hold its scaling, not this run's.
                 apply_batch_scaling(self.optimizers, self.base_learning_rates(), batch_size=self.batch_size,
                                     rule=cfg.train.batch_scaling)
+        self._total_primitives = self.model.num_primitives
+        if self.model_parallel:  # built (or resumed) whole, alike on every rank; from here on each keeps its share
+            shard_training(self.model, self.optimizer, self.strategy, self.ranks)
+            # Split samples differ per owner (a checkpoint holds rank 0's generator, so a resume reseeds too).
+            self.strategy.generator.manual_seed(self.ranks.derived_seed(cfg.strategy.seed, self.step))
         if self.ranks.enabled:
             # Each rank's own global RNG streams (anything a loss or extension draws), from seed, rank and step;
             # what every rank must agree on (view order, split sampling) has its own seeded generator.
@@ -190,6 +203,39 @@ class Trainer:
     def at_boundary(self) -> bool:
         """False while a step is running (a checkpoint then would hold half a step)."""
         return self._at_boundary
+
+    @property
+    def num_primitives(self) -> int:
+        """The model's primitives over all ranks (with train.parallel=model self.model is this rank's share)."""
+        return self._total_primitives if self.model_parallel else self.model.num_primitives
+
+    def count_primitives(self) -> int:
+        """Recount num_primitives after the shards changed (a collective with train.parallel=model)."""
+        if self.model_parallel:
+            counts = self.ranks.all_gather_object(self.model.num_primitives, what="counting the primitives")
+            self._total_primitives = int(sum(counts))
+        return self.num_primitives
+
+    @contextlib.contextmanager
+    def whole_model(self, with_state: bool = False):
+        """With train.parallel=model: the whole model (and with_state: its optimizer and strategy) gathered from
+        every rank's share and in place of the shard until the block ends, for evaluation, PLY files and
+        checkpoints in the single-process format. A collective: every rank enters it. Otherwise a no-op."""
+        if not self.model_parallel:
+            yield self.model
+            return
+        shard, optimizer, strategy = self.model, self.optimizer, self.strategy
+        if with_state:
+            whole, self.optimizer, self.strategy = gathered_training(shard, optimizer, strategy, self.ranks,
+                                                                     budget=self.config.strategy.max_primitives)
+        else:
+            whole = gather_model(shard, self.ranks)
+        whole.active_sh_degree = shard.active_sh_degree
+        self.model = whole
+        try:
+            yield whole
+        finally:
+            self.model, self.optimizer, self.strategy = shard, optimizer, strategy
 
     @property
     def history(self) -> List[dict]:
@@ -312,7 +358,7 @@ class Trainer:
     def train_step(self) -> dict:
         """One optimisation step at self.step over train.batch_size views (train/step.py has how)."""
         self._at_boundary = False
-        info = training_step.train_step(self)
+        info = (sharded_step.train_step_sharded if self.model_parallel else training_step.train_step)(self)
         self._at_boundary = True
         return info
 
@@ -336,7 +382,8 @@ class Trainer:
         return self.evaluator.lpips()
 
     def evaluate(self, *, save_images: bool = False, max_views: int = 0) -> dict:
-        return self.evaluator.evaluate(save_images=save_images, max_views=max_views)
+        with self.whole_model():
+            return self.evaluator.evaluate(save_images=save_images, max_views=max_views)
 
     def training_state(self) -> TrainingState:
         """The parts a checkpoint holds, as they are now."""
@@ -350,7 +397,8 @@ class Trainer:
         """Write checkpoint.pt (rank 0 only; the other ranks wait for it at a barrier)."""
         if not self._at_boundary:
             raise RuntimeError("save_checkpoint: only between steps")
-        path = self.checkpointer.save(self.training_state())
+        with self.whole_model(with_state=True):
+            path = self.checkpointer.save(self.training_state())
         self.ranks.barrier(f"waiting for rank 0 to write the checkpoint of step {self.step}")
         return path
 

@@ -1,0 +1,112 @@
+"""One optimisation step of the Trainer with train.parallel=model: each rank owns a share of the primitives
+(train/model_parallel.py) and the step's views are rendered in rounds of one view per rank, each from every
+rank's primitives (render/sharded.py). Each rank's loss back-propagates through the splat exchange into every
+owner's rows, so parameter gradients need no all-reduce (the extensions' modules, held whole on every rank, still
+are); densification statistics are per owner: each rank observes its own rows in every camera of the round.
+
+The loss is the mean over the batch's views, as in data-parallel training, so the same global batch gives the
+same gradients (tests/test_model_parallel_train.py)."""
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+
+from warpgs.train import setup as train_setup
+from warpgs.train.batch import ViewPass, batch_result, batch_summary, local_sums, scalar_names
+from warpgs.train.guard import NonFiniteError
+from warpgs.train.model_parallel import render_shard
+from warpgs.train.optim import update_learning_rates
+from warpgs.train.step import end_step
+
+
+def check_batch(batch_size: int, world_size: int) -> None:
+    """A step renders rounds of one view per rank: the batch must fill them."""
+    if batch_size % world_size:
+        raise ValueError(f"train.batch_size: {batch_size} is not a multiple of the {world_size} processes; with "
+                         f"train.parallel=model every rank renders one view of each round (e.g. "
+                         f"train.batch_size={world_size})")
+
+
+def train_step_sharded(trainer) -> dict:
+    """train_step (train/step.py) for a model sharded over the ranks; returns the same info."""
+    cfg, model, step, ranks = trainer.config, trainer.model, trainer.step, trainer.ranks
+    t0 = time.perf_counter()
+    drawn = trainer.views.draw(trainer.batch_size)  # the global batch, drawn alike on every rank
+    world = ranks.world_size
+    model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
+    update_learning_rates(trainer.optimizer, step, cfg.optim, trainer.extent, trainer.max_steps, trainer.lr_scale)
+    densify = step < cfg.strategy.refine_stop
+    passes, seen = [], []
+    for start in range(0, len(drawn), world):
+        cameras = [trainer.view(i) for i in drawn[start:start + world]]
+        p, round_seen = view_pass_sharded(trainer, cameras, step, views_in_loss=len(drawn), densify=densify,
+                                          first=not passes)
+        passes.append(p)
+        seen += round_seen
+    names = scalar_names(passes)
+    # Only the modules' gradients are summed over the ranks (the primitives' arrived through the exchange); the
+    # non-finite flag rides along, so a NaN on one rank stops every rank at the same step.
+    finite = not cfg.train.nan_guard or all(bool(torch.isfinite(p.grad).all())
+                                            for _, p in trainer.named_parameters() if p.grad is not None)
+    sums = ranks.all_reduce_gradients([p for _, p in trainer.modules.named_parameters()],
+                                      local_sums(passes, names) + [float(trainer.stop_requested), float(not finite)],
+                                      step)
+    nonfinite_elsewhere, stop = sums.pop() > 0, sums.pop() > 0
+    summary = batch_summary(sums, names, len(drawn))
+    result = batch_result(summary, passes[0].result)
+    if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied
+        trainer.check_finite(step, result)
+        if nonfinite_elsewhere:
+            raise NonFiniteError(f"step {step}: another rank's gradients are not finite (its log names them)")
+    for opt in trainer.optimizers:
+        opt.step()
+    report = None
+    if densify:  # each owner its own rows in every camera, after the optimizer step as in train/step.py
+        observed = (trainer.strategy.observe(model, visible=sent, viewmat=cam.viewmat, K=cam.K, width=cam.width,
+                                             height=cam.height, grad2d=grad2d, near=cfg.train.near,
+                                             views_in_loss=len(drawn))
+                    for cam, sent, grad2d in seen)
+        trainer.strategy.add_observations(trainer.strategy.merge_observations(observed))
+        report = trainer.strategy.maybe_refine(model, trainer.optimizer, step)
+        if report is not None:  # refine steps are the same on every rank
+            trainer.count_primitives()
+    return end_step(trainer, step, t0, summary, report, passes, drawn, stop)
+
+
+def view_pass_sharded(trainer, cameras, step: int, *, views_in_loss: int, densify: bool, first: bool):
+    """One round: this rank's camera (cameras[rank]) rendered from every shard, scored, back-propagated (its share
+    loss / views_in_loss). Returns (ViewPass of this rank's view, [(camera, [N] bool: this rank's rows that
+    its blend binned, [N,2] their dL/dmeans2d)] for every camera of the round when densifying, else [])."""
+    model, ranks, cfg = trainer.model, trainer.ranks, trainer.config
+    view = cameras[ranks.rank]
+    batch = trainer.make_batch(view, step)
+    outputs = trainer.outputs_at(step)
+    extra = [o for e in trainer.extensions for o in e.outputs() if o not in outputs]
+    outputs = tuple(outputs) + tuple(dict.fromkeys(extra))
+    options = cfg.train.render_options()
+    if options.pop("max_sigmas"):
+        raise ValueError("train.max_sigmas: footprint truncation is not supported with train.parallel=model")
+    out = render_shard(model, torch.stack([c.viewmat for c in cameras]), torch.stack([c.K for c in cameras]),
+                       [c.width for c in cameras], [c.height for c in cameras], outputs=outputs,
+                       background=trainer.background, inputs=trainer.render_inputs(batch, step, outputs),
+                       track_means2d=densify, **options)
+    for ext in trainer.extensions:
+        out = ext.after_render(trainer, out, batch, step)
+    result = trainer.loss_set(out, batch, model, step, trainer.max_steps)
+    if first:
+        trainer.strategy.step_pre_backward(model, step)
+    (result.total / views_in_loss).backward()
+    names = list(result.values)
+    scalars = [result.total.detach().reshape(())] + [result.values[k].detach().reshape(()) for k in names]
+    if out.rgb is not None:
+        scalars.append(((out.rgb.detach() - view.image) ** 2).mean())
+    host = torch.stack([v.float() for v in scalars]).tolist()
+    p = ViewPass(view=view, result=result, loss=host[0], values=dict(zip(names, host[1:1 + len(names)])))
+    if out.rgb is not None:
+        p.psnr = 10.0 * math.log10(1.0 / max(host[-1], 1e-10))
+    if not densify:
+        return p, []
+    grads = out.means2d.grad if out.means2d.grad is not None else torch.zeros_like(out.means2d)
+    return p, [(cam, out.seen[j], grads[j]) for j, cam in enumerate(cameras)]
