@@ -138,3 +138,49 @@ def test_the_sharded_render_benchmark_runs_on_two_gloo_ranks(tmp_path, monkeypat
     assert result["ranks"] == 2 and len(result["per_rank"]) == 2
     assert [r["primitives"] for r in result["per_rank"]] == [200, 200]
     assert 0 < result["bytes_sent_per_step"] <= result["bytes_with_padding_per_step"]
+
+
+TERMS_WORKER = r'''
+import sys, torch, torch.distributed as dist
+from test_model_parallel import start_model
+from warpgs.losses import gestalt
+from warpgs.train.distributed import Ranks
+from warpgs.train.model_parallel import shard_training
+from warpgs.train.optim import build_optimizer
+from warpgs.train.strategy import DensifyStrategy
+dist.init_process_group("gloo")
+ranks = Ranks(dist.get_rank(), dist.get_world_size(), backend="gloo")
+model = start_model()
+strategy = DensifyStrategy()
+strategy.initialize(model)
+shard_training(model, build_optimizer(model), strategy, ranks)
+result = {}
+for name in ("opacity", "scale", "count"):
+    model.zero_grad()
+    value = getattr(gestalt, name)(None, {}, model, 0)
+    (value / 2).backward()  # both ranks' losses together are the term once
+    result[name] = (value.detach(), {n: p.grad.clone() for n, p in model.params.items() if p.grad is not None})
+torch.save(result, sys.argv[1] + f".rank{ranks.rank}")
+dist.destroy_process_group()
+'''
+
+
+def test_terms_that_read_the_model_are_the_whole_models_on_every_shard(tmp_path):
+    # Mean opacity, mean scale norm and the soft count sum over both ranks' rows (model.reduce_rows): each rank's
+    # value is the whole model's, and each row's gradient is the one-process gradient, whatever the shard sizes.
+    from warpgs.losses import gestalt
+
+    run_two_ranks(TERMS_WORKER, [tmp_path / "terms"], tmp_path)
+    ranks = [torch.load(tmp_path / f"terms.rank{r}") for r in (0, 1)]
+    for name in ("opacity", "scale", "count"):
+        whole = start_model()
+        value = getattr(gestalt, name)(None, {}, whole, 0)
+        value.backward()
+        for r in (0, 1):
+            torch.testing.assert_close(ranks[r][name][0], value.detach(), msg=f"{name} on rank {r}")
+        grads = {n: p.grad for n, p in whole.params.items() if p.grad is not None}
+        assert grads and grads.keys() == ranks[0][name][1].keys() == ranks[1][name][1].keys(), name
+        for n, g in grads.items():
+            got = torch.cat([ranks[0][name][1][n], ranks[1][name][1][n]])
+            assert float(g.abs().max()) > 0, (name, n)
+            torch.testing.assert_close(got, g, atol=1e-9, rtol=1e-5, msg=f"{name}: d/d{n}")

@@ -1,7 +1,8 @@
 """warpgs-train with train.parallel=model on two gloo processes: each rank owns half of the primitives and renders
 one view of each step from both halves. The run ends where one process with the same global batch ends (Adam's
 moments, densification statistics, parameters), writes the single-process checkpoint format, resumes on two
-processes through a refine to the primitive count one process reaches, and on one process."""
+processes through a refine to the primitive count one process reaches, and on one process. The terms that read the
+model (opacity, scale, count) are the whole model's on every shard."""
 import json
 import subprocess
 import sys
@@ -21,7 +22,9 @@ from warpgs.train.strategy import DensifyStrategy, StrategyConfig
 from warpgs.train.trainer import Trainer
 
 K, STEPS = 6, 10  # no refine before K; one at step 8
-SETTINGS = {"strategy.refine_start": 4, "strategy.refine_every": 4}
+# The Gestalt terms read the model: on a shard they must still be the whole model's means and counts.
+SETTINGS = {"strategy.refine_start": 4, "strategy.refine_every": 4, "losses.opacity": 0.05, "losses.scale": 0.008,
+            "losses.count": 0.001}
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,9 @@ further down, where the densification strategy's opacity pruning removes them; t
 strategy's default prune_opacity, and T = 0.05). The value is log of a count, so it is ~log N when most
 primitives are opaque, as in the paper.
 
-All three are means over the current primitives (an empty model gives 0, still connected to the graph).
+All three are means over the current primitives (an empty model gives 0, still connected to the graph). With
+model-parallel training the model is one rank's share: the sums and counts then run over every rank's rows
+(`model.reduce_rows`, a differentiable all-reduce), so each rank's term and its gradients are the whole model's.
 """
 from __future__ import annotations
 
@@ -55,18 +57,27 @@ def mean_opacity(opacities: torch.Tensor) -> torch.Tensor:
     return o.sum() / max(o.numel(), 1)
 
 
+def scale_norms(scales: torch.Tensor) -> torch.Tensor:
+    """‖s_i‖₂ of [N, k] scales, [N]; the norm's gradient is guarded at s = 0."""
+    sq = (scales * scales).sum(-1)
+    return torch.where(sq > 0, sq.clamp_min(1e-30).sqrt(), torch.zeros_like(sq))
+
+
 def mean_scale_norm(scales: torch.Tensor) -> torch.Tensor:
-    """mean_i ‖s_i‖₂ of [N, k] scales; the norm's gradient is guarded at s = 0."""
+    """mean_i ‖s_i‖₂ of [N, k] scales."""
     if scales.numel() == 0:
         return scales.sum()
-    sq = (scales * scales).sum(-1)
-    norm = torch.where(sq > 0, sq.clamp_min(1e-30).sqrt(), torch.zeros_like(sq))
-    return norm.mean()
+    return scale_norms(scales).mean()
+
+
+def soft_on(opacities: torch.Tensor, tau: float, temperature: float) -> torch.Tensor:
+    """sigmoid((α_i - τ) / T), [N]: how much each primitive counts."""
+    return torch.sigmoid((opacities.reshape(-1) - tau) / temperature)
 
 
 def soft_count(opacities: torch.Tensor, tau: float, temperature: float) -> torch.Tensor:
     """Σ_i sigmoid((α_i - τ) / T)."""
-    return torch.sigmoid((opacities.reshape(-1) - tau) / temperature).sum()
+    return soft_on(opacities, tau, temperature).sum()
 
 
 def log_soft_count(opacities: torch.Tensor, tau: float, temperature: float) -> torch.Tensor:
@@ -80,19 +91,44 @@ def _opacities(model) -> torch.Tensor:
     return model.opacities
 
 
+def _sum_over_rows(model, per_row: torch.Tensor):
+    """(Σ per_row, number of rows) over the whole model: a model-parallel shard's `reduce_rows` adds the other
+    ranks' (in one all-reduce); a whole model has none."""
+    local = torch.stack([per_row.sum(), per_row.new_tensor(float(per_row.numel()))])
+    reduce = getattr(model, "reduce_rows", None)
+    total = local if reduce is None else reduce(local)
+    return total[0], total[1]
+
+
+def _mean_over_rows(model, per_row: torch.Tensor) -> torch.Tensor:
+    total, n = _sum_over_rows(model, per_row)
+    return total / n.clamp_min(1.0)
+
+
+def _sharded(model) -> bool:
+    return getattr(model, "reduce_rows", None) is not None
+
+
 @register_loss("opacity", outputs=(), weight=0.05)
 def opacity(render_out, batch, model, step) -> torch.Tensor:
     """L_o = mean_i α_i."""
+    if _sharded(model):
+        return _mean_over_rows(model, _opacities(model).reshape(-1))
     return mean_opacity(_opacities(model))
 
 
 @register_loss("scale", outputs=(), weight=0.008)
 def scale(render_out, batch, model, step) -> torch.Tensor:
     """L_s = mean_i ‖s_i‖₂."""
+    if _sharded(model):
+        return _mean_over_rows(model, scale_norms(model.scales))
     return mean_scale_norm(model.scales)
 
 
 @register_loss("count", outputs=(), weight=0.001)
 def count(render_out, batch, model, step) -> torch.Tensor:
     """L_count = log Σ_i sigmoid((α_i - τ) / T) (a differentiable log N, see the module doc)."""
+    if _sharded(model):
+        on, _ = _sum_over_rows(model, soft_on(_opacities(model), SETTINGS.count_tau, SETTINGS.count_temperature))
+        return torch.log(on + 1e-6)
     return log_soft_count(_opacities(model), SETTINGS.count_tau, SETTINGS.count_temperature)

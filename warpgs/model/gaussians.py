@@ -67,6 +67,9 @@ class GaussianModel(nn.Module):
 
     kind = "gaussians"
     num_scales = 3
+    # None on a whole model. On a model-parallel shard (train/model_parallel.py): a differentiable sum over every
+    # rank's value of a tensor, for losses that read the model (means, counts over all primitives; losses/gestalt.py).
+    reduce_rows = None
 
     def __init__(self, means, log_scales, quats, logit_opacities, sh0, shN,
                  extras: Optional[Mapping[str, torch.Tensor]] = None, active_sh_degree: int = 0):

@@ -87,6 +87,15 @@ class Ranks:
             self._call(what, lambda: dist.all_reduce(tensor, op=reduce_op))
         return tensor
 
+    def all_reduce_differentiable(self, tensor: torch.Tensor, what: str = "all_reduce") -> torch.Tensor:
+        """The sum of `tensor` over the ranks, as a new tensor whose backward sums the gradients over the ranks too
+        (each rank's loss reaches every rank's inputs). Every rank must call it, and run its backward, in step."""
+        if not self.enabled:
+            return tensor
+        from torch.distributed.nn.functional import all_reduce
+
+        return self._call(what, lambda: all_reduce(tensor))
+
     def broadcast_(self, tensor: torch.Tensor, what: str = "broadcast") -> torch.Tensor:
         """Rank 0's values of `tensor` on every rank, in place."""
         if self.enabled:

@@ -69,6 +69,8 @@ def shard_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strat
     keep = torch.arange(rows.start, rows.stop, device=model.means.device)
     update_rows(model, optimizer, keep=keep)
     strategy.select_statistics(keep)
+    # Losses that read the model (mean opacity, soft count, ...) sum over every rank's rows through this.
+    model.reduce_rows = lambda t: ranks.all_reduce_differentiable(t, what="a loss's sum over the primitives")
     budget = strategy.config.max_primitives
     share = ranks.shard(budget)
     strategy.config = dataclasses.replace(strategy.config, max_primitives=share.stop - share.start)
