@@ -35,10 +35,11 @@ def shard_model(model: GaussianModel, ranks: Ranks) -> GaussianModel:
     return GaussianModel.from_dict(state, device=model.means.device)
 
 
-def gather_model(shard: GaussianModel, ranks: Ranks) -> GaussianModel:
-    """The whole model from every rank's shard (on every rank), for checkpoints, PLY files and evaluation."""
+def gather_model(shard: GaussianModel, ranks: Ranks, device=None) -> GaussianModel:
+    """The whole model from every rank's shard (on every rank), for checkpoints, PLY files and evaluation; on
+    `device` (default: the shard's; each gathered parameter goes there as soon as it arrives)."""
     state = shard.to_dict()
-    device = shard.means.device
+    device = shard.means.device if device is None else torch.device(device)
     state["params"] = {name: ranks.all_gather_rows(p.detach(), what=f"gathering the model's {name}").cpu()
                        for name, p in shard.params.items()}
     return GaussianModel.from_dict(state, device=device)
@@ -78,12 +79,13 @@ def shard_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strat
 
 
 def gathered_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strategy, ranks: Ranks, *,
-                      budget: int):
+                      budget: int, device="cpu"):
     """(whole model, an optimizer over it with every rank's moments, a strategy with every rank's statistics and
     the whole `budget`), on every rank: the state a single process would hold, for a checkpoint that resumes on any
-    number of processes (and in either parallel mode). A collective: every rank calls it. The strategy's random
-    generator is this rank's (rank 0's goes into a checkpoint)."""
-    whole = gather_model(model, ranks)
+    number of processes (and in either parallel mode). A collective: every rank calls it. It is put together on
+    `device`, by default the CPU, so that a model whose shards fill the GPUs can still be saved. The strategy's
+    random generator is this rank's (rank 0's goes into a checkpoint)."""
+    whole = gather_model(model, ranks, device)
     groups, state = [], {}
     for group in optimizer.param_groups:
         name, (mine,) = group["name"], group["params"]
@@ -93,7 +95,7 @@ def gathered_training(model: GaussianModel, optimizer: torch.optim.Optimizer, st
         state[p] = {k: v for k, v in local.items() if k not in MOMENTS}
         for key in MOMENTS:  # every rank gathers both, present or not, so the collectives line up
             rows = local[key] if key in local else torch.zeros_like(mine)
-            state[p][key] = ranks.all_gather_rows(rows, what=f"gathering Adam's {key} of {name}").to(p.device)
+            state[p][key] = ranks.all_gather_rows(rows, what=f"gathering Adam's {key} of {name}").to(whole.device)
     whole_optimizer = type(optimizer)(groups, **optimizer.defaults)
     for p, st in state.items():
         if "step" in st:
@@ -101,5 +103,6 @@ def gathered_training(model: GaussianModel, optimizer: torch.optim.Optimizer, st
     whole_strategy = copy.copy(strategy)
     whole_strategy.config = dataclasses.replace(strategy.config, max_primitives=int(budget))
     for key in ("grad_accum", "count", "max_radii", "max_screen"):
-        setattr(whole_strategy, key, ranks.all_gather_rows(getattr(strategy, key), what=f"gathering the {key}"))
+        setattr(whole_strategy, key,
+                ranks.all_gather_rows(getattr(strategy, key), what=f"gathering the {key}").to(whole.device))
     return whole, whole_optimizer, whole_strategy
