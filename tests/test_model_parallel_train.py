@@ -77,6 +77,10 @@ def test_two_model_parallel_processes_match_one_and_resume(scene, tmp_path):
     # Rank 0 wrote the run's files, of the gathered model.
     metrics = json.loads((two / "metrics.json").read_text())
     assert metrics["num_views"] == 2 and metrics["num_primitives"] == 400
+    # Evaluated in rounds of one view per rank, each from both shards: one process's scores of its model.
+    mine = one.evaluate()
+    for name, scores in mine["per_view"].items():
+        assert metrics["per_view"][name]["psnr"] == pytest.approx(scores["psnr"], abs=1e-3), name
     assert GaussianModel.load_ply(two / "point_cloud.ply").num_primitives == 400
     log = [json.loads(line) for line in (two / "log.jsonl").read_text().splitlines()]
     assert [(e["type"], e["step"]) for e in log] == [("train", 4), ("train", 6), ("eval", 6)]
@@ -137,3 +141,20 @@ def test_a_model_parallel_batch_fills_rounds_of_one_view_per_rank():
     check_batch(4, 2)
     with pytest.raises(ValueError, match="train.batch_size: 3 is not a multiple of the 2 processes"):
         check_batch(3, 2)
+
+
+def test_evaluation_rounds_give_every_rank_the_same_number_of_renders_in_turn():
+    from types import SimpleNamespace
+
+    from warpgs.train.evaluation import _Rounds
+
+    views = [SimpleNamespace(name=f"v{i}") for i in range(5)]
+    for rank, want in ((0, [["v0", "v3"], ["v1", "v4"], ["v2", "v0"]]), (1, [["v0", "v3"], ["v1", "v4"], ["v2", "v0"]])):
+        calls = []
+        rounds = _Rounds(lambda cams: calls.append([c.name for c in cams]) or cams[rank].name, Ranks(rank, 2), views)
+        mine = views[Ranks(rank, 2).shard(5)]
+        got = [rounds.next(v) for v in mine]
+        rounds.finish()
+        assert got == [v.name for v in mine] and calls == want  # rank 1's share is used up: v0 stands in
+        with pytest.raises(RuntimeError, match="out of turn"):
+            _Rounds(lambda cams: None, Ranks(rank, 2), views).next(views[4])

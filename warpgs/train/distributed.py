@@ -60,9 +60,13 @@ class Ranks:
     # ----- sharing work out -------------------------------------------------------------------------------------
     def shard(self, n: int) -> slice:
         """This rank's contiguous part of n items (sizes differ by at most one; the first ranks get the extra)."""
+        return self.shard_of(n, self.rank)
+
+    def shard_of(self, n: int, rank: int) -> slice:
+        """Rank `rank`'s part of n items, as shard gives it on that rank."""
         base, extra = divmod(int(n), self.world_size)
-        start = self.rank * base + min(self.rank, extra)
-        return slice(start, start + base + (1 if self.rank < extra else 0))
+        start = rank * base + min(rank, extra)
+        return slice(start, start + base + (1 if rank < extra else 0))
 
     def derived_seed(self, seed: int, step: int) -> int:
         """A seed for this rank's own random streams (the global torch/numpy/python generators), from the run's

@@ -20,9 +20,13 @@ class Evaluator:
     `render(view) -> rgb [H, W, 3]` renders the current model (the trainer's render with its extensions);
     `views`, when given, is a TrainViews whose kept device copies are reused instead of loading a view again.
     `ranks` (a distributed run's Ranks): each rank scores a contiguous share of the views and writes their PNGs;
-    the scores are gathered, so every rank returns the same metrics, averaged in view order as one process does."""
+    the scores are gathered, so every rank returns the same metrics, averaged in view order as one process does.
+    `render_round(cameras) -> rgb` (model-parallel training, where a render needs every rank): renders one view per
+    rank together and returns this rank's; the ranks then go through their shares in rounds (one whose share is
+    used up renders a stand-in view and drops it), and `render` is not used."""
 
-    def __init__(self, scene, config: EvalConfig, device, out_dir, *, render: Callable, views=None, ranks=None):
+    def __init__(self, scene, config: EvalConfig, device, out_dir, *, render: Callable, views=None, ranks=None,
+                 render_round: Optional[Callable] = None):
         if not callable(render):
             raise ValueError(f"render: expected a callable view -> rgb, got {render!r}")
         self.scene, self.config, self.device = scene, config, torch.device(device)
@@ -30,6 +34,8 @@ class Evaluator:
         self.render = render
         self.views = views
         self.ranks = ranks
+        self.render_round = render_round
+        self._rounds: Optional[_Rounds] = None  # during a round-wise evaluation
         self.history: List[dict] = []
         self._chosen: Optional[tuple] = None  # (split, views) of evaluate()
         self._lpips: Optional[LPIPSMetric] = None
@@ -66,7 +72,7 @@ class Evaluator:
         images = {}
 
         def render(view):
-            rgb = self.render(view)
+            rgb = self.render(view) if self._rounds is None else self._rounds.next(view)
             if len(images) < keep_images:
                 images[view.name] = rgb.detach().clamp(0.0, 1.0).cpu()
             return rgb
@@ -84,10 +90,16 @@ class Evaluator:
         """evaluate_views over the ranks: this rank's share, then everyone's per-view scores (and kept images)."""
         lpips = self.lpips()
         mine = views[self.ranks.shard(len(views))]
-        if mine:
-            per_view = evaluate_views(render, mine, lpips=lpips, save_dir=save_dir)["per_view"]
-        else:  # fewer views than ranks
-            per_view = {}
+        self._rounds = _Rounds(self.render_round, self.ranks, views) if self.render_round is not None else None
+        try:
+            if mine:
+                per_view = evaluate_views(render, mine, lpips=lpips, save_dir=save_dir)["per_view"]
+            else:  # fewer views than ranks
+                per_view = {}
+            if self._rounds is not None:
+                self._rounds.finish()
+        finally:
+            self._rounds = None
         gathered = self.ranks.all_gather_object((per_view, images), what="gathering the evaluation scores")
         scores, kept = {}, {}
         for rank_scores, rank_images in gathered:
@@ -114,3 +126,30 @@ class Evaluator:
 
     def load_state_dict(self, state: dict) -> None:
         self.history = list(state.get("history", []))
+
+
+class _Rounds:
+    """The evaluation's renders in rounds of one view per rank (Evaluator's render_round): round k is the k-th
+    view of every rank's share; a rank whose share is used up renders the first view again and drops it, so every
+    rank makes the same number of round renders in the same order."""
+
+    def __init__(self, render_round: Callable, ranks, views: list):
+        self.render_round, self.rank = render_round, ranks.rank
+        self.shares = [views[ranks.shard_of(len(views), r)] for r in range(ranks.world_size)]
+        self.count, self.stand_in = max(len(s) for s in self.shares), views[0]
+        self.done = 0
+
+    def next(self, view):
+        if self.shares[self.rank][self.done] is not view:
+            raise RuntimeError(f"evaluation rounds: {view.name} out of turn")
+        return self._render()
+
+    def finish(self) -> None:
+        while self.done < self.count:
+            self._render()
+
+    def _render(self):
+        k = self.done
+        cameras = [share[k] if k < len(share) else self.stand_in for share in self.shares]
+        self.done += 1
+        return self.render_round(cameras)

@@ -142,9 +142,7 @@ class TrainingLoop:
 
     def _periodic_eval(self) -> None:
         tr = self.trainer
-        with tr.whole_model():  # train.parallel=model: gathered for the evaluation
-            entry, m = tr.evaluator.periodic(tr.step, tr.model.num_primitives, tr.train_seconds,
-                                             keep_images=tr.log.images)
+        entry, m = tr.evaluator.periodic(tr.step, tr.num_primitives, tr.train_seconds, keep_images=tr.log.images)
         tr.log.eval(tr.step, m, num_primitives=entry["num_primitives"], train_seconds=tr.train_seconds)
         lp = f" lpips {m['lpips']:.4f}" if m["lpips"] is not None else ""
         self.say(f"[eval {m['split']} @ {tr.step}] psnr {m['psnr']:.2f} ssim {m['ssim']:.4f}{lp} "
@@ -155,10 +153,10 @@ class TrainingLoop:
         tr, cfg = self.trainer, self.trainer.config
         if tr.step != tr.checkpointer.last_step:
             tr.save_checkpoint()
-        with tr.whole_model():  # train.parallel=model: the PLY and the evaluation are of the gathered model
+        with tr.whole_model() as whole:  # train.parallel=model: the shards gathered (in CPU memory) for the file
             if tr.ranks.is_main:
-                tr.model.save_ply(tr.out_dir / cfg.output.ply)
-            m = tr.evaluator.evaluate(save_images=cfg.eval.save_images, keep_images=tr.log.images)
+                whole.save_ply(tr.out_dir / cfg.output.ply)
+        m = tr.evaluator.evaluate(save_images=cfg.eval.save_images, keep_images=tr.log.images)
         tr.log.eval(tr.step, m, num_primitives=tr.num_primitives, train_seconds=tr.train_seconds, final=True)
         metrics = {"split": m["split"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"]}
         if "lpips_unavailable" in m:

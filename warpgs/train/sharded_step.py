@@ -79,21 +79,10 @@ def view_pass_sharded(trainer, cameras, step: int, *, views_in_loss: int, densif
     """One round: this rank's camera (cameras[rank]) rendered from every shard, scored, back-propagated (its share
     loss / views_in_loss). Returns (ViewPass of this rank's view, [(camera, [N] bool: this rank's rows that
     its blend binned, [N,2] their dL/dmeans2d)] for every camera of the round when densifying, else [])."""
-    model, ranks, cfg = trainer.model, trainer.ranks, trainer.config
+    model, ranks = trainer.model, trainer.ranks
     view = cameras[ranks.rank]
     batch = trainer.make_batch(view, step)
-    outputs = trainer.outputs_at(step)
-    extra = [o for e in trainer.extensions for o in e.outputs() if o not in outputs]
-    outputs = tuple(outputs) + tuple(dict.fromkeys(extra))
-    options = cfg.train.render_options()
-    if options.pop("max_sigmas"):
-        raise ValueError("train.max_sigmas: footprint truncation is not supported with train.parallel=model")
-    out = render_shard(model, torch.stack([c.viewmat for c in cameras]), torch.stack([c.K for c in cameras]),
-                       [c.width for c in cameras], [c.height for c in cameras], outputs=outputs,
-                       background=trainer.background, inputs=trainer.render_inputs(batch, step, outputs),
-                       track_means2d=densify, **options)
-    for ext in trainer.extensions:
-        out = ext.after_render(trainer, out, batch, step)
+    out = render_round(trainer, cameras, trainer.outputs_at(step), batch, step, track_means2d=densify)
     result = trainer.loss_set(out, batch, model, step, trainer.max_steps)
     if first:
         trainer.strategy.step_pre_backward(model, step)
@@ -110,3 +99,22 @@ def view_pass_sharded(trainer, cameras, step: int, *, views_in_loss: int, densif
         return p, []
     grads = out.means2d.grad if out.means2d.grad is not None else torch.zeros_like(out.means2d)
     return p, [(cam, out.seen[j], grads[j]) for j, cam in enumerate(cameras)]
+
+
+def render_round(trainer, cameras, outputs, batch: dict, step: int, *, track_means2d: bool = False):
+    """This rank's camera of the round (cameras: one view per rank, the same list on every rank) rendered from every
+    shard, with the outputs the extensions add and their after_render, as Trainer.render does for one view. A
+    collective: every rank calls it with the same cameras."""
+    cfg = trainer.config
+    extra = [o for e in trainer.extensions for o in e.outputs() if o not in outputs]
+    outputs = tuple(outputs) + tuple(dict.fromkeys(extra))
+    options = cfg.train.render_options()
+    if options.pop("max_sigmas"):
+        raise ValueError("train.max_sigmas: footprint truncation is not supported with train.parallel=model")
+    out = render_shard(trainer.model, torch.stack([c.viewmat for c in cameras]), torch.stack([c.K for c in cameras]),
+                       [c.width for c in cameras], [c.height for c in cameras], outputs=outputs,
+                       background=trainer.background, inputs=trainer.render_inputs(batch, step, outputs),
+                       track_means2d=track_means2d, **options)
+    for ext in trainer.extensions:
+        out = ext.after_render(trainer, out, batch, step)
+    return out

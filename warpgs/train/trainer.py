@@ -88,6 +88,9 @@ class Trainer:
         self.model_parallel = cfg.train.parallel == "model" and self.ranks.enabled
         if self.model_parallel:
             sharded_step.check_batch(self.batch_size, self.ranks.world_size)
+            if cfg.train.viewer:
+                raise ValueError("train.viewer: not available with train.parallel=model (each process holds only a "
+                                 "share of the primitives); view the output folder afterwards with warpgs-view")
         terms = resolve_terms(cfg.losses)
 
         if out_dir is not None:
@@ -157,7 +160,7 @@ class Trainer:
         self.views = TrainViews(self.scene, self.device, seed=cfg.train.seed, preload=cfg.data.preload)
         self.evaluator = Evaluator(self.scene, cfg.eval, self.device, self.out_dir,
                                    render=lambda v: self.render(v, ("rgb",)).rgb, views=self.views,
-                                   ranks=self.ranks)
+                                   ranks=self.ranks, render_round=self._render_round if self.model_parallel else None)
         self.counters = RunCounters()
         self._at_boundary = True
         self.stop_requested = False  # set by the loop on Ctrl-C (distributed runs stop together, see train_step)
@@ -217,19 +220,19 @@ class Trainer:
         return self.num_primitives
 
     @contextlib.contextmanager
-    def whole_model(self, with_state: bool = False):
+    def whole_model(self, with_state: bool = False, device="cpu"):
         """With train.parallel=model: the whole model (and with_state: its optimizer and strategy) gathered from
-        every rank's share and in place of the shard until the block ends, for evaluation, PLY files and
+        every rank's share onto `device` and in place of the shard until the block ends, for PLY files and
         checkpoints in the single-process format. A collective: every rank enters it. Otherwise a no-op."""
         if not self.model_parallel:
             yield self.model
             return
         shard, optimizer, strategy = self.model, self.optimizer, self.strategy
         if with_state:
-            whole, self.optimizer, self.strategy = gathered_training(shard, optimizer, strategy, self.ranks,
-                                                                     budget=self.config.strategy.max_primitives)
+            whole, self.optimizer, self.strategy = gathered_training(
+                shard, optimizer, strategy, self.ranks, budget=self.config.strategy.max_primitives, device=device)
         else:
-            whole = gather_model(shard, self.ranks)
+            whole = gather_model(shard, self.ranks, device)
         whole.active_sh_degree = shard.active_sh_degree
         self.model = whole
         try:
@@ -382,8 +385,14 @@ class Trainer:
         return self.evaluator.lpips()
 
     def evaluate(self, *, save_images: bool = False, max_views: int = 0) -> dict:
-        with self.whole_model():
-            return self.evaluator.evaluate(save_images=save_images, max_views=max_views)
+        return self.evaluator.evaluate(save_images=save_images, max_views=max_views)
+
+    @torch.no_grad()
+    def _render_round(self, cameras) -> torch.Tensor:
+        """train.parallel=model: this rank's camera of an evaluation round (one view per rank), from every shard."""
+        view = cameras[self.ranks.rank]
+        out = sharded_step.render_round(self, cameras, ("rgb",), self.make_batch(view, self.step), self.step)
+        return out.rgb
 
     def training_state(self) -> TrainingState:
         """The parts a checkpoint holds, as they are now."""
