@@ -18,6 +18,8 @@ equal work. Reported per run, from rank 0's log.jsonl and metrics.json:
 - time_to_target_s: training seconds until a periodic held-out evaluation first reached --target-psnr
   (null when none did), and the PSNR/time of every evaluation;
 - final held-out PSNR, primitives, steps and the scaling efficiency views_per_s(N) / (N x views_per_s(1)).
+- peak_gpu_memory_gb: rank 0's peak of allocated GPU memory (CUDA runs). With train.parallel=model (pass it as
+  an override) this is what partitioning the primitives saves per GPU.
 
 Writes benchmarks/results/distributed_<device>[_<tag>].json ($OUT when set). The first run generates and caches the
 scene at --size in the unreported warm-up run (its views are ray traced on up to 8 threads at once; one at a time,
@@ -90,6 +92,8 @@ def run_one(nproc: int, args, out: Path) -> dict:
             "views_per_s": metrics["steps"] * batch / max(metrics["train_seconds"], 1e-9),
             "steady_views_per_s": steady_views_per_s(evals),
             "final_psnr": metrics["psnr"], "num_primitives": metrics["num_primitives"],
+            "peak_gpu_memory_gb": (metrics["peak_gpu_memory_bytes"] / 1e9 if "peak_gpu_memory_bytes" in metrics
+                                   else None),
             "time_to_target_s": None if reached is None else reached["train_seconds"],
             "views_to_target": None if reached is None else reached["views_seen"], "evals": evals}
 
@@ -160,7 +164,7 @@ def main(argv=None) -> dict:
         payload["gpu"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     print_table(runs, ["nproc", "batch_size", "steps", "views_per_s", "scaling_efficiency", "steady_views_per_s",
                        "steady_speedup", "final_psnr",
-                       "time_to_target_s", "num_primitives"])
+                       "time_to_target_s", "num_primitives", "peak_gpu_memory_gb"])
     name = f"distributed_{args.device.split(':')[0]}" + (f"_{args.tag}" if args.tag else "")
     print(f"wrote {write_json(name, payload)}")
     return payload

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, List, Optional
 
+import torch
+
 from warpgs.metrics.views import write_json
 from warpgs.train.distributed import DistributedError
 from warpgs.train.guard import NonFiniteError
@@ -161,6 +163,8 @@ class TrainingLoop:
         metrics = {"split": m["split"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"]}
         if "lpips_unavailable" in m:
             metrics["lpips_unavailable"] = m["lpips_unavailable"]
+        if tr.device.type == "cuda":  # rank 0's peak (with train.parallel=model: one share's)
+            metrics["peak_gpu_memory_bytes"] = int(torch.cuda.max_memory_allocated(tr.device))
         metrics.update({"num_primitives": tr.num_primitives, "steps": tr.step,
                         "train_seconds": round(tr.train_seconds, 3), "num_views": m["num_views"],
                         "model_kind": tr.model.kind, "device": str(tr.device), "scene": str(tr.scene.root),
