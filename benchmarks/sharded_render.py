@@ -8,7 +8,7 @@ Every rank builds the same standard scene (../shared/bench/scenes.py) and keeps 
 is the scene's, moved sideways by r x --baseline. Interleaved rounds on every rank, medians in ms:
 - whole: `rasterize` of all N primitives for this rank's camera (one GPU holding the whole model);
 - sharded: `render_sharded` of the shards for every rank's camera (each rank holding N/R), with the exchange.
-Also the splats sent per step (rows of 13 floats, and the padding gloo's equal blocks add). Model parallelism buys
+Also the splats sent per step (rows of 13 floats; blocks travel at their own sizes). Model parallelism buys
 memory (N/R primitives, their Adam state and gradients a rank), not speed: `sharded / whole` is its cost per view.
 Writes benchmarks/results/sharded_render_<device>[_<tag>].json ($OUT when set) from rank 0."""
 from __future__ import annotations
@@ -91,12 +91,10 @@ def main(argv=None) -> dict:
     dist.destroy_process_group()
     if rank != 0:
         return {}
-    longest = max(max(r["rows_sent_to"]) for r in everyone)
     payload = {"device": args.device, "gpu": torch.cuda.get_device_name(0) if cuda else None, "ranks": world,
                "n": args.primitives, "size": [W, H], "rounds": args.rounds, "per_rank": everyone,
                "splat_bytes": SPLAT_COLUMNS * 4,
                "bytes_sent_per_step": sum(sum(r["rows_sent_to"]) for r in everyone) * SPLAT_COLUMNS * 4,
-               "bytes_with_padding_per_step": world * world * longest * SPLAT_COLUMNS * 4,
                "sharded_over_whole": [r["sharded_ms"] / r["whole_ms"] for r in everyone],
                "command": " ".join(sys.argv)}
     if not cuda:

@@ -137,7 +137,8 @@ def test_the_sharded_render_benchmark_runs_on_two_gloo_ranks(tmp_path, monkeypat
     result = json.loads((tmp_path / "sharded_render_cpu_test.json").read_text())
     assert result["ranks"] == 2 and len(result["per_rank"]) == 2
     assert [r["primitives"] for r in result["per_rank"]] == [200, 200]
-    assert 0 < result["bytes_sent_per_step"] <= result["bytes_with_padding_per_step"]
+    rows = sum(sum(r["rows_sent_to"]) for r in result["per_rank"])
+    assert 0 < rows and result["bytes_sent_per_step"] == rows * result["splat_bytes"]
 
 
 TERMS_WORKER = r'''

@@ -1,7 +1,7 @@
 """Differentiable all-to-all of row blocks whose sizes differ between ranks: rank r sends sends[j] to rank j and
 receives one block from every rank; the backward pass sends each received block's gradient back to its sender.
-gloo's all-to-all takes only equal blocks, so every block travels padded to the largest one in the group (the
-cost of the padding is the rows the busiest rank would send anyway; NCCL could take uneven splits directly)."""
+The block sizes go first (a small all-to-all), then every block travels at its own size in one uneven
+all_to_all_single (gloo and NCCL both take split sizes), so no rank sends padding."""
 from __future__ import annotations
 
 from typing import List, Optional, Sequence
@@ -17,19 +17,16 @@ def _all_to_all_rows(sends: Sequence[torch.Tensor], group) -> List[torch.Tensor]
     columns = sends[0].shape[1]
     if any(s.dim() != 2 or s.shape[1] != columns for s in sends):
         raise ValueError(f"sends: every block must be [rows, {columns}], got {[tuple(s.shape) for s in sends]}")
-    device, dtype = sends[0].device, sends[0].dtype
+    device = sends[0].device
     counts = torch.tensor([s.shape[0] for s in sends], dtype=torch.int64, device=device)
     received_counts = torch.empty_like(counts)
     dist.all_to_all_single(received_counts, counts, group=group)
-    longest = counts.max().clone()
-    dist.all_reduce(longest, op=dist.ReduceOp.MAX, group=group)
-    rows = int(longest)
-    outgoing = torch.zeros(world, rows, columns, dtype=dtype, device=device)
-    for j, block in enumerate(sends):
-        outgoing[j, : block.shape[0]] = block
-    incoming = torch.empty_like(outgoing)
-    dist.all_to_all_single(incoming, outgoing, group=group)
-    return [incoming[j, : int(n)] for j, n in enumerate(received_counts.tolist())]
+    out_sizes, in_sizes = received_counts.tolist(), counts.tolist()
+    outgoing = torch.cat([s.contiguous() for s in sends])
+    incoming = outgoing.new_empty((sum(out_sizes), columns))
+    dist.all_to_all_single(incoming, outgoing, output_split_sizes=out_sizes, input_split_sizes=in_sizes,
+                           group=group)
+    return list(incoming.split(out_sizes))
 
 
 class _ExchangeRows(torch.autograd.Function):
