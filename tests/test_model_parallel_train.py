@@ -158,3 +158,27 @@ def test_evaluation_rounds_give_every_rank_the_same_number_of_renders_in_turn():
         assert got == [v.name for v in mine] and calls == want  # rank 1's share is used up: v0 stands in
         with pytest.raises(RuntimeError, match="out of turn"):
             _Rounds(lambda cams: None, Ranks(rank, 2), views).next(views[4])
+
+
+def test_a_share_built_in_cpu_memory_moves_to_its_device_with_its_optimizer_state():
+    # A model-parallel run builds the whole model in CPU memory and moves only its share to the GPU; "meta" stands
+    # in for the GPU here (the move is the same call).
+    from warpgs.train.model_parallel import move_training
+
+    n = 6
+    model = GaussianModel(torch.randn(n, 3), torch.randn(n, 3), torch.randn(n, 4), torch.randn(n),
+                          torch.rand(n, 1, 3), torch.zeros(n, 3, 3))
+    opt = build_optimizer(model)
+    for p in model.params.values():
+        p.grad = torch.ones_like(p)
+    opt.step()
+    strategy = DensifyStrategy()
+    strategy.initialize(model)
+    move_training(model, opt, strategy, "meta")
+    for group in opt.param_groups:
+        (p,) = group["params"]
+        assert p is model.params[group["name"]] and p.device.type == "meta"
+        state = opt.state[p]
+        assert state["exp_avg"].device.type == "meta" and state["exp_avg_sq"].device.type == "meta"
+        assert state["step"].device.type == "cpu"  # Adam keeps its step count on the CPU
+    assert {getattr(strategy, k).device.type for k in ("grad_accum", "count", "max_radii", "max_screen")} == {"meta"}

@@ -224,18 +224,24 @@ class Ranks:
         self.owns_group = False
 
 
-def sync_model(ranks: Ranks, model, device):
+def sync_model(ranks: Ranks, model, device, via=None):
     """Rank 0's model on every rank. Every rank builds the initial model itself (from the same seed, so normally
     identically); its values are then overwritten with rank 0's, in place, so a nondeterministic initialisation
     (threaded SfM, a user's model) cannot start the ranks apart. Where the shapes differ, rank 0's whole model
-    replaces this one. Returns the model to use."""
+    replaces this one. Returns the model to use, on `device`. via: the device the collectives run on when it is not
+    the model's (NCCL needs the GPU; a model-parallel run keeps the whole model in CPU memory), one parameter at a
+    time."""
     if not ranks.enabled:
         return model
+    via = torch.device(device if via is None else via)
     shapes = {name: tuple(p.shape) for name, p in model.params.items()}
     if all(s == shapes for s in ranks.all_gather_object(shapes, what="comparing the initial models")):
         with torch.no_grad():
             for name, p in model.params.items():
-                ranks.broadcast_(p.data, what=f"broadcasting the initial {name}")
+                values = p.data if p.device == via else p.data.to(via)
+                ranks.broadcast_(values, what=f"broadcasting the initial {name}")
+                if values is not p.data:
+                    p.data.copy_(values)
         return model
     from warpgs.model.gaussians import GaussianModel
 

@@ -19,7 +19,7 @@ from warpgs.model.gaussians import GaussianModel
 from warpgs.render.gaussians import RenderOutput
 from warpgs.render.sharded import render_sharded
 from warpgs.train.distributed import Ranks
-from warpgs.train.optim import update_rows
+from warpgs.train.optim import move_parameters, update_rows
 
 MOMENTS = ("exp_avg", "exp_avg_sq")  # Adam's per-row state; "step" is a scalar, the same on every rank
 
@@ -76,6 +76,14 @@ def shard_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strat
     share = ranks.shard(budget)
     strategy.config = dataclasses.replace(strategy.config, max_primitives=share.stop - share.start)
     return rows
+
+
+def move_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strategy, device) -> None:
+    """Put the model's parameters, their optimizer moments and the strategy's statistics on `device`, in place
+    (a model-parallel rank's share, built in CPU memory, onto its GPU)."""
+    move_parameters(model, optimizer, device)
+    for key in ("grad_accum", "count", "max_radii", "max_screen"):
+        setattr(strategy, key, getattr(strategy, key).to(device))
 
 
 def gathered_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strategy, ranks: Ranks, *,

@@ -176,6 +176,17 @@ def update_rows(model: GaussianModel, optimizers: Optimizers, keep: Optional[tor
         model.params[name] = new
 
 
+def move_parameters(model: GaussianModel, optimizers: Optimizers, device) -> None:
+    """Every parameter of `model` and its per-row optimizer state onto `device`, in place (scalars such as Adam's
+    `step` stay where the optimizer keeps them)."""
+    device = torch.device(device)
+    for name, old in list(model.params.items()):
+        if old.device != device:
+            new = nn.Parameter(old.detach().to(device), requires_grad=old.requires_grad)
+            _swap(_optimizer_list(optimizers), old, new, lambda v: v.to(device))
+            model.params[name] = new
+
+
 def set_param_values(model: GaussianModel, optimizers: Optimizers, name: str, values: torch.Tensor,
                      reset_state: bool = True) -> None:
     """Replace one parameter's values (same shape), zeroing its Adam moments (as 3DGS's opacity reset)."""

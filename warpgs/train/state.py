@@ -77,8 +77,8 @@ class Checkpointer:
             raise FileNotFoundError(f"--resume: no checkpoint at {self.path}")
         return ckpt.load_checkpoint(self.path)
 
-    def model_from(self, state: dict) -> GaussianModel:
-        return GaussianModel.from_dict(state["model"], device=self.device)
+    def model_from(self, state: dict, device=None) -> GaussianModel:
+        return GaussianModel.from_dict(state["model"], device=self.device if device is None else device)
 
     def restore(self, state: dict, parts: TrainingState) -> None:
         """Put a loaded checkpoint back into the parts (the model itself was built from it by model_from)."""

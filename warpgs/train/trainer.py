@@ -46,7 +46,7 @@ from warpgs.model import environment  # noqa: F401  (registers the built-in "env
 from warpgs.train import setup as train_setup
 from warpgs.train import step as training_step
 from warpgs.train import sharded_step
-from warpgs.train.model_parallel import gather_model, gathered_training, shard_training
+from warpgs.train.model_parallel import gather_model, gathered_training, move_training, shard_training
 from warpgs.train.batch import ViewPass
 from warpgs.train.distributed import DistributedError, setup_ranks, sync_model
 from warpgs.train.evaluation import Evaluator
@@ -113,13 +113,15 @@ class Trainer:
 
         state = self.checkpointer.load() if resume else None
         ckpt.seed_everything(cfg.train.seed)
+        # train.parallel=model: the whole model is built (or loaded) in CPU memory; each rank's GPU gets its share.
+        model_device = torch.device("cpu") if self.model_parallel else self.device
         if state is not None:
-            self.model, self.init_source = self.checkpointer.model_from(state), "checkpoint"
+            self.model, self.init_source = self.checkpointer.model_from(state, model_device), "checkpoint"
         elif model is not None:
-            self.model, self.init_source = model.to(self.device), "given"
+            self.model, self.init_source = model.to(model_device), "given"
         else:
             self.model, self.init_source = self.ranks.rank0_first(  # triangulated points are cached
-                lambda: train_setup.build_model(self.scene, cfg, self.device), "building the initial model")
+                lambda: train_setup.build_model(self.scene, cfg, model_device), "building the initial model")
         if self.model.kind != cfg.model.kind:
             raise ValueError(f"model.kind: config says {cfg.model.kind!r} but the model is {self.model.kind!r}")
 
@@ -132,7 +134,7 @@ class Trainer:
         for ext in self.extensions:
             ext.setup(self)
         if self.ranks.enabled:  # every rank starts from rank 0's values (the same as one process would)
-            self.model = sync_model(self.ranks, self.model, self.device)
+            self.model = sync_model(self.ranks, self.model, model_device, via=self.device)
             with torch.no_grad():
                 for name, p in self.modules.named_parameters():
                     self.ranks.broadcast_(p.data, what=f"broadcasting the initial modules.{name}")
@@ -178,6 +180,7 @@ class Trainer:
         self._total_primitives = self.model.num_primitives
         if self.model_parallel:  # built (or resumed) whole, alike on every rank; from here on each keeps its share
             shard_training(self.model, self.optimizer, self.strategy, self.ranks)
+            move_training(self.model, self.optimizer, self.strategy, self.device)
             # Split samples differ per owner (a checkpoint holds rank 0's generator, so a resume reseeds too).
             self.strategy.generator.manual_seed(self.ranks.derived_seed(cfg.strategy.seed, self.step))
         if self.ranks.enabled:
