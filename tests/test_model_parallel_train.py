@@ -10,7 +10,7 @@ import sys
 import pytest
 import torch
 
-from test_distributed import LAUNCH_TIMEOUT, _env, _overrides
+from test_distributed import LAUNCH_TIMEOUT, _env, _free_port, _overrides
 from warpgs.data.formats.synthetic import RigSettings, write_synthetic_scene
 from warpgs.model.gaussians import GaussianModel, SurfelModel
 from warpgs.train.checkpoint import load_checkpoint
@@ -182,3 +182,40 @@ def test_a_share_built_in_cpu_memory_moves_to_its_device_with_its_optimizer_stat
         assert state["exp_avg"].device.type == "meta" and state["exp_avg_sq"].device.type == "meta"
         assert state["step"].device.type == "cpu"  # Adam keeps its step count on the CPU
     assert {getattr(strategy, k).device.type for k in ("grad_accum", "count", "max_radii", "max_screen")} == {"meta"}
+
+
+NAN_LOSS = '''
+import torch.distributed as dist
+from warpgs.losses.registry import register_loss
+
+@register_loss("test_nan_on_rank1", outputs=(), weight=1.0, overwrite=True)
+def nan_on_rank1(render_out, batch, model, step):
+    """A finite value (0) whose gradient is NaN on rank 1's rows only, at step 2: d sqrt(|x|) at x = 0."""
+    zero = (model.means[:1, 0] * 0.0).sum()
+    bad = step == 2 and dist.is_initialized() and dist.get_rank() == 1
+    return zero.abs().sqrt() if bad else zero
+'''
+
+
+def test_non_finite_gradients_on_one_rank_stop_both_at_that_step(scene, tmp_path):
+    # With train.parallel=model each rank checks only its own rows: the other rank learns of it through the step's
+    # all-reduce and stops too (exit 3) instead of waiting in the next collective. Ranks started directly (no
+    # torchrun agent that would stop the survivor for it).
+    loss = tmp_path / "nan_loss.py"
+    loss.write_text(NAN_LOSS)
+    overrides = _overrides(scene, tmp_path / "run", K, **SETTINGS, **{"imports": f"[{loss}]",
+                                                                       "losses.test_nan_on_rank1": 1.0})
+    port = _free_port()
+    procs = [subprocess.Popen([sys.executable, "-m", "warpgs.cli", "train", *overrides, "train.parallel=model"],
+                              env=_env(RANK=r, LOCAL_RANK=r, WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=port),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in (0, 1)]
+    try:
+        outputs = [p.communicate(timeout=LAUNCH_TIMEOUT) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for rank, (p, (_, err)) in enumerate(zip(procs, outputs)):
+        assert p.returncode == 3, f"rank {rank}: {err[-2000:]}"  # EXIT_NONFINITE
+    assert "step 2" in outputs[0][1] and "another rank's gradients are not finite" in outputs[0][1]
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()

@@ -59,15 +59,16 @@ def train_step_sharded(trainer) -> dict:
     if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied
         trainer.check_finite(step, result)
         if nonfinite_elsewhere:
-            raise NonFiniteError(f"step {step}: another rank's gradients are not finite (its log names them)")
+            raise NonFiniteError(step, "another rank", "another rank's gradients are not finite (that rank's error "
+                                                       "names the first offender)")
     for opt in trainer.optimizers:
         opt.step()
     report = None
     if densify:  # each owner its own rows in every camera, after the optimizer step as in train/step.py
-        observed = (trainer.strategy.observe(model, visible=sent, viewmat=cam.viewmat, K=cam.K, width=cam.width,
+        observed = (trainer.strategy.observe(model, visible=binned, viewmat=cam.viewmat, K=cam.K, width=cam.width,
                                              height=cam.height, grad2d=grad2d, near=cfg.train.near,
                                              views_in_loss=len(drawn))
-                    for cam, sent, grad2d in seen)
+                    for cam, binned, grad2d in seen)
         trainer.strategy.add_observations(trainer.strategy.merge_observations(observed))
         report = trainer.strategy.maybe_refine(model, trainer.optimizer, step)
         if report is not None:  # refine steps are the same on every rank
