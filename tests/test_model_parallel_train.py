@@ -17,7 +17,7 @@ from warpgs.train.checkpoint import load_checkpoint
 from warpgs.train.distributed import Ranks
 from warpgs.train.model_parallel import shard_training
 from warpgs.train.optim import build_optimizer
-from warpgs.train.sharded_step import check_batch
+from warpgs.train.sharded_step import check_config
 from warpgs.train.strategy import DensifyStrategy, StrategyConfig
 from warpgs.train.trainer import Trainer
 
@@ -137,10 +137,16 @@ def test_a_shard_is_its_rows_of_model_optimizer_and_statistics_and_its_share_of_
         shard_training(surfels, build_optimizer(surfels), DensifyStrategy(), Ranks(0, 2))
 
 
-def test_a_model_parallel_batch_fills_rounds_of_one_view_per_rank():
-    check_batch(4, 2)
+def test_model_parallel_settings_are_checked_before_anything_is_built():
+    from warpgs.config.schema import TrainConfig
+
+    check_config(TrainConfig(batch_size=4), 2)
     with pytest.raises(ValueError, match="train.batch_size: 3 is not a multiple of the 2 processes"):
-        check_batch(3, 2)
+        check_config(TrainConfig(batch_size=3), 2)
+    with pytest.raises(ValueError, match="train.max_sigmas"):
+        check_config(TrainConfig(batch_size=2, max_sigmas=3.0), 2)
+    with pytest.raises(ValueError, match="train.viewer"):
+        check_config(TrainConfig(batch_size=2, viewer=True), 2)
 
 
 def test_evaluation_rounds_give_every_rank_the_same_number_of_renders_in_turn():

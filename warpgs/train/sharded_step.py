@@ -21,12 +21,19 @@ from warpgs.train.optim import update_learning_rates
 from warpgs.train.step import end_step
 
 
-def check_batch(batch_size: int, world_size: int) -> None:
-    """A step renders rounds of one view per rank: the batch must fill them."""
-    if batch_size % world_size:
-        raise ValueError(f"train.batch_size: {batch_size} is not a multiple of the {world_size} processes; with "
-                         f"train.parallel=model every rank renders one view of each round (e.g. "
+def check_config(train, world_size: int) -> None:
+    """What train.parallel=model needs of the train section, checked before anything is built: rounds of one view
+    per rank that the batch fills, no footprint truncation (the splat exchange's culling does not take it), no live
+    viewer (each process holds only a share of the primitives)."""
+    if train.batch_size % world_size:
+        raise ValueError(f"train.batch_size: {train.batch_size} is not a multiple of the {world_size} processes; "
+                         f"with train.parallel=model every rank renders one view of each round (e.g. "
                          f"train.batch_size={world_size})")
+    if train.max_sigmas:
+        raise ValueError("train.max_sigmas: footprint truncation is not supported with train.parallel=model")
+    if train.viewer:
+        raise ValueError("train.viewer: not available with train.parallel=model (each process holds only a share "
+                         "of the primitives); view the output folder afterwards with warpgs-view")
 
 
 def train_step_sharded(trainer) -> dict:
@@ -110,8 +117,7 @@ def render_round(trainer, cameras, outputs, batch: dict, step: int, *, track_mea
     extra = [o for e in trainer.extensions for o in e.outputs() if o not in outputs]
     outputs = tuple(outputs) + tuple(dict.fromkeys(extra))
     options = cfg.train.render_options()
-    if options.pop("max_sigmas"):
-        raise ValueError("train.max_sigmas: footprint truncation is not supported with train.parallel=model")
+    options.pop("max_sigmas")  # 0: check_config
     out = render_shard(trainer.model, torch.stack([c.viewmat for c in cameras]), torch.stack([c.K for c in cameras]),
                        [c.width for c in cameras], [c.height for c in cameras], outputs=outputs,
                        background=trainer.background, inputs=trainer.render_inputs(batch, step, outputs),

@@ -87,10 +87,7 @@ class Trainer:
         # there is nothing to share and the run is the usual one.
         self.model_parallel = cfg.train.parallel == "model" and self.ranks.enabled
         if self.model_parallel:
-            sharded_step.check_batch(self.batch_size, self.ranks.world_size)
-            if cfg.train.viewer:
-                raise ValueError("train.viewer: not available with train.parallel=model (each process holds only a "
-                                 "share of the primitives); view the output folder afterwards with warpgs-view")
+            sharded_step.check_config(cfg.train, self.ranks.world_size)
         terms = resolve_terms(cfg.losses)
 
         if out_dir is not None:
