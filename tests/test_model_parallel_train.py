@@ -138,15 +138,21 @@ def test_a_shard_is_its_rows_of_model_optimizer_and_statistics_and_its_share_of_
 
 
 def test_model_parallel_settings_are_checked_before_anything_is_built():
-    from warpgs.config.schema import TrainConfig
+    from warpgs.cli.commands import resolve_config_source
+    from warpgs.config.loader import load_config
 
-    check_config(TrainConfig(batch_size=4), 2)
+    def config(*overrides):
+        return load_config(resolve_config_source("default"), list(overrides))
+
+    check_config(config("train.batch_size=4"), 2)
     with pytest.raises(ValueError, match="train.batch_size: 3 is not a multiple of the 2 processes"):
-        check_config(TrainConfig(batch_size=3), 2)
+        check_config(config("train.batch_size=3"), 2)
     with pytest.raises(ValueError, match="train.max_sigmas"):
-        check_config(TrainConfig(batch_size=2, max_sigmas=3.0), 2)
+        check_config(config("train.batch_size=2", "train.max_sigmas=3.0"), 2)
     with pytest.raises(ValueError, match="train.viewer"):
-        check_config(TrainConfig(batch_size=2, viewer=True), 2)
+        check_config(config("train.batch_size=2", "train.viewer=true"), 2)
+    with pytest.raises(ValueError, match="3D Gaussians only"):
+        check_config(config("train.batch_size=2", "model.kind=surfels"), 2)
 
 
 def test_evaluation_rounds_give_every_rank_the_same_number_of_renders_in_turn():

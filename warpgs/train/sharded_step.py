@@ -21,10 +21,14 @@ from warpgs.train.optim import update_learning_rates
 from warpgs.train.step import end_step
 
 
-def check_config(train, world_size: int) -> None:
-    """What train.parallel=model needs of the train section, checked before anything is built: rounds of one view
-    per rank that the batch fills, no footprint truncation (the splat exchange's culling does not take it), no live
-    viewer (each process holds only a share of the primitives)."""
+def check_config(cfg, world_size: int) -> None:
+    """What train.parallel=model needs of a config, checked before anything is built: 3D Gaussians, rounds of one
+    view per rank that the batch fills, no footprint truncation (the splat exchange's culling does not take it), no
+    live viewer (each process holds only a share of the primitives)."""
+    if cfg.model.kind != "gaussians":
+        raise ValueError(f"train.parallel=model: model.kind={cfg.model.kind}; model-parallel rendering exists for 3D "
+                         f"Gaussians only (use train.parallel=data)")
+    train = cfg.train
     if train.batch_size % world_size:
         raise ValueError(f"train.batch_size: {train.batch_size} is not a multiple of the {world_size} processes; "
                          f"with train.parallel=model every rank renders one view of each round (e.g. "

@@ -87,7 +87,7 @@ class Trainer:
         # there is nothing to share and the run is the usual one.
         self.model_parallel = cfg.train.parallel == "model" and self.ranks.enabled
         if self.model_parallel:
-            sharded_step.check_config(cfg.train, self.ranks.world_size)
+            sharded_step.check_config(cfg, self.ranks.world_size)
         terms = resolve_terms(cfg.losses)
 
         if out_dir is not None:
