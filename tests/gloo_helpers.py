@@ -4,6 +4,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -22,14 +23,22 @@ def run_two_ranks(script: str, args: list, tmp_path: Path, timeout: float = 300.
     path.write_text(script)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")]),
                OMP_NUM_THREADS="1", WORLD_SIZE="2", MASTER_ADDR="127.0.0.1", MASTER_PORT=str(free_port()))
-    procs = [subprocess.Popen([sys.executable, str(path), *map(str, args)],
-                              env=dict(env, RANK=str(r), LOCAL_RANK=str(r)), stdout=subprocess.PIPE,
+    results = start_two_ranks([sys.executable, str(path), *map(str, args)], env, timeout)
+    for rank, (code, _, err) in enumerate(results):
+        assert code == 0, f"rank {rank}: {err[-3000:]}"
+
+
+def start_two_ranks(argv: list, env: dict, timeout: float) -> list:
+    """Runs `argv` as ranks 0 and 1 (env gets RANK and LOCAL_RANK; the caller gives the rest of torchrun's
+    environment) and waits for both, killing what is still running `timeout` seconds after the start (so a hang
+    fails the test instead of stalling CI). Returns [(returncode, stdout, stderr)] per rank."""
+    procs = [subprocess.Popen(argv, env=dict(env, RANK=str(r), LOCAL_RANK=str(r)), stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for r in (0, 1)]
+    deadline = time.monotonic() + timeout
     try:
-        results = [p.communicate(timeout=timeout) for p in procs]
+        outputs = [p.communicate(timeout=max(1.0, deadline - time.monotonic())) for p in procs]
     finally:
         for p in procs:
             if p.poll() is None:
                 p.kill()
-    for rank, (p, (_, err)) in enumerate(zip(procs, results)):
-        assert p.returncode == 0, f"rank {rank}: {err[-3000:]}"
+    return [(p.returncode, out, err) for p, (out, err) in zip(procs, outputs)]

@@ -6,12 +6,12 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 import torch
 
+from gloo_helpers import start_two_ranks
 from warpgs.data.formats.synthetic import RigSettings, write_synthetic_scene
 from warpgs.train.checkpoint import load_checkpoint
 from warpgs.train.distributed import Ranks
@@ -138,24 +138,13 @@ def test_a_rank_that_dies_stops_the_other_with_a_clear_error(scene, tmp_path, ho
     ext.write_text(DIE_EXTENSION)
     overrides = _overrides(scene, tmp_path / "run", 40, **{"imports": f"[{ext}]", "extensions.test_die.step": 3,
                                                             "extensions.test_die.how": how})
-    port = _free_port()
-    procs = [subprocess.Popen([sys.executable, "-m", "warpgs.cli", "train", *overrides],
-                              env=_env(RANK=r, LOCAL_RANK=r, WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=port),
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in (0, 1)]
-    deadline = time.monotonic() + LAUNCH_TIMEOUT
-    outputs = []
-    try:
-        for p in procs:
-            outputs.append(p.communicate(timeout=max(1.0, deadline - time.monotonic())))
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-    (_, err0), (_, err1) = outputs
-    assert procs[1].returncode == (17 if how == "exit" else 1), err1[-2000:]
+    (code0, _, err0), (code1, _, err1) = start_two_ranks(
+        [sys.executable, "-m", "warpgs.cli", "train", *overrides],
+        _env(WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=_free_port()), LAUNCH_TIMEOUT)
+    assert code1 == (17 if how == "exit" else 1), err1[-2000:]
     if how == "raise":
         assert "test_die: failing on purpose" in err1
-    assert procs[0].returncode == 4, err0[-2000:]  # EXIT_DISTRIBUTED
+    assert code0 == 4, err0[-2000:]  # EXIT_DISTRIBUTED
     assert "rank 0 of 2:" in err0 and "step 4" in err0 and "failed: another rank stopped" in err0, err0[-2000:]
     assert not (tmp_path / "run" / "checkpoint.pt").exists()  # nothing half-written; none was due
 

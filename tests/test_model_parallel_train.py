@@ -10,6 +10,7 @@ import sys
 import pytest
 import torch
 
+from gloo_helpers import start_two_ranks
 from test_distributed import LAUNCH_TIMEOUT, _env, _free_port, _overrides
 from warpgs.data.formats.synthetic import RigSettings, write_synthetic_scene
 from warpgs.model.gaussians import GaussianModel, SurfelModel
@@ -217,17 +218,10 @@ def test_non_finite_gradients_on_one_rank_stop_both_at_that_step(scene, tmp_path
     loss.write_text(NAN_LOSS)
     overrides = _overrides(scene, tmp_path / "run", K, **SETTINGS, **{"imports": f"[{loss}]",
                                                                        "losses.test_nan_on_rank1": 1.0})
-    port = _free_port()
-    procs = [subprocess.Popen([sys.executable, "-m", "warpgs.cli", "train", *overrides, "train.parallel=model"],
-                              env=_env(RANK=r, LOCAL_RANK=r, WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=port),
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in (0, 1)]
-    try:
-        outputs = [p.communicate(timeout=LAUNCH_TIMEOUT) for p in procs]
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-    for rank, (p, (_, err)) in enumerate(zip(procs, outputs)):
-        assert p.returncode == 3, f"rank {rank}: {err[-2000:]}"  # EXIT_NONFINITE
-    assert "step 2" in outputs[0][1] and "another rank's gradients are not finite" in outputs[0][1]
+    results = start_two_ranks([sys.executable, "-m", "warpgs.cli", "train", *overrides, "train.parallel=model"],
+                              _env(WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=_free_port()), LAUNCH_TIMEOUT)
+    for rank, (code, _, err) in enumerate(results):
+        assert code == 3, f"rank {rank}: {err[-2000:]}"  # EXIT_NONFINITE
+    err0 = results[0][2]
+    assert "step 2" in err0 and "another rank's gradients are not finite" in err0
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
