@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 from warpgs import rasterize  # noqa: E402
 from warpgs.render.sharded import reaches_image, render_sharded  # noqa: E402
 from warpgs.render.splats import SPLAT_COLUMNS, project_splats  # noqa: E402
-from warpgs.train.distributed import Ranks  # noqa: E402
+from warpgs.train.distributed import Ranks, shutdown_process_group  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -88,7 +88,7 @@ def main(argv=None) -> dict:
     mine_result = {"rank": rank, "primitives": mine.stop - mine.start, "rows_sent_to": rows,
                    "whole_ms": statistics.median(times["whole"]), "sharded_ms": statistics.median(times["sharded"])}
     everyone = ranks.all_gather_object(mine_result, what="gathering the timings")
-    dist.destroy_process_group()
+    shutdown_process_group()
     if rank != 0:
         return {}
     payload = {"device": args.device, "gpu": torch.cuda.get_device_name(0) if cuda else None, "ranks": world,
