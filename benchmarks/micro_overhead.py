@@ -5,8 +5,9 @@ host costs are what a small render spends its time on.
     python benchmarks/micro_overhead.py [--device cuda]
 
 Prints microseconds per operation and writes benchmarks/results/micro_overhead_<device>.json ($OUT when set).
-The last rows are whole render calls of one Gaussian on an 8x8 image, legacy and fast host paths: the fixed cost
-every render pays (on the CPU set WARPGS_CPU_THREADS=1, or the thread pool's hand-off dominates).
+The last rows are whole render calls of one Gaussian and of one surfel on an 8x8 image, legacy and fast host
+paths: the fixed cost every render pays (on the CPU set WARPGS_CPU_THREADS=1, or the thread pool's hand-off
+dominates).
 """
 from __future__ import annotations
 
@@ -36,34 +37,37 @@ def per_call_us(fn, device, repeats=2000):
 
 
 def whole_op_rows(device):
-    """The fixed cost of one render call: one Gaussian, an 8x8 image (nearly no kernel work), both host paths."""
-    from warpgs import rasterize
+    """The fixed cost of one render call: one primitive (a 3D Gaussian, a surfel), an 8x8 image (nearly no kernel
+    work), both host paths."""
+    from warpgs import rasterize, rasterize_surfels
     from warpgs.render.defaults import raster_options
 
     g = torch.Generator().manual_seed(0)
     means = torch.tensor([[0.0, 0.0, 4.0]], device=device)
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], device=device)
-    scales = torch.full((1, 3), 0.2, device=device)
     opacities = torch.full((1,), 0.8, device=device)
     colors = torch.rand(1, 3, generator=g).to(device)
     viewmat = torch.eye(4, device=device)
     K = torch.tensor([[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]], device=device)
-
-    def fwd():
-        rasterize(means, quats, scales, opacities, colors, viewmat, K, 8, 8, outputs=("rgb", "alpha", "depth"),
-                  tile_size=8, check_inputs=False)
-
-    def fwd_bwd():
-        leaves = [t.detach().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
-        out = rasterize(*leaves, viewmat, K, 8, 8, outputs=("rgb", "alpha", "depth"), tile_size=8, check_inputs=False)
-        (out.rgb.sum() + out.depth.sum()).backward()
-
     rows = []
-    for path in ("legacy", "fast"):
-        with raster_options(path=path):
-            for name, fn in (("forward", fwd), ("forward+backward", fwd_bwd)):
-                rows.append(dict(operation=f"rasterize {name}, 1 Gaussian, 8x8, {path} path",
-                                 us=min(per_call_us(fn, device, 200) for _ in range(3))))
+    for kind, render, dims in (("Gaussian", rasterize, 3), ("surfel", rasterize_surfels, 2)):
+        scales = torch.full((1, dims), 0.2, device=device)
+
+        def fwd():
+            render(means, quats, scales, opacities, colors, viewmat, K, 8, 8, outputs=("rgb", "alpha", "depth"),
+                   tile_size=8, check_inputs=False)
+
+        def fwd_bwd():
+            leaves = [t.detach().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
+            out = render(*leaves, viewmat, K, 8, 8, outputs=("rgb", "alpha", "depth"), tile_size=8,
+                         check_inputs=False)
+            (out.rgb.sum() + out.depth.sum()).backward()
+
+        for path in ("legacy", "fast"):
+            with raster_options(path=path):
+                for name, fn in (("forward", fwd), ("forward+backward", fwd_bwd)):
+                    rows.append(dict(operation=f"{render.__name__} {name}, 1 {kind}, 8x8, {path} path",
+                                     us=min(per_call_us(fn, device, 200) for _ in range(3))))
     return rows
 
 

@@ -1,8 +1,9 @@
 """Renderer variants to time side by side in one process (benchmarks/raster.py, profile_stages.py).
 
 A variant is a path name and optional options joined by '+': `legacy`, `fast`, `fast+sort=single64`,
-`fast+bwd=block`, `fast+sort=single64+bwd=block`. `default` is whatever the WARPGS_* variables select.
-Keys: sort (two_pass, single64), bwd (warp_sums, block); see warpgs/render/defaults.py.
+`fast+bwd=block`, `fast+sort=single64+bwd=block`, `fast+sbwd=warp_sums`. `default` is whatever the WARPGS_*
+variables select. Keys: sort (two_pass, single64), bwd (the 3D GPU adjoint: warp_sums, block), sbwd (the surfel GPU
+adjoint: block, warp_sums); see warpgs/render/defaults.py.
 """
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from contextlib import contextmanager
 
 from warpgs.render.defaults import current_raster_options, raster_options
 
-KEYS = {"sort": "sort", "bwd": "backward_kernel"}
+KEYS = {"sort": "sort", "bwd": "backward_kernel", "sbwd": "surfel_backward_kernel"}
 
 
 def parse(spec: str) -> dict:

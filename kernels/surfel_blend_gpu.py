@@ -4,7 +4,9 @@ The block fetches its tile's list in batches of block_dim surfels into shared me
 one surfel's transform, centre, depth, opacity, cut-off, colour and normal), then every thread walks the batch
 from shared memory. The forward stops a tile once all its pixels are saturated; the backward walks back to
 front in lockstep from the block's largest stopping point and, optionally, sums each surfel's gradient over
-the block before one thread adds it to global memory. The per-pixel maths are surfel_steps.py's @wp.func's.
+the block before one thread adds it to global memory (`backward_kernel`), or each warp sums over its own 32 pixels
+with shuffles and skips what none of them blended (`backward_kernel_warp_sums`, at the end; blend_gpu.py says why
+that layout). The per-pixel maths are surfel_steps.py's @wp.func's.
 Kernels are compiled per block size (tile shapes are fixed at compile time) and per feature-channel count:
 features travel as length-C vectors, as in blend_gpu.
 """
@@ -13,13 +15,15 @@ import functools
 import warp as wp
 
 from .blend import tile_of, tile_pixel
-from .blend_gpu import feature_vector_type
+from .blend_gpu import WARP, feature_vector_type
+from .warp_ops import lane_any, lane_max, lane_sum
 from .surfel_steps import (
     ROW_HIT,
     ROW_SCREEN,
     ROW_SUFFIX,
     ROW_T,
     ROW_WEIGHT,
+    SplatPoint,
     SurfelBlendParams,
     SurfelGradRow,
     add_surfel_gradient_row,
@@ -242,3 +246,125 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
                             wp.atomic_add(adj_features, g, row[ROW_WEIGHT] * up_features)
 
     return surfel_blend_backward_blocks
+
+
+# --- Pixel-per-thread adjoint with per-warp sums ----------------------------------------------------------------
+# blend_gpu.backward_kernel_warp_sums's layout for surfels: each warp skips the entries past the last one any of its
+# pixels blended, votes to skip surfels none of its pixels blended, and sums a surfel's GRAD_SUM_LENGTH gradient
+# entries over its 32 pixels with butterfly shuffles before lane 0 adds them; no block barrier per surfel.
+# Its speed against `backward_kernel` is for benchmarks/raster.py --primitive surfels --variants to measure on a GPU
+# (raster option surfel_backward_kernel; the default stays "block" until that is measured).
+
+
+@functools.lru_cache(maxsize=None)  # compiled once per block size and feature count
+def backward_kernel_warp_sums(block_dim: int, num_features: int):
+    if block_dim % WARP != 0:
+        raise ValueError(f"per-warp sums need whole warps per block, got block_dim={block_dim}")
+    FeatureVec = feature_vector_type(num_features)
+    has_features = num_features > 0
+
+    # max_unroll: the per-entry sums are unrolled (GRAD_SUM_LENGTH > Warp's default of 16)
+    @wp.kernel(module="unique", module_options={"block_dim": block_dim, "enable_backward": False, "max_unroll": 32})
+    def surfel_blend_backward_warp_sums(
+        tile_start: wp.array(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        transforms: wp.array(dtype=wp.mat33),
+        means2d: wp.array(dtype=wp.vec2),
+        depths: wp.array(dtype=float),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=wp.vec3),
+        normals: wp.array(dtype=wp.vec3),
+        features: wp.array(dtype=FeatureVec),
+        q_cut: wp.array(dtype=float),
+        p: SurfelBlendParams,
+        transmittance: wp.array(dtype=float),
+        last_index: wp.array(dtype=wp.int32),
+        median_index: wp.array(dtype=wp.int32),
+        dist_stats: wp.array(dtype=wp.vec3),
+        grad_color: wp.array(dtype=wp.vec3),
+        grad_alpha: wp.array(dtype=float),
+        grad_depth: wp.array(dtype=float),
+        grad_inv_depth: wp.array(dtype=float),
+        grad_normal: wp.array(dtype=wp.vec3),
+        grad_median: wp.array(dtype=float),
+        grad_distortion: wp.array(dtype=float),
+        grad_features: wp.array(dtype=FeatureVec),
+        adj_transforms: wp.array(dtype=wp.mat33),
+        adj_means2d: wp.array(dtype=wp.vec2),
+        adj_depths: wp.array(dtype=float),
+        adj_opacities: wp.array(dtype=float),
+        adj_colors: wp.array(dtype=wp.vec3),
+        adj_normals: wp.array(dtype=wp.vec3),
+        adj_features: wp.array(dtype=FeatureVec),
+    ):
+        tid = wp.tid()
+        lane = tid % WARP
+        pxy = tile_pixel(tid, p.base)
+        inside = pxy[0] < p.base.width and pxy[1] < p.base.height  # outside threads still help fetch and vote
+        pix = wp.where(inside, pxy[1] * p.base.width + pxy[0], 0)
+        start = tile_start[tile_of(tid, p.base)]
+        fx = float(pxy[0]) + 0.5
+        fy = float(pxy[1]) + 0.5
+        pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, grad_color, grad_alpha,
+                              grad_depth, grad_inv_depth, grad_normal, grad_median, grad_distortion)
+        up_features = FeatureVec()
+        if wp.static(has_features):
+            up_features = grad_features[pix]
+        T = transmittance[pix]
+        suffix = float(0.0)
+        last = wp.where(inside, last_index[pix], start)
+        block_last = wp.tile_max(wp.tile(last))[0]
+        warp_last = lane_max(last)
+        for b in range((block_last - start + wp.static(block_dim) - 1) / wp.static(block_dim)):
+            hi = block_last - b * wp.static(block_dim)
+            lo = wp.max(start, hi - wp.static(block_dim))
+            ids = wp.tile_load(sorted_ids, shape=wp.static(block_dim), offset=lo, storage="shared")
+            M_t = wp.tile_load_indexed(transforms, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            m_t = wp.tile_load_indexed(means2d, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            z_t = wp.tile_load_indexed(depths, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            o_t = wp.tile_load_indexed(opacities, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            q_t = wp.tile_load_indexed(q_cut, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            rgb_t = wp.tile_load_indexed(colors, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            n_t = wp.tile_load_indexed(normals, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
+            for step in range(wp.min(hi, warp_last) - lo):  # this warp's entries only (uniform per warp)
+                j = wp.min(hi, warp_last) - lo - 1 - step
+                M = wp.tile_extract(M_t, j)
+                mean = wp.tile_extract(m_t, j)
+                o = wp.tile_extract(o_t, j)
+                sp = SplatPoint()
+                G = float(0.0)
+                blended = int(0)
+                if lo + j < last:  # the tests of the per-thread kernel
+                    sp = splat_point(M, mean, wp.tile_extract(z_t, j), fx, fy, p.near)
+                    if not (sp[0] > wp.tile_extract(q_t, j)):
+                        G = wp.exp(-0.5 * sp[0])
+                        if not (blend_alpha(o, G) < p.base.alpha_min):
+                            blended = 1
+                if lane_any(blended) != 0:  # some pixel of the warp blended it (uniform per warp)
+                    g = wp.tile_extract(ids, j)
+                    row = SurfelGradRow()
+                    f_part = FeatureVec()
+                    if blended != 0:
+                        feature_dot = float(0.0)
+                        if wp.static(has_features):
+                            feature_dot = wp.dot(features[g], up_features)
+                        row = surfel_pixel_gradient(lo + j, sp, M, mean, o, G, wp.tile_extract(rgb_t, j),
+                                                    wp.tile_extract(n_t, j), fx, fy, T, suffix, pg, feature_dot, p)
+                        T = row[ROW_T]
+                        suffix = row[ROW_SUFFIX]
+                        if wp.static(has_features):
+                            f_part = row[ROW_WEIGHT] * up_features
+                    total = SurfelGradSum()
+                    for i in range(wp.static(GRAD_SUM_LENGTH)):
+                        total[i] = lane_sum(row[i])
+                    if lane == 0:  # one set of atomics per warp and surfel
+                        add_surfel_gradient_row(g, gradient_sum_row(total), p, adj_transforms, adj_means2d,
+                                                adj_depths, adj_opacities, adj_colors, adj_normals)
+                    if wp.static(has_features):
+                        f_sum = FeatureVec()
+                        for ch in range(wp.static(num_features)):
+                            f_sum[ch] = lane_sum(f_part[ch])
+                        if lane == 0:
+                            wp.atomic_add(adj_features, g, f_sum)
+
+    return surfel_blend_backward_warp_sums

@@ -30,3 +30,18 @@ def render_ref(scene, background=None, **kw):
 
 def requested(scene):
     return tuple(o for o in ALL_OUTPUTS if o != "features" or scene["features"] is not None)
+
+
+def assert_same_result(a, b, name, exact=True):
+    """Two host paths running the same kernels: bit-equal on the CPU (exact=True), else equal to float rounding."""
+    assert a.shape == b.shape, name
+    a, b = a.detach().cpu(), b.detach().cpu()
+    if a.dtype == torch.bool:
+        assert torch.equal(a, b), name
+        return
+    diff = (a - b).abs().max().item() if a.numel() else 0.0
+    if exact and DEVICE == "cpu":
+        assert torch.equal(a, b), f"{name}: max diff {diff:.3g}"
+    else:
+        scale = max(1.0, b.abs().max().item()) if b.numel() else 1.0
+        assert torch.allclose(a.double(), b.double(), atol=2e-6 * scale, rtol=1e-4), f"{name}: max diff {diff:.3g}"

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from random_scenes import look_at, random_scene
-from raster_helpers import DEVICE
+from raster_helpers import DEVICE, assert_same_result as _assert_same
 from warpgs import rasterize
 from warpgs.render.defaults import raster_options
 
@@ -52,20 +52,6 @@ def _run(scene, outputs, options, track_means2d=False, **kw):
     if track_means2d:
         grads["means2d"] = out.means2d.grad
     return out, grads
-
-
-def _assert_same(a, b, name, exact=True):
-    assert a.shape == b.shape, name
-    a, b = a.detach().cpu(), b.detach().cpu()
-    if a.dtype == torch.bool:
-        assert torch.equal(a, b), name
-        return
-    diff = (a - b).abs().max().item() if a.numel() else 0.0
-    if exact and DEVICE == "cpu":
-        assert torch.equal(a, b), f"{name}: max diff {diff:.3g}"
-    else:
-        scale = max(1.0, b.abs().max().item()) if b.numel() else 1.0
-        assert torch.allclose(a.double(), b.double(), atol=2e-6 * scale, rtol=1e-4), f"{name}: max diff {diff:.3g}"
 
 
 PATHS = [dict(path="fast", sort="two_pass", backward_kernel="warp_sums"),

@@ -175,52 +175,82 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
     """The blending adjoint. upstream: (grad color, alpha, depth, inv_depth, features) in the kernels' layouts
     (dummies for outputs not rendered). adj_opacities / adj_features: where the opacity and feature gradients
     accumulate (zeroed by the caller). Returns the projected gradients (means2d, conics, colors, depths), in the
-    workspace: valid until the next backward on it.
-
-    CPU threads would race on the sums (Warp's CPU atomics are plain adds), so threads other than the first
-    accumulate into private workspace buffers that are added in afterwards."""
-    dev = ws.device
+    workspace: valid until the next backward on it."""
     L = ws.launches
-    n = frame.n
-    block = ws.array("grad_projected", 9 * n, float)
-    block.zero_()
-    g_means2d = ws.view("g_means2d", block, 0, n, wp.vec2)
-    g_conics = ws.view("g_conics", block, 2 * n, n, wp.vec3)
-    g_colors = ws.view("g_colors", block, 5 * n, n, wp.vec3)
-    g_depths = ws.view("g_depths", block, 8 * n, n, float)
-    kernel, block_dim = _blend_kernel(dev, s, want, backward=True, variant=backward_kernel)
+    kernel, block_dim = _blend_kernel(ws.device, s, want, backward=True, variant=backward_kernel)
     head = [frame.tile_start, frame.sorted_ids, frame.means2d, frame.conics, opacities, frame.colors, frame.depths,
             features, frame.q_cut]
     tail = [frame.transmittance, frame.last] + list(upstream)
-    per_thread = _tile_launches(s, dev)
-    nf = want.num_features
-    targets = [[g_means2d, g_conics, adj_opacities, g_colors, g_depths, adj_features]]
-    for t in range(1, len(per_thread)):  # private sums: [projected (9n) | opacities (n) | features (rows x C)]
-        private = ws.array(f"grad_private{t}", 10 * n + num_features_rows * max(nf, 1), float)
+
+    def launch(key, first, count, targets):
+        L.launch(key, kernel, count * s.tile_size**2, head + [_params(ws, s, want, first)] + tail + targets,
+                 block_dim)
+
+    fields = [("means2d", 2, wp.vec2), ("conics", 3, wp.vec3), OPACITIES, ("colors", 3, wp.vec3),
+              ("depths", 1, float), FEATURES]
+    projected = run_blend_adjoint(ws, s, "blend_bwd", fields, frame.n, adj_opacities, adj_features,
+                                  num_features_rows, want.num_features, launch)
+    _stage(None, "blend backward")
+    return projected
+
+
+OPACITIES, FEATURES = "opacities", "features"  # where a blend adjoint takes the caller's gradient arrays
+
+
+def run_blend_adjoint(ws: Workspace, s: Settings, key: str, fields, n: int, adj_opacities, adj_features,
+                      num_features_rows: int, num_features: int, launch) -> list:
+    """Runs a blend adjoint over the tiles (one launch on GPUs, a few threads on the CPU) and returns its sums per
+    primitive. fields: the kernel's gradient targets in its argument order, each (name, floats per primitive,
+    dtype) summed in one zeroed workspace block, or OPACITIES / FEATURES for the caller's arrays.
+    launch(key, first_tile, tile_count, targets) makes one launch.
+
+    CPU threads would race on the sums (Warp's CPU atomics are plain adds), so threads other than the first
+    accumulate into private workspace buffers (the fields, then opacities, then features) added in afterwards.
+    The returned views are workspace memory: valid until the next backward on it."""
+    width = sum(f[1] for f in fields if f not in (OPACITIES, FEATURES))
+    block = ws.array("grad_projected", width * n, float)
+    block.zero_()
+
+    def targets(prefix, base, opacities, features):
+        out, offset = [], 0
+        for f in fields:
+            if f in (OPACITIES, FEATURES):
+                out.append(opacities if f == OPACITIES else features)
+                continue
+            name, floats, dtype = f
+            out.append(ws.view(f"{key}_{prefix}_{name}", base, offset * n, n, dtype))
+            offset += floats
+        return out
+
+    per_thread = _tile_launches(s, ws.device)
+    per_target = [targets("sum", block, adj_opacities, adj_features)]
+    private_size = (width + 1) * n + num_features_rows * max(num_features, 1)
+    for t in range(1, len(per_thread)):
+        private = ws.array(f"grad_private{t}", private_size, float)
         private.zero_()
-        feats = (ws.view(f"gp{t}_f", private, 10 * n, (num_features_rows, nf), float) if nf
-                 else ws.dummy(float, 2))
-        targets.append([ws.view(f"gp{t}_m", private, 0, n, wp.vec2), ws.view(f"gp{t}_c", private, 2 * n, n, wp.vec3),
-                        ws.view(f"gp{t}_o", private, 9 * n, n, float), ws.view(f"gp{t}_r", private, 5 * n, n, wp.vec3),
-                        ws.view(f"gp{t}_d", private, 8 * n, n, float), feats])
+        feats = (ws.view(f"{key}_p{t}_features", private, (width + 1) * n, (num_features_rows, num_features), float)
+                 if num_features else ws.dummy(float, 2))
+        per_target.append(targets(f"p{t}", private, ws.view(f"{key}_p{t}_opacities", private, width * n, n, float),
+                                  feats))
 
     def work(thread, chunks):
         for c, (first, count) in enumerate(chunks):
-            L.launch(("blend_bwd", thread, c), kernel, count * s.tile_size**2,
-                     head + [_params(ws, s, want, first)] + tail + targets[thread], block_dim)
+            launch((key, thread, c), first, count, per_target[thread])
 
     run_threads(work, per_thread)
+    L = ws.launches
     for t in range(1, len(per_thread)):
-        private = ws.array(f"grad_private{t}", 10 * n + num_features_rows * max(nf, 1), float)
-        L.launch(("merge_projected", t), blend.accumulate, 9 * n, [private, block])
+        private = ws.array(f"grad_private{t}", private_size, float)
+        L.launch(("merge_projected", t), blend.accumulate, width * n, [private, block])
         L.launch(("merge_opacities", t), blend.accumulate, n,
-                 [ws.view(f"gp{t}_o", private, 9 * n, n, float), _flat(ws, "adj_opacities_flat", adj_opacities)])
-        if nf:
-            L.launch(("merge_features", t), blend.accumulate, num_features_rows * nf,
-                     [ws.view(f"gp{t}_ff", private, 10 * n, num_features_rows * nf, float),
+                 [ws.view(f"{key}_p{t}_opacities", private, width * n, n, float),
+                  _flat(ws, "adj_opacities_flat", adj_opacities)])
+        if num_features:
+            L.launch(("merge_features", t), blend.accumulate, num_features_rows * num_features,
+                     [ws.view(f"{key}_p{t}_features_flat", private, (width + 1) * n,
+                              num_features_rows * num_features, float),
                       _flat(ws, "adj_features_flat", adj_features)])
-    _stage(None, "blend backward")
-    return g_means2d, g_conics, g_colors, g_depths
+    return [v for v, f in zip(per_target[0], fields) if f not in (OPACITIES, FEATURES)]
 
 
 def project_backward(ws: Workspace, frame: Frame, s: Settings, inputs, input_grads, projected_grads) -> None:

@@ -130,6 +130,65 @@ def _features_arg(t, num_features: int, layout: str, state: "_DeviceState"):
     return state.desc(t, fast.blend_gpu.feature_vector_type(num_features))
 
 
+_PROJECTION_DTYPES = (wp.vec3, wp.vec4, None, wp.vec3, wp.mat44, wp.vec4)  # scales: vec3 or vec2 (surfels)
+_CAMERA_VIEWS = (None, None, None, None, (1, 4, 4), (1, 4))
+
+
+def projection_inputs(state: "_DeviceState", tensors, scale_dtype) -> list:
+    """Descriptors of (means, quats, scales, coeffs, viewmat [1,4,4], intrinsics [1,4]), contiguous tensors, as the
+    projection kernels take them."""
+    return [state.desc(t, scale_dtype if dt is None else dt) for t, dt in zip(tensors, _PROJECTION_DTYPES)]
+
+
+def projection_gradients(state: "_DeviceState", grads, scale_dtype) -> list:
+    """The projection adjoint's gradient descriptors from the op's eight input gradients (means, quats, scales,
+    opacities, coeffs, features, viewmat, intrinsics; None where not wanted): those of the projection inputs."""
+    picked = (grads[0], grads[1], grads[2], grads[4], grads[6], grads[7])
+    return [None if g is None else state.desc(g if v is None else g.view(v), scale_dtype if dt is None else dt)
+            for g, dt, v in zip(picked, _PROJECTION_DTYPES, _CAMERA_VIEWS)]
+
+
+def gradient_buffers(saved, camera_shapes, needs):
+    """(grads, opacity gradient, feature gradient): the op's eight input gradients (zeros where `needs`, else None)
+    from its saved (means, quats, scales, opacities, coeffs, features, ...) and the camera's shapes, and the two
+    buffers the blend adjoint always writes (the gradients themselves where wanted)."""
+    shapes = [t.shape for t in saved[:6]] + list(camera_shapes)
+    grads = [saved[0].new_zeros(shape) if need else None for shape, need in zip(shapes, needs)]
+    g_opac = grads[3] if grads[3] is not None else torch.zeros_like(saved[3])
+    g_features = grads[5] if grads[5] is not None else torch.zeros_like(saved[5])
+    return grads, g_opac, g_features
+
+
+def upstream_gradient(state: "_DeviceState", layout: str, alive: list, g, name: str, shape, dtype, rows_dtype=None):
+    """The upstream gradient of an output in the kernels' layout (a descriptor of a contiguous copy, appended to
+    `alive`, which must outlive the launches); a shared zero buffer when autograd has none (the loss did not use
+    that output). rows_dtype: the dtype of the CPU kernels' [rows, C] layout, where it differs."""
+    rows = rows_dtype is not None and layout == "rows"
+    if g is None:
+        return state.ws.zeros(name, shape, float) if rows else state.ws.zeros(name, shape[0], dtype)
+    g = g.contiguous().view(shape)
+    alive.append(g)
+    return state.desc(g, rows_dtype if rows else dtype)
+
+
+def upstream_features(state: "_DeviceState", layout: str, alive: list, g, npix: int, num_features: int):
+    """`upstream_gradient` of the feature image (a dummy when no features were rendered)."""
+    if not num_features:
+        return _features_arg(None, 0, layout, state)
+    return upstream_gradient(state, layout, alive, g, "up_features", (npix, num_features),
+                             fast.blend_gpu.feature_vector_type(num_features), wp.float32)
+
+
+def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: str, state: "_DeviceState"):
+    """Where the blend adjoint accumulates the feature gradients ([rows, C] floats on the CPU, vectors on GPUs)."""
+    if num_features and layout == "rows":
+        return wp.array(ptr=g_features.data_ptr(), dtype=wp.float32, shape=tuple(g_features.shape),
+                        device=state.wdev)
+    if num_features:
+        return state.array(g_features, g_features.shape[0], fast.blend_gpu.feature_vector_type(num_features))
+    return _features_arg(None, 0, layout, state)
+
+
 class FastRasterizeFunction(torch.autograd.Function):
     """Same signature and outputs as gaussians._RasterizeFunction (plus the options), through `fast_pipeline`."""
 
@@ -151,8 +210,7 @@ class FastRasterizeFunction(torch.autograd.Function):
         viewmat = viewmat.detach().reshape(1, 4, 4).contiguous()
         intrinsics = intrinsics.detach().reshape(1, 4).contiguous()
         desc = state.desc
-        inputs = [desc(means, wp.vec3), desc(quats, wp.vec4), desc(scales, wp.vec3), desc(coeffs, wp.vec3),
-                  desc(viewmat, wp.mat44), desc(intrinsics, wp.vec4)]
+        inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec3)
         w_opac = desc(opacities, wp.float32)
         w_feat = _features_arg(features, nf, layout, state)
 
@@ -195,42 +253,23 @@ class FastRasterizeFunction(torch.autograd.Function):
         npix = settings.width * settings.height
         nf = wanted.num_features
 
-        shapes = [t.shape for t in (means, quats, scales, opacities, coeffs, features)] + list(ctx.camera_shapes)
-        grads = [means.new_zeros(shape) if need else None for shape, need in zip(shapes, needs)]
-        # the blend adjoint always writes the opacity and feature gradients
-        g_opac = grads[3] if grads[3] is not None else torch.zeros_like(opacities)
-        g_features = grads[5] if grads[5] is not None else torch.zeros_like(features)
+        grads, g_opac, g_features = gradient_buffers(ctx.saved_tensors, ctx.camera_shapes, needs)
 
         desc = state.desc
         alive = []  # descriptors hold no reference: contiguous copies must outlive the launches
 
-        def upstream(g, name, shape, dtype, rows_dtype=None):
-            """The upstream gradient of an output in the kernels' layout; a shared zero buffer when autograd has
-            none (the loss did not use that output)."""
-            if g is None:
-                if rows_dtype is not None and layout == "rows":
-                    return ws.zeros(name, shape, float)
-                return ws.zeros(name, shape[0], dtype)
-            g = g.contiguous().view(shape)
-            alive.append(g)
-            return desc(g, rows_dtype if (rows_dtype is not None and layout == "rows") else dtype)
+        def upstream(g, name, shape, dtype):
+            return upstream_gradient(state, layout, alive, g, name, shape, dtype)
 
         gc = upstream(g_color, "up_color", (npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3)
         ga = upstream(g_alpha, "up_alpha", (npix,), wp.float32)
         gd = upstream(g_depth, "up_depth", (npix,), wp.float32) if wanted.depth else ws.dummy(float)
         gi = upstream(g_inv, "up_inv_depth", (npix,), wp.float32) if wanted.inv_depth else ws.dummy(float)
-        gf = (upstream(g_feat, "up_features", (npix, nf), fast.blend_gpu.feature_vector_type(nf), wp.float32)
-              if nf else _features_arg(None, 0, layout, state))
+        gf = upstream_features(state, layout, alive, g_feat, npix, nf)
         w_opac = desc(opacities, wp.float32)
         w_feat = _features_arg(features, nf, layout, state)
         adj_opac = state.array(g_opac, g_opac.shape[0], wp.float32)
-        if nf and layout == "rows":
-            adj_feat = wp.array(ptr=g_features.data_ptr(), dtype=wp.float32, shape=tuple(g_features.shape),
-                                device=state.wdev)
-        elif nf:
-            adj_feat = state.array(g_features, g_features.shape[0], fast.blend_gpu.feature_vector_type(nf))
-        else:
-            adj_feat = _features_arg(None, 0, layout, state)
+        adj_feat = feature_gradient_arg(g_features, nf, layout, state)
         probe_grad = None
         with state.scope():
             projected = fast.blend_backward(ws, frame, settings, wanted, w_opac, w_feat, (gc, ga, gd, gi, gf),
@@ -238,14 +277,9 @@ class FastRasterizeFunction(torch.autograd.Function):
             if ctx.needs_input_grad[11]:  # dL/dmeans2d, read before the projection adjoint
                 probe_grad = state.tensor(projected[0]).view(-1, 2).clone()
             if any(needs[i] for i in (0, 1, 2, 4, 6, 7)):
-                inputs = [desc(means, wp.vec3), desc(quats, wp.vec4), desc(scales, wp.vec3),
-                          desc(coeffs, wp.vec3), desc(viewmat, wp.mat44), desc(intrinsics, wp.vec4)]
-                dtypes = (wp.vec3, wp.vec4, wp.vec3, wp.vec3, wp.mat44, wp.vec4)
-                views = (None, None, None, None, (1, 4, 4), (1, 4))
-                input_grads = [None if g is None else desc(g if v is None else g.view(v), dt)
-                               for g, dt, v in zip((grads[0], grads[1], grads[2], grads[4], grads[6], grads[7]),
-                                                   dtypes, views)]
-                fast.project_backward(ws, frame, settings, inputs, input_grads, projected)
+                inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec3)
+                fast.project_backward(ws, frame, settings, inputs, projection_gradients(state, grads, wp.vec3),
+                                      projected)
         ctx.state = None
         grads[3] = g_opac if needs[3] else None
         grads[5] = g_features if needs[5] else None

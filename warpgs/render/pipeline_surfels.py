@@ -35,6 +35,16 @@ class SurfelProjected:
     valid: wp.array
 
 
+# Blended images in the order the torch ops return them (and take their gradients): (name, channels, Warp dtype).
+IMAGES = (("color", 3, wp.vec3), ("alpha", 1, wp.float32), ("depth", 1, wp.float32), ("inv_depth", 1, wp.float32),
+          ("normal", 3, wp.vec3), ("median", 1, wp.float32), ("distortion", 1, wp.float32))
+
+
+def image_wanted(wanted: "SurfelWanted", name: str) -> bool:
+    """Whether image `name` of IMAGES is rendered (alpha always is)."""
+    return name == "alpha" or bool(getattr(wanted, name))
+
+
 @dataclass
 class SurfelWanted:
     color: bool

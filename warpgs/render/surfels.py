@@ -1,5 +1,7 @@
-"""The torch op `rasterize_surfels`: renders 2D Gaussian surfels (2DGS) with the Warp pipeline; gradients flow
-through a wp.Tape (projection: Warp's generated adjoint; blending: the hand-written kernel).
+"""The torch op `rasterize_surfels`: renders 2D Gaussian surfels (2DGS) with the Warp pipeline; gradients come
+from the hand-written blend adjoint and the projection's generated adjoint. Two host paths run the same kernels
+(`raster_options(path=...)`): "fast" (`surfels_fast`: workspace, recorded launches) and "legacy" (per-call arrays,
+a wp.Tape).
 
 Same conventions and arguments as `rasterize`, with scales [N, 2] (the disk's two axes; the quaternion's
 third rotation column is the normal) and the extra outputs normal, median_depth and distortion.
@@ -12,8 +14,11 @@ import torch
 import warp as wp
 
 from warpgs.render import pipeline_surfels as surfel_pipeline
+from warpgs.render.pipeline_surfels import IMAGES, image_wanted
+from warpgs.render.surfels_fast import FastSurfelsFunction
 from warpgs.render.pipeline_gaussians import Settings
-from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.render.defaults import (DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN,
+                                    current_raster_options)
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, _wp_device, _zero_grad,
                                      checked_call, on_torch_stream, raster_settings, set_image_outputs)
 
@@ -24,13 +29,6 @@ DISTORTION_NEAR = 0.2
 DISTORTION_FAR = 100.0
 DISTORTION_SCALE = DISTORTION_FAR * DISTORTION_NEAR / (DISTORTION_FAR - DISTORTION_NEAR)
 
-# Blended images in the order the autograd function returns them: (name, channels, Warp dtype).
-_IMAGES = (("color", 3, wp.vec3), ("alpha", 1, wp.float32), ("depth", 1, wp.float32), ("inv_depth", 1, wp.float32),
-           ("normal", 3, wp.vec3), ("median", 1, wp.float32), ("distortion", 1, wp.float32))
-
-
-def _wanted(wanted, name: str) -> bool:
-    return name == "alpha" or bool(getattr(wanted, name))
 
 
 class _RasterizeSurfelsFunction(torch.autograd.Function):
@@ -62,8 +60,8 @@ class _RasterizeSurfelsFunction(torch.autograd.Function):
 
         H, W = settings.height, settings.width
         empty = means.new_zeros(0)
-        images = [wp.to_torch(getattr(fwd, name)).view(H, W, c) if _wanted(wanted, name) else empty
-                  for name, c, _ in _IMAGES]
+        images = [wp.to_torch(getattr(fwd, name)).view(H, W, c) if image_wanted(wanted, name) else empty
+                  for name, c, _ in IMAGES]
         feats = wp.to_torch(fwd.features).view(H, W, -1) if wanted.num_features else empty
         visible = wp.to_torch(bins.counts) > 0
         count = torch.tensor(bins.num_intersections)
@@ -79,14 +77,14 @@ class _RasterizeSurfelsFunction(torch.autograd.Function):
         device = ctx.device
         with on_torch_stream(device):
             g = {}
-            for (name, c, dtype), up in zip(_IMAGES, upstream):
-                if not _wanted(wanted, name):  # outputs that were not computed: a dummy the kernel never reads
+            for (name, c, dtype), up in zip(IMAGES, upstream):
+                if not image_wanted(wanted, name):  # outputs that were not computed: a dummy the kernel never reads
                     g[name] = wp.zeros(1, dtype=dtype)
                     continue
                 t = torch.zeros((npix, c), device=device) if up is None else up.contiguous().view(npix, c)
                 g[name] = wp.from_torch(t.contiguous() if c == 3 else t.view(npix), dtype=dtype)
             nf = wanted.num_features
-            up_f = upstream[len(_IMAGES)]
+            up_f = upstream[len(IMAGES)]
             if nf:
                 t = torch.zeros((npix, nf), device=device) if up_f is None else up_f.contiguous().view(npix, nf)
                 g["features"] = wp.from_torch(t)
@@ -156,10 +154,15 @@ def rasterize_surfels(
         normal="normal" in outputs, median="median_depth" in outputs, distortion="distortion" in outputs,
         num_features=feats.shape[1], distortion_scale=DISTORTION_SCALE)
     device = means.device
-    with on_torch_stream(device):
-        color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = \
-            _RasterizeSurfelsFunction.apply(settings, wanted, means, quats, scales, opacities, coeffs, feats,
-                                            viewmat, _intrinsics_vector(K))
+    options = current_raster_options()
+    if options.path == "fast" and n > 0:
+        color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = FastSurfelsFunction.apply(
+            settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K))
+    else:
+        with on_torch_stream(device):
+            color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = \
+                _RasterizeSurfelsFunction.apply(settings, wanted, means, quats, scales, opacities, coeffs, feats,
+                                                viewmat, _intrinsics_vector(K))
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible, num_intersections=int(count))
     set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background)
     if wanted.normal:

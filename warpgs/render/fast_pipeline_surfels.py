@@ -1,0 +1,158 @@
+"""The surfel (2DGS) pipeline of `pipeline_surfels`, driven the way `fast_pipeline` drives the 3D one: scratch
+memory from a `Workspace`, what the backward reads in the buffers `keep` lends, recorded launches replayed, one
+host synchronisation per call (the sort), and no wp.Tape (the backward launches the blend adjoint, then the
+projection's generated adjoint). Same kernels and maths as the per-call path; tests compare the two.
+
+Torch-free: arrays come in as Warp arrays or array descriptors."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import warp as wp
+
+from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
+from warpgs.kernels.blend_gpu import warp_sums_supported
+from warpgs.render.cpu_threads import run_threads
+from warpgs.render.fast_pipeline import FEATURES, OPACITIES, Keep, _stage, run_blend_adjoint, sort_into_tiles
+from warpgs.render.pipeline_gaussians import Settings, _block_dims, _block_reduce, _cooperative, _tile_launches
+from warpgs.render.pipeline_surfels import SurfelWanted, surfel_blend_params
+from warpgs.render.workspace import Workspace
+
+# The blend adjoint's gradient targets, in its argument order (see run_blend_adjoint).
+ADJOINT_FIELDS = [("transforms", 9, wp.mat33), ("means2d", 2, wp.vec2), ("depths", 1, float), OPACITIES,
+                  ("colors", 3, wp.vec3), ("normals", 3, wp.vec3), FEATURES]
+
+
+@dataclass
+class SurfelFrame:
+    """What a forward pass leaves for its backward (in the `keep` buffers when given) and for the op's outputs."""
+    n: int
+    total: int  # surfel-tile pairs
+    transforms: wp.array
+    means2d: wp.array
+    depths: wp.array
+    normals: wp.array
+    colors: wp.array
+    q_cut: wp.array
+    tile_start: wp.array
+    sorted_ids: wp.array
+    transmittance: wp.array
+    last: wp.array
+    median_index: wp.array  # a dummy unless the median depth was rendered
+    dist_stats: wp.array  # a dummy unless the distortion was rendered
+    counts: wp.array  # workspace: valid until the next call on this workspace
+
+
+def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, features, outputs,
+            keep: Optional[Keep], sort_mode: str = "two_pass") -> SurfelFrame:
+    """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
+    projection kernel takes them; outputs: (color, alpha, depth, inv_depth, normal, median, distortion, features)
+    arrays the blend writes (1-element dummies for outputs not asked for; features zeroed beforehand for the
+    per-thread CPU kernel). keep=None: everything in the workspace (no backward follows)."""
+    L = ws.launches
+    n = int(inputs[0].shape[0])
+
+    def per_call(name, count, dtype):
+        return keep(name, count, dtype) if keep is not None else ws.array(name, count, dtype)
+
+    transforms = per_call("transforms", n, wp.mat33)
+    means2d = per_call("means2d", n, wp.vec2)
+    depths = per_call("depths", n, float)
+    normals = per_call("normals", n, wp.vec3)
+    colors = per_call("colors", n, wp.vec3)
+    valid = ws.array("surfel_valid", n, wp.int32)
+    L.launch("surfel_project", surfel_project.project_surfels, n,
+             list(inputs) + _projection_settings(s) + [transforms, means2d, depths, normals, colors, valid])
+    rects = ws.array("rects", n, wp.vec4i)
+    counts = ws.array("counts", n, wp.int32)
+    q_cut = per_call("q_cut", n, float)
+    L.launch("surfel_footprints", surfel_project.surfel_footprints, n,
+             [transforms, means2d, opacities, valid, s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
+              rects, counts, q_cut])
+    total, tile_start, tile_end, sorted_ids = sort_into_tiles(ws, rects, counts, depths, s, per_call, sort_mode)
+
+    npix = s.width * s.height
+    transmittance = per_call("transmittance", npix, float)
+    last = per_call("last", npix, wp.int32)
+    median_index = per_call("median_index", npix, wp.int32) if want.median else ws.dummy(wp.int32)
+    dist_stats = per_call("dist_stats", npix, wp.vec3) if want.distortion else ws.dummy(wp.vec3)
+    color, alpha, depth, inv_depth, normal, median, distortion, out_features = outputs
+    kernel, block_dim = _blend_kernel(ws.device, s, want, backward=False)
+    head = [tile_start, tile_end, sorted_ids, transforms, means2d, depths, opacities, colors, normals, features,
+            q_cut]
+    tail = [color, transmittance, alpha, depth, inv_depth, normal, median, median_index, distortion, dist_stats,
+            out_features, last]
+
+    def work(thread, chunks):  # each chunk writes only its own pixels
+        for c, (first, count) in enumerate(chunks):
+            L.launch(("surfel_blend_fwd", thread, c), kernel, count * s.tile_size**2,
+                     head + [_params(ws, s, want, first)] + tail, block_dim)
+
+    run_threads(work, _tile_launches(s, ws.device))
+    _stage(None, "surfel blend forward")
+    return SurfelFrame(n=n, total=total, transforms=transforms, means2d=means2d, depths=depths, normals=normals,
+                       colors=colors, q_cut=q_cut, tile_start=tile_start, sorted_ids=sorted_ids,
+                       transmittance=transmittance, last=last, median_index=median_index, dist_stats=dist_stats,
+                       counts=counts)
+
+
+def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelWanted, opacities, features,
+                   upstream, adj_opacities, adj_features, num_features_rows: int, backward_kernel: str = "block"):
+    """The blending adjoint. upstream: (grad color, alpha, depth, inv_depth, normal, median, distortion, features)
+    in the kernels' layouts (dummies for outputs not rendered). adj_opacities / adj_features: where the opacity and
+    feature gradients accumulate (zeroed by the caller). backward_kernel: the GPU adjoint, "block" or "warp_sums"
+    (tiles of 8x8 and up). Returns the projected gradients (transforms, means2d, depths, colors, normals), in the
+    workspace: valid until the next backward on it."""
+    L = ws.launches
+    kernel, block_dim = _blend_kernel(ws.device, s, want, backward=True, variant=backward_kernel)
+    head = [frame.tile_start, frame.sorted_ids, frame.transforms, frame.means2d, frame.depths, opacities,
+            frame.colors, frame.normals, features, frame.q_cut]
+    tail = [frame.transmittance, frame.last, frame.median_index, frame.dist_stats] + list(upstream)
+
+    def launch(key, first, count, targets):
+        L.launch(key, kernel, count * s.tile_size**2, head + [_params(ws, s, want, first)] + tail + targets,
+                 block_dim)
+
+    projected = run_blend_adjoint(ws, s, "surfel_blend_bwd", ADJOINT_FIELDS, frame.n, adj_opacities, adj_features,
+                                  num_features_rows, want.num_features, launch)
+    _stage(None, "surfel blend backward")
+    return projected
+
+
+def project_backward(ws: Workspace, frame: SurfelFrame, s: Settings, inputs, input_grads, projected_grads) -> None:
+    """The projection's generated adjoint (what wp.Tape.backward would run). input_grads: the gradient arrays of
+    `inputs` (None where not wanted); projected_grads: what `blend_backward` returned."""
+    g_transforms, g_means2d, g_depths, g_colors, g_normals = projected_grads
+    valid = ws.array("surfel_valid", frame.n, wp.int32)
+    args = list(inputs) + _projection_settings(s) + [frame.transforms, frame.means2d, frame.depths, frame.normals,
+                                                     frame.colors, valid]
+    adj = list(input_grads) + [0.0, 0.0, 0, 0, g_transforms, g_means2d, g_depths, g_normals, g_colors, None]
+    ws.launches.launch_adjoint("surfel_project_adjoint", surfel_project.project_surfels, frame.n, args, adj)
+    _stage(None, "surfel project adjoint")
+
+
+def _projection_settings(s: Settings) -> list:
+    color_mode = surfel_project.COLOR_SH if s.sh_degree >= 0 else surfel_project.COLOR_DIRECT
+    return [s.near, s.far, color_mode, max(s.sh_degree, 0)]
+
+
+def _params(ws: Workspace, s: Settings, want: SurfelWanted, first: int):
+    key = ("surfel_blend_params", s.width, s.height, s.tile_size, s.alpha_min, s.transmittance_min, s.near,
+           want.color, want.depth, want.inv_depth, want.normal, want.median, want.distortion, want.num_features,
+           want.distortion_scale, first)
+    return ws.memo(key, lambda: surfel_blend_params(s, want, first))
+
+
+def _blend_kernel(dev, s: Settings, want: SurfelWanted, backward: bool, variant: str = "block"):
+    """(kernel, block_dim): the per-thread CPU kernels (block_dim 1, as the per-call path launches them, so both
+    share one compiled module), or the cooperative GPU ones of surfel_blend_gpu.py (variant: the adjoint)."""
+    if not _cooperative(dev):
+        return (surfel_blend.blend_backward if backward else surfel_blend.blend_forward), 1
+    fwd_block, bwd_block = _block_dims(s)
+    if backward and variant == "warp_sums" and warp_sums_supported(s.tile_size):
+        block = min(s.tile_size**2, 256)
+        return surfel_blend_gpu.backward_kernel_warp_sums(block, want.num_features), block
+    if backward:
+        return surfel_blend_gpu.backward_kernel(bwd_block, _block_reduce(), want.num_features), bwd_block
+    return surfel_blend_gpu.forward_kernel(fwd_block, want.num_features), fwd_block

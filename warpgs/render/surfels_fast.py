@@ -1,0 +1,91 @@
+"""The torch side of the lean surfel path (`fast_pipeline_surfels`), with the lifetimes of the 3D one
+(`gaussians_fast`): tensors cross as bare array descriptors, outputs are fresh torch tensors, and what the backward
+reads lives in a buffer set lent to the render for exactly as long as its autograd graph."""
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from warpgs.render import fast_pipeline_surfels as fast
+from warpgs.render.fast_pipeline import feature_layout
+from warpgs.render.gaussians_fast import (_features_arg, device_state, feature_gradient_arg, gradient_buffers,
+                                          projection_gradients, projection_inputs, upstream_features,
+                                          upstream_gradient)
+from warpgs.render.pipeline_surfels import IMAGES, image_wanted
+
+
+class FastSurfelsFunction(torch.autograd.Function):
+    """Same signature and outputs as surfels._RasterizeSurfelsFunction (plus the options), through
+    `fast_pipeline_surfels`."""
+
+    @staticmethod
+    def forward(ctx, settings, wanted, options, means, quats, scales, opacities, coeffs, features, viewmat,
+                intrinsics):
+        needs = ctx.needs_input_grad[3:11]
+        any_grad = any(needs)
+        state = device_state(means.device)
+        ws = state.ws
+        H, W = settings.height, settings.width
+        npix = H * W
+        nf = wanted.num_features
+        layout = feature_layout(state.wdev)
+        means, quats, scales, opacities, coeffs, features = (
+            t.detach().contiguous() for t in (means, quats, scales, opacities, coeffs, features))
+        ctx.camera_shapes = (viewmat.shape, intrinsics.shape)
+        viewmat = viewmat.detach().reshape(1, 4, 4).contiguous()
+        intrinsics = intrinsics.detach().reshape(1, 4).contiguous()
+        desc = state.desc
+        inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec2)
+
+        empty = means.new_zeros(0)
+        images = [means.new_empty(H, W, c) if image_wanted(wanted, name) else empty for name, c, _ in IMAGES]
+        # the per-thread CPU kernels accumulate features in place; the cooperative ones write every pixel
+        feats = ((means.new_zeros if layout == "rows" else means.new_empty)(H, W, nf)) if nf else empty
+        outputs = [desc(img.view(npix, c) if c > 1 else img.view(npix), dtype) if image_wanted(wanted, name)
+                   else ws.dummy(dtype) for img, (name, c, dtype) in zip(images, IMAGES)]
+        outputs.append(_features_arg(feats.view(npix, nf), nf, layout, state))
+
+        keep = ws.lease_frame() if any_grad else None  # back to the pool with ctx.state
+        with state.scope():
+            frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
+                                 _features_arg(features, nf, layout, state), outputs, keep, options.sort)
+            visible = state.tensor(frame.counts) > 0
+        count = torch.tensor(frame.total)
+        ctx.mark_non_differentiable(visible, count)
+        if any_grad:
+            ctx.state = (frame, keep, settings, wanted, options, needs, layout)
+            ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
+        ctx.device = means.device
+        return tuple(images) + (feats, visible, count)
+
+    @staticmethod
+    def backward(ctx, *upstream):
+        frame, keep, settings, wanted, options, needs, layout = ctx.state
+        means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors
+        state = device_state(ctx.device)
+        ws = state.ws
+        npix = settings.width * settings.height
+        nf = wanted.num_features
+
+        grads, g_opac, g_features = gradient_buffers(ctx.saved_tensors, ctx.camera_shapes, needs)
+
+        alive = []  # descriptors hold no reference: contiguous copies must outlive the launches
+        ups = [upstream_gradient(state, layout, alive, g, f"up_{name}", (npix, c) if c > 1 else (npix,), dtype)
+               if image_wanted(wanted, name) else ws.dummy(dtype)
+               for g, (name, c, dtype) in zip(upstream, IMAGES)]
+        ups.append(upstream_features(state, layout, alive, upstream[len(IMAGES)], npix, nf))
+        desc = state.desc
+        with state.scope():
+            projected = fast.blend_backward(ws, frame, settings, wanted, desc(opacities, wp.float32),
+                                            _features_arg(features, nf, layout, state), ups,
+                                            state.array(g_opac, g_opac.shape[0], wp.float32),
+                                            feature_gradient_arg(g_features, nf, layout, state), features.shape[0],
+                                            options.surfel_backward_kernel)
+            if any(needs[i] for i in (0, 1, 2, 4, 6, 7)):
+                inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec2)
+                fast.project_backward(ws, frame, settings, inputs, projection_gradients(state, grads, wp.vec2),
+                                      projected)
+        ctx.state = None
+        grads[3] = g_opac if needs[3] else None
+        grads[5] = g_features if needs[5] else None
+        return (None, None, None) + tuple(grads)
