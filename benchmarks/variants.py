@@ -38,4 +38,6 @@ def variant(spec: str):
 
 def describe() -> str:
     o = current_raster_options()
-    return "legacy" if o.path == "legacy" else f"{o.path}+sort={o.sort}+bwd={o.backward_kernel}"
+    if o.path == "legacy":
+        return "legacy"
+    return f"{o.path}+sort={o.sort}+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}"

@@ -64,12 +64,14 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     valid = ws.array("surfel_valid", n, wp.int32)
     L.launch("surfel_project", surfel_project.project_surfels, n,
              list(inputs) + _projection_settings(s) + [transforms, means2d, depths, normals, colors, valid])
+    _stage(None, "surfel project")
     rects = ws.array("rects", n, wp.vec4i)
     counts = ws.array("counts", n, wp.int32)
     q_cut = per_call("q_cut", n, float)
     L.launch("surfel_footprints", surfel_project.surfel_footprints, n,
              [transforms, means2d, opacities, valid, s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
               rects, counts, q_cut])
+    _stage(None, "surfel footprints")
     total, tile_start, tile_end, sorted_ids = sort_into_tiles(ws, rects, counts, depths, s, per_call, sort_mode)
 
     npix = s.width * s.height
