@@ -61,8 +61,7 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     n = int(inputs[0].shape[0])
     L = ws.launches
 
-    def per_call(name, count, dtype):
-        return keep(name, count, dtype) if keep is not None else ws.array(name, count, dtype)
+    per_call = keep if keep is not None else ws  # both take (name, length, dtype)
 
     means2d = per_call("means2d", n, wp.vec2)
     conics = per_call("conics", n, wp.vec3)
@@ -75,15 +74,9 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
              list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0),
                              means2d, conics, cov2d, depths, colors, valid])
     _stage(on_stage, "project")
-    rects = ws.array("rects", n, wp.vec4i)
-    counts = ws.array("counts", n, wp.int32)
-    q_cut = per_call("q_cut", n, float)
-    L.launch("footprints", binning.tile_footprints, n,
-             [means2d, cov2d, opacities, valid, s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
-              rects, counts, q_cut])
-    _stage(on_stage, "footprints")
-    total, tile_start, tile_end, sorted_ids = sort_into_tiles(ws, rects, counts, depths, s, per_call, sort_mode,
-                                                              on_stage)
+    counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
+        ws, "footprints", binning.tile_footprints, [means2d, cov2d, opacities, valid], depths, s, per_call,
+        sort_mode, on_stage)
 
     npix = s.width * s.height
     transmittance = per_call("transmittance", npix, float)
@@ -103,6 +96,22 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     return Frame(n=n, total=total, means2d=means2d, conics=conics, depths=depths, colors=colors, q_cut=q_cut,
                  tile_start=tile_start, sorted_ids=sorted_ids, transmittance=transmittance, last=last,
                  counts=counts)
+
+
+def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, depths, s: Settings, per_call,
+                   sort_mode: str = "two_pass", on_stage: Optional[Callable[[str], None]] = None):
+    """Every primitive kind's binning: its footprint kernel (inputs `footprint_inputs`, then the image and blend
+    settings, writing tile rectangles, tile counts and cut-offs) and `sort_into_tiles`. Returns (counts, q_cut,
+    total, tile_start, tile_end, sorted_ids); counts lives in the workspace, q_cut comes from `per_call`."""
+    n = int(depths.shape[0])
+    rects = ws.array("rects", n, wp.vec4i)
+    counts = ws.array("counts", n, wp.int32)
+    q_cut = per_call("q_cut", n, float)
+    ws.launches.launch(key, footprint_kernel, n,
+                       list(footprint_inputs) + [s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
+                                                 rects, counts, q_cut])
+    _stage(on_stage, key)
+    return (counts, q_cut) + sort_into_tiles(ws, rects, counts, depths, s, per_call, sort_mode, on_stage)
 
 
 def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call, mode: str = "two_pass",

@@ -14,7 +14,7 @@ import warp as wp
 from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
 from warpgs.kernels.blend_gpu import warp_sums_supported
 from warpgs.render.cpu_threads import run_threads
-from warpgs.render.fast_pipeline import FEATURES, OPACITIES, Keep, _stage, run_blend_adjoint, sort_into_tiles
+from warpgs.render.fast_pipeline import FEATURES, OPACITIES, Keep, _stage, bin_into_tiles, run_blend_adjoint
 from warpgs.render.pipeline_gaussians import Settings, _block_dims, _block_reduce, _cooperative, _tile_launches
 from warpgs.render.pipeline_surfels import SurfelWanted, surfel_blend_params
 from warpgs.render.workspace import Workspace
@@ -53,8 +53,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     L = ws.launches
     n = int(inputs[0].shape[0])
 
-    def per_call(name, count, dtype):
-        return keep(name, count, dtype) if keep is not None else ws.array(name, count, dtype)
+    per_call = keep if keep is not None else ws  # both take (name, length, dtype)
 
     transforms = per_call("transforms", n, wp.mat33)
     means2d = per_call("means2d", n, wp.vec2)
@@ -65,14 +64,9 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     L.launch("surfel_project", surfel_project.project_surfels, n,
              list(inputs) + _projection_settings(s) + [transforms, means2d, depths, normals, colors, valid])
     _stage(None, "surfel project")
-    rects = ws.array("rects", n, wp.vec4i)
-    counts = ws.array("counts", n, wp.int32)
-    q_cut = per_call("q_cut", n, float)
-    L.launch("surfel_footprints", surfel_project.surfel_footprints, n,
-             [transforms, means2d, opacities, valid, s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
-              rects, counts, q_cut])
-    _stage(None, "surfel footprints")
-    total, tile_start, tile_end, sorted_ids = sort_into_tiles(ws, rects, counts, depths, s, per_call, sort_mode)
+    counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
+        ws, "surfel_footprints", surfel_project.surfel_footprints, [transforms, means2d, opacities, valid], depths,
+        s, per_call, sort_mode)
 
     npix = s.width * s.height
     transmittance = per_call("transmittance", npix, float)

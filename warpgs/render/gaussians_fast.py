@@ -130,6 +130,15 @@ def _features_arg(t, num_features: int, layout: str, state: "_DeviceState"):
     return state.desc(t, fast.blend_gpu.feature_vector_type(num_features))
 
 
+def detached_inputs(ctx, primitives, viewmat: torch.Tensor, intrinsics: torch.Tensor):
+    """(primitives, viewmat, intrinsics) as the fast ops hand them to Warp: the per-primitive tensors (means, quats,
+    scales, opacities, coeffs, features) detached and contiguous, the camera as [1, 4, 4] and [1, 4]. Records the
+    camera's shapes (ctx.camera_shapes) for its gradients."""
+    ctx.camera_shapes = (viewmat.shape, intrinsics.shape)
+    return ([t.detach().contiguous() for t in primitives], viewmat.detach().reshape(1, 4, 4).contiguous(),
+            intrinsics.detach().reshape(1, 4).contiguous())
+
+
 _PROJECTION_DTYPES = (wp.vec3, wp.vec4, None, wp.vec3, wp.mat44, wp.vec4)  # scales: vec3 or vec2 (surfels)
 _CAMERA_VIEWS = (None, None, None, None, (1, 4, 4), (1, 4))
 
@@ -204,11 +213,8 @@ class FastRasterizeFunction(torch.autograd.Function):
         npix = H * W
         nf = wanted.num_features
         layout = fast.feature_layout(state.wdev)
-        means, quats, scales, opacities, coeffs, features = (
-            t.detach().contiguous() for t in (means, quats, scales, opacities, coeffs, features))
-        ctx.camera_shapes = (viewmat.shape, intrinsics.shape)
-        viewmat = viewmat.detach().reshape(1, 4, 4).contiguous()
-        intrinsics = intrinsics.detach().reshape(1, 4).contiguous()
+        (means, quats, scales, opacities, coeffs, features), viewmat, intrinsics = detached_inputs(
+            ctx, (means, quats, scales, opacities, coeffs, features), viewmat, intrinsics)
         desc = state.desc
         inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec3)
         w_opac = desc(opacities, wp.float32)

@@ -8,9 +8,9 @@ import warp as wp
 
 from warpgs.render import fast_pipeline_surfels as fast
 from warpgs.render.fast_pipeline import feature_layout
-from warpgs.render.gaussians_fast import (_features_arg, device_state, feature_gradient_arg, gradient_buffers,
-                                          projection_gradients, projection_inputs, upstream_features,
-                                          upstream_gradient)
+from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
+                                          gradient_buffers, projection_gradients, projection_inputs,
+                                          upstream_features, upstream_gradient)
 from warpgs.render.pipeline_surfels import IMAGES, image_wanted
 
 
@@ -29,11 +29,8 @@ class FastSurfelsFunction(torch.autograd.Function):
         npix = H * W
         nf = wanted.num_features
         layout = feature_layout(state.wdev)
-        means, quats, scales, opacities, coeffs, features = (
-            t.detach().contiguous() for t in (means, quats, scales, opacities, coeffs, features))
-        ctx.camera_shapes = (viewmat.shape, intrinsics.shape)
-        viewmat = viewmat.detach().reshape(1, 4, 4).contiguous()
-        intrinsics = intrinsics.detach().reshape(1, 4).contiguous()
+        (means, quats, scales, opacities, coeffs, features), viewmat, intrinsics = detached_inputs(
+            ctx, (means, quats, scales, opacities, coeffs, features), viewmat, intrinsics)
         desc = state.desc
         inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec2)
 
