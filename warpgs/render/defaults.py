@@ -36,8 +36,8 @@ class RasterOptions:
     path: str = os.environ.get("WARPGS_RASTER_PATH", "fast")
     sort: str = os.environ.get("WARPGS_SORT", "two_pass")
     backward_kernel: str = os.environ.get("WARPGS_BWD_KERNEL", "warp_sums")
-    # Surfels: their per-warp adjoint (surfel_blend_gpu.backward_kernel_warp_sums) has not been timed on a GPU yet.
-    surfel_backward_kernel: str = os.environ.get("WARPGS_SURFEL_BWD_KERNEL", "block")
+    # Surfels: the per-warp adjoint halves fwd+bwd on an H200 (raster_cuda_h200_surfels_*.json); "block" is the old one.
+    surfel_backward_kernel: str = os.environ.get("WARPGS_SURFEL_BWD_KERNEL", "warp_sums")
 
     def __post_init__(self):
         for f, allowed in (("path", RASTER_PATHS), ("sort", SORT_MODES), ("backward_kernel", BACKWARD_KERNELS),

@@ -94,7 +94,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
 
 
 def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelWanted, opacities, features,
-                   upstream, adj_opacities, adj_features, num_features_rows: int, backward_kernel: str = "block"):
+                   upstream, adj_opacities, adj_features, num_features_rows: int, backward_kernel: str = "warp_sums"):
     """The blending adjoint. upstream: (grad color, alpha, depth, inv_depth, normal, median, distortion, features)
     in the kernels' layouts (dummies for outputs not rendered). adj_opacities / adj_features: where the opacity and
     feature gradients accumulate (zeroed by the caller). backward_kernel: the GPU adjoint, "block" or "warp_sums"
@@ -140,7 +140,7 @@ def _params(ws: Workspace, s: Settings, want: SurfelWanted, first: int):
     return ws.memo(key, lambda: surfel_blend_params(s, want, first))
 
 
-def _blend_kernel(dev, s: Settings, want: SurfelWanted, backward: bool, variant: str = "block"):
+def _blend_kernel(dev, s: Settings, want: SurfelWanted, backward: bool, variant: str = "warp_sums"):
     """(kernel, block_dim): the per-thread CPU kernels (block_dim 1, as the per-call path launches them, so both
     share one compiled module), or the cooperative GPU ones of surfel_blend_gpu.py (variant: the adjoint)."""
     if not _cooperative(dev):
