@@ -28,6 +28,24 @@ def test_ssim_known_values():
     assert float(ssim(torch.full((12, 12, 3), a), torch.full((12, 12, 3), b))) == pytest.approx(want, abs=1e-3)
 
 
+@pytest.mark.parametrize("shape,window", [((1, 37, 53, 3), 11), ((2, 20, 16, 1), 11), ((1, 9, 40, 3), 7)])
+def test_ssim_matches_kornias_and_so_do_its_gradients(shape, window):
+    """ssim filters the five local moments in one stacked pass; kornia.metrics.ssim, five passes, is the reference."""
+    from kornia.metrics import ssim as kornia_ssim
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(shape, generator=g, dtype=torch.float64).requires_grad_(True)
+    y = (x.detach() + 0.2 * torch.randn(shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    ours = ssim(x, y, window_size=window)
+    (g_ours,) = torch.autograd.grad(ours, x)
+    ref = kornia_ssim(x.permute(0, 3, 1, 2), y.permute(0, 3, 1, 2), window, max_val=1.0).mean()
+    (g_ref,) = torch.autograd.grad(ref, x)
+    assert 0.2 < float(ref) < 0.95  # neither identical nor unrelated images: the comparison means something
+    assert float(ours) == pytest.approx(float(ref), abs=1e-12)
+    torch.testing.assert_close(g_ours, g_ref, rtol=1e-9, atol=1e-12)
+    assert float(ssim(x.float(), y.float(), window_size=window)) == pytest.approx(float(ref), abs=1e-5)
+
+
 def test_ssim_on_images_smaller_than_the_window():
     x = torch.rand(2, 3, 5, 3, generator=torch.Generator().manual_seed(1))
     assert float(ssim(x, x)) == pytest.approx(1.0, abs=1e-6)

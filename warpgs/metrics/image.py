@@ -6,12 +6,13 @@ already on disk; otherwise `LPIPSMetric.available` is False and `reason` says wh
 """
 from __future__ import annotations
 
+import functools
 import importlib.util
 import os
 from typing import Optional
 
 import torch
-from kornia.metrics import ssim as _kornia_ssim
+from kornia.filters import filter2d_separable, get_gaussian_kernel1d
 
 # torchvision checkpoint files the lpips backbones load from the torch hub cache.
 _BACKBONE_FILES = {"alex": "alexnet-owt-7be5be79.pth", "vgg": "vgg16-397923af.pth",
@@ -43,12 +44,33 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, max_val: float = 1.0) -> torc
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor, window_size: int = 11, max_val: float = 1.0) -> torch.Tensor:
-    """Mean SSIM with an 11x11 Gaussian window (sigma 1.5) as 3DGS; kornia pads by reflection, 3DGS by zeros,
-    so values differ slightly within 5 px of the border. Differentiable (the D-SSIM loss uses it)."""
+    """Mean SSIM with an 11x11 Gaussian window (sigma 1.5) as 3DGS; reflection padding (kornia's), where 3DGS pads
+    with zeros, so values differ slightly within 5 px of the border. Differentiable (the D-SSIM loss uses it).
+
+    The same formula as kornia.metrics.ssim (tests/test_metrics.py compares them), but the five local means go
+    through one separable filtering of the stacked channels with a cached window, not five: a training step's
+    SSIM is then about a dozen kernels instead of about sixty, which is host time on a GPU."""
     pred, target = _pair(pred, target)
     # Reflection padding needs window_size // 2 < min(H, W): shrink the window for tiny images.
     window_size = min(int(window_size), 2 * min(pred.shape[1], pred.shape[2]) - 1)
-    return _kornia_ssim(to_bchw(pred), to_bchw(target), window_size, max_val=max_val).mean()
+    x, y = to_bchw(pred), to_bchw(target)
+    window = _gaussian_window(window_size, x.device, x.dtype)
+    local = filter2d_separable(torch.cat([x, y, x * x, y * y, x * y], 1), window, window, border_type="reflect")
+    mu_x, mu_y, xx, yy, xy = local.chunk(5, 1)
+    c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    num = (2.0 * mu_xy + c1) * (2.0 * (xy - mu_xy) + c2)
+    den = (mu_xx + mu_yy + c1) * ((xx - mu_xx) + (yy - mu_yy) + c2)
+    return (num / (den + _SSIM_EPS)).mean()
+
+
+_SSIM_EPS = 1e-12  # kornia.metrics.ssim's default
+
+
+@functools.lru_cache(maxsize=32)
+def _gaussian_window(size: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """[1, size] normalised Gaussian, sigma 1.5 (kornia's own window for SSIM); built once per size and device."""
+    return get_gaussian_kernel1d(size, 1.5, device=device, dtype=dtype)
 
 
 def lpips_unavailable_reason(net: str = "alex") -> Optional[str]:
