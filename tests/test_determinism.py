@@ -148,3 +148,28 @@ def test_thread_pool_loads_modules_before_its_workers_launch(tmp_path):
     proc = subprocess.run([sys.executable, str(tmp_path / "race.py")], capture_output=True, text=True, timeout=300,
                           env=env)
     assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), (proc.returncode, proc.stderr[-2000:])
+
+
+def test_same_seed_training_is_repeatable_and_evaluating_does_not_perturb_it(tmp_path):
+    """Two trainers with one config, through refines (clones, splits with their random draws, pruning): one that
+    evaluates the held-out views every 10 steps and one that never does end bit-identical. On the CPU, same-seed runs
+    are comparable run for run (benchmarks/strategy_compare.py leans on this)."""
+    from train_fixtures import quick_overrides
+    from warpgs.config.loader import load_config
+    from warpgs.train.trainer import Trainer
+
+    runs = []
+    for name, evaluate in (("quiet", False), ("evaluating", True)):
+        cfg = load_config(None, quick_overrides(tmp_path / name, steps=45, **{"train.threads": 2}))
+        trainer = Trainer(cfg, quiet=True)
+        refines = 0
+        for _ in range(45):
+            info = trainer.train_step()
+            refines += bool(info["densify"] and info["densify"].get("split"))
+            if evaluate and trainer.step % 10 == 0:
+                trainer.evaluate()
+        assert refines >= 2  # the comparison covers splits, whose children are sampled at random
+        runs.append({k: v.detach().clone() for k, v in trainer.model.params.items()})
+    assert runs[0].keys() == runs[1].keys()
+    for k in runs[0]:
+        assert torch.equal(runs[0][k], runs[1][k]), k
