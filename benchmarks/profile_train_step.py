@@ -4,7 +4,7 @@ forward+backward alone, the same with the NaN guard off, and a torch.profiler ta
     python benchmarks/profile_train_step.py data/fern --device cuda --warmup 2000 --steps 200 data.downscale=8
 
 Warm-up steps grow the model to a realistic size first (densification runs as in training). Writes
-benchmarks/results/profile_train_step_<name>_<device>.json.
+benchmarks/results/profile_train_step_<name>_<device>[_<tag>].json.
 """
 from __future__ import annotations
 
@@ -59,6 +59,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--warmup", type=int, default=2000, help="training steps before measuring")
     ap.add_argument("--steps", type=int, default=200, help="steps per measurement")
     ap.add_argument("--top", type=int, default=25, help="rows of the profiler table")
+    ap.add_argument("--tag", default="", help="suffix of the result file name (runs of one capture stay apart)")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args(argv)
 
@@ -92,7 +93,7 @@ def main(argv=None) -> dict:
     print(f"{n} primitives: step {1e3 * step_s:.2f} ms (NaN guard off: {1e3 * no_guard_s:.2f} ms); render fwd+bwd "
           f"alone {1e3 * render_s:.2f} ms; the rest {1e3 * (step_s - render_s):.2f} ms")
     name = Path(args.data).name
-    write_json(f"profile_train_step_{name}_{args.device}", result)
+    write_json(f"profile_train_step_{name}_{args.device}" + (f"_{args.tag}" if args.tag else ""), result)
     return result
 
 
