@@ -1,6 +1,7 @@
-"""Shared helpers for the benchmark scripts: timing, the standard scenes, result files."""
+"""Shared helpers for the benchmark scripts: timing, the standard scenes, result files, real-capture configs."""
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import statistics
@@ -23,6 +24,34 @@ def standard_scenes_module():
     import scenes
 
     return scenes
+
+
+def capture_config(data, *, device: str, steps: int, seed=None, eval_every: int = 0, config: str = "gaussians",
+                   downscale=None, overrides=()):
+    """The config a real-capture benchmark trains with: DIR with its LLFF split (every 8th view held out), quiet
+    (no progress line, periodic checkpoints, saved images or LPIPS), then the user's key=value overrides, then
+    data.downscale when given. seed None keeps the config's."""
+    from warpgs.cli.commands import resolve_config_source
+    from warpgs.config.loader import load_config
+
+    items = [f"data.path={Path(data).resolve()}", "data.split=llff", f"train.device={device}",
+             *([f"train.seed={seed}"] if seed is not None else []), f"train.steps={steps}", f"eval.every={eval_every}",
+             "train.progress=false", "train.checkpoint_every=0", "eval.save_images=false", "eval.lpips=false",
+             *overrides]
+    if downscale:
+        items.append(f"data.downscale={downscale}")
+    return load_config(resolve_config_source(config), items)
+
+
+def import_gsplat_python(src, module: str, what: str):
+    """Import `module` of gsplat's Python sources (src: a folder holding gsplat/, first on sys.path; None: the
+    installed gsplat), or exit naming --gsplat-src and what was wanted."""
+    if src:
+        sys.path.insert(0, str(Path(src).resolve()))
+    try:
+        return importlib.import_module(module)
+    except ImportError as e:
+        raise SystemExit(f"--gsplat-src: gsplat's {what} is not importable ({e})")
 
 
 def sync(device: str) -> None:

@@ -18,23 +18,17 @@ from pathlib import Path
 
 import torch
 
-from common import ROOT, print_table, time_call, write_json
+from common import ROOT, capture_config, print_table, time_call, write_json
 
 sys.path.insert(0, str(ROOT))
 
 from warpgs import rasterize  # noqa: E402
-from warpgs.cli.commands import resolve_config_source  # noqa: E402
-from warpgs.config.loader import load_config  # noqa: E402
 from warpgs.train.trainer import Trainer  # noqa: E402
 
 
 def trained_model(args) -> Trainer:
-    overrides = [f"data.path={Path(args.data).resolve()}", "data.split=llff", f"train.device={args.device}",
-                 f"train.steps={args.steps}", "eval.every=0", "train.progress=false", "train.checkpoint_every=0",
-                 "eval.save_images=false", "eval.lpips=false", *args.overrides]
-    if args.downscale:
-        overrides.append(f"data.downscale={args.downscale}")
-    cfg = load_config(resolve_config_source("gaussians"), overrides)
+    cfg = capture_config(args.data, device=args.device, steps=args.steps, downscale=args.downscale,
+                         overrides=args.overrides)
     cfg.output.dir = args.out
     trainer = Trainer(cfg, quiet=True)
     trainer.fit()

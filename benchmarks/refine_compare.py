@@ -20,12 +20,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common import ROOT, write_json
+from common import ROOT, capture_config, import_gsplat_python, write_json
 
 sys.path.insert(0, str(ROOT))
 
-from warpgs.cli.commands import resolve_config_source  # noqa: E402
-from warpgs.config.loader import load_config  # noqa: E402
 from warpgs.train.trainer import Trainer  # noqa: E402
 
 EARLY_RULES = ["strategy.reset_every=600", "strategy.size_prune_start=600"]
@@ -35,13 +33,8 @@ COMPARED = (("log_scales", "scales"), ("logit_opacities", "opacities"), ("quats"
 
 def trainer_before_refine(args):
     """(trainer after the refine at args.step, the model parameters and statistics just before it)."""
-    overrides = [f"data.path={Path(args.data).resolve()}", "data.split=llff", "train.device=cpu",
-                 f"train.seed={args.seed}", f"train.steps={args.steps}", "eval.every=0", "train.progress=false",
-                 "train.checkpoint_every=0", "eval.save_images=false", "eval.lpips=false",
-                 *(EARLY_RULES if not args.keep_schedule else []), *args.overrides]
-    if args.downscale:
-        overrides.append(f"data.downscale={args.downscale}")
-    cfg = load_config(resolve_config_source("gaussians"), overrides)
+    cfg = capture_config(args.data, device="cpu", steps=args.steps, seed=args.seed, downscale=args.downscale,
+                         overrides=[*(EARLY_RULES if not args.keep_schedule else []), *args.overrides])
     cfg.output.dir = args.out
     trainer = Trainer(cfg, quiet=True)
     strategy, before = trainer.strategy, {}
@@ -101,12 +94,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--gsplat-src", default=None, help="folder holding gsplat's Python package (gsplat/)")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args(argv)
-    if args.gsplat_src:
-        sys.path.insert(0, str(Path(args.gsplat_src).resolve()))
-    try:
-        import gsplat.strategy  # noqa: F401
-    except ImportError as e:
-        raise SystemExit(f"--gsplat-src: gsplat's strategy is not importable ({e})")
+    import_gsplat_python(args.gsplat_src, "gsplat.strategy", "strategy")
     with tempfile.TemporaryDirectory() as tmp:
         args.out = tmp
         trainer, before, ours_report = trainer_before_refine(args)

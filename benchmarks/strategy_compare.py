@@ -20,13 +20,11 @@ from pathlib import Path
 
 import torch
 
-from common import ROOT, print_table, write_json
+from common import ROOT, capture_config, import_gsplat_python, print_table, write_json
 
 sys.path.insert(0, str(ROOT))
 
 from train_compare import initial_model, run_gsplat, run_warpgs  # noqa: E402
-from warpgs.cli.commands import resolve_config_source  # noqa: E402
-from warpgs.config.loader import load_config  # noqa: E402
 from warpgs.render.gaussians import rasterize  # noqa: E402
 
 
@@ -73,20 +71,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--tag", default="")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides (both sides)")
     args = ap.parse_intermixed_args(argv)
-    if args.gsplat_src:
-        sys.path.insert(0, str(Path(args.gsplat_src).resolve()))
     if args.only != "warpgs":
-        try:
-            import gsplat.strategy  # noqa: F401
-        except ImportError as e:
-            raise SystemExit(f"--gsplat-src: gsplat's strategy is not importable ({e})")
-    overrides = [f"data.path={Path(args.data).resolve()}", "data.split=llff", f"train.device={args.device}",
-                 f"train.seed={args.seed}", f"train.steps={args.steps}", f"eval.every={args.eval_every}",
-                 "train.progress=false", "train.checkpoint_every=0", "eval.save_images=false", "eval.lpips=false",
-                 *args.overrides]
-    if args.downscale:
-        overrides.append(f"data.downscale={args.downscale}")
-    cfg = load_config(resolve_config_source(args.config), overrides)
+        import_gsplat_python(args.gsplat_src, "gsplat.strategy", "strategy")
+    cfg = capture_config(args.data, device=args.device, steps=args.steps, seed=args.seed, eval_every=args.eval_every,
+                         config=args.config, downscale=args.downscale, overrides=args.overrides)
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         cfg.output.dir = args.out or tmp

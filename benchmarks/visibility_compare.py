@@ -18,12 +18,10 @@ from pathlib import Path
 
 import torch
 
-from common import ROOT, write_json
+from common import ROOT, capture_config, import_gsplat_python, write_json
 
 sys.path.insert(0, str(ROOT))
 
-from warpgs.cli.commands import resolve_config_source  # noqa: E402
-from warpgs.config.loader import load_config  # noqa: E402
 from warpgs.train.trainer import Trainer  # noqa: E402
 
 ALPHA_THRESHOLD = 1.0 / 255.0  # gsplat's, and warpgs's default alpha_min
@@ -60,19 +58,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--gsplat-src", default=None, help="folder holding gsplat's Python package (gsplat/)")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args(argv)
-    if args.gsplat_src:
-        sys.path.insert(0, str(Path(args.gsplat_src).resolve()))
-    try:
-        import gsplat.cuda._torch_impl  # noqa: F401
-    except ImportError as e:
-        raise SystemExit(f"--gsplat-src: gsplat's torch projection is not importable ({e})")
-    overrides = [f"data.path={Path(args.data).resolve()}", "data.split=llff", "train.device=cpu",
-                 f"train.seed={args.seed}", f"train.steps={max(args.steps, 1)}", "eval.every=0",
-                 "train.progress=false", "train.checkpoint_every=0", "eval.save_images=false", "eval.lpips=false",
-                 *args.overrides]
-    if args.downscale:
-        overrides.append(f"data.downscale={args.downscale}")
-    cfg = load_config(resolve_config_source("gaussians"), overrides)
+    import_gsplat_python(args.gsplat_src, "gsplat.cuda._torch_impl", "torch projection")
+    cfg = capture_config(args.data, device="cpu", steps=max(args.steps, 1), seed=args.seed, downscale=args.downscale,
+                         overrides=args.overrides)
     with tempfile.TemporaryDirectory() as tmp:
         cfg.output.dir = tmp
         trainer = Trainer(cfg, quiet=True)
