@@ -101,7 +101,8 @@ def single_core_gflops():
     return 2 * 1024**3 / dt / 1e9
 
 
-def gsplat_times(scene, width, height, device, surfels):
+def gsplat_calls(scene, width, height, surfels):
+    """(forward, forward+backward) of gsplat 1.5's rasterization (2dgs for surfels) on the scene, RGB+ED."""
     import gsplat
 
     means, quats, scales, opacities, colors, viewmat, K = scene
@@ -120,10 +121,16 @@ def gsplat_times(scene, width, height, device, surfels):
         leaves = [t.detach().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
         fwd(leaves).sum().backward()
 
+    return fwd, fwd_bwd
+
+
+def gsplat_times(scene, width, height, device, surfels):
+    fwd, fwd_bwd = gsplat_calls(scene, width, height, surfels)
     return time_call(fwd, device, warmup=3, repeats=20), time_call(fwd_bwd, device, warmup=3, repeats=20)
 
 
-def warpgs_times(scene, width, height, device, repeats, surfels, tile_size):
+def warpgs_calls(scene, width, height, surfels, tile_size):
+    """(forward, forward+backward) of warpgs's op on the scene (rgb, alpha, depth; loss sum of rgb and depth)."""
     render = rasterize_surfels if surfels else rasterize
     means, quats, scales, opacities, colors, viewmat, K = scene
 
@@ -136,6 +143,11 @@ def warpgs_times(scene, width, height, device, repeats, surfels, tile_size):
         out = render(*leaves, viewmat, K, width, height, outputs=OUTPUTS, tile_size=tile_size, check_inputs=False)
         (out.rgb.sum() + out.depth.sum()).backward()
 
+    return fwd, fwd_bwd
+
+
+def warpgs_times(scene, width, height, device, repeats, surfels, tile_size):
+    fwd, fwd_bwd = warpgs_calls(scene, width, height, surfels, tile_size)
     warm = 3 if device.startswith("cuda") else 1
     return time_call(fwd, device, warmup=warm, repeats=repeats), time_call(fwd_bwd, device, warmup=warm, repeats=repeats)
 

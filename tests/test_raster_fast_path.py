@@ -164,3 +164,33 @@ def test_expanded_and_unused_upstream_gradients():
         results.append({k: v.grad for k, v in leaves.items() if v is not None})
     for name, g in results[0].items():
         _assert_same(results[1][name], g, f"grad {name}")
+
+
+def test_outputs_the_loss_never_touches_get_no_gradient_buffers():
+    """The fast op asks autograd not to materialise zero gradients: a loss on rgb alone hands its backward None
+    for alpha, depth and features, which must count as zeros (the legacy path gets real zero tensors)."""
+    scene = random_scene(n=80, seed=22, num_features=2)
+    results = []
+    for path in ("legacy", "fast"):
+        leaves = _leaves(scene)
+        with raster_options(path=path):
+            out = _render(scene, leaves, ("rgb", "alpha", "depth", "features"))
+        out.rgb.sum().backward()
+        results.append({k: v.grad for k, v in leaves.items() if v is not None})
+    for name, g in results[0].items():
+        _assert_same(results[1][name], g, f"grad {name}")
+
+
+def test_intrinsics_changed_in_place_are_seen():
+    """The op remembers each K tensor's (fx, fy, cx, cy) while K stays the same object at the same version; an
+    in-place change of K must render as a fresh K does."""
+    scene = random_scene(n=60, seed=23)
+    leaves = _leaves(scene, requires_grad=False)
+    first = _render(scene, leaves, ("rgb",)).rgb
+    with torch.no_grad():
+        leaves["K"][0, 0] *= 1.5
+        leaves["K"][1, 2] += 3.0
+    changed = _render(scene, leaves, ("rgb",)).rgb
+    fresh = _render(scene, dict(leaves, K=leaves["K"].clone()), ("rgb",)).rgb
+    assert not torch.equal(changed, first)
+    assert torch.equal(changed, fresh)

@@ -57,6 +57,7 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     (1-element dummies for outputs not asked for; features zeroed beforehand for the per-thread CPU kernel);
     features in the layout of `feature_layout`. keep=None: everything in the workspace (no backward follows).
     on_stage(name), if given, is called after each stage (benchmarks/profile_stages.py times them)."""
+    _stage(on_stage, "op prologue")  # the render call's host work up to here (checks, wrapping, allocation)
     dev = ws.device
     n = int(inputs[0].shape[0])
     L = ws.launches

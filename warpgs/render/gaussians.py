@@ -189,8 +189,32 @@ class _RasterizeFunction(torch.autograd.Function):
         return (None, None) + tuple(grads) + (g2d[0] if g2d else None,)
 
 
+_INTRINSICS_INDEX: dict = {}  # device -> the flat indices of (fx, fy, cx, cy) in a 3x3 K
+_INTRINSICS_SEEN: dict = {}  # id(K) -> (K, its version, its vector), for K tensors that need no gradient
+_INTRINSICS_SEEN_SIZE = 64  # cameras remembered (a training loop cycles through its views' K tensors)
+
+
 def _intrinsics_vector(K: torch.Tensor) -> torch.Tensor:
-    return torch.stack([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    """(fx, fy, cx, cy) of K [3,3], differentiable. One gather, and none when the same K tensor comes again
+    unchanged (same object, same version counter) and needs no gradient: at 100k Gaussians a GPU render is mostly
+    host time, and this was a tenth of what the op did before its first kernel."""
+    if K.requires_grad:
+        return _gather_intrinsics(K)
+    seen = _INTRINSICS_SEEN.get(id(K))
+    if seen is not None and seen[0] is K and seen[1] == K._version:
+        return seen[2]
+    vector = _gather_intrinsics(K)
+    if len(_INTRINSICS_SEEN) >= _INTRINSICS_SEEN_SIZE:
+        _INTRINSICS_SEEN.clear()
+    _INTRINSICS_SEEN[id(K)] = (K, K._version, vector)  # holding K keeps id(K) from naming another tensor
+    return vector
+
+
+def _gather_intrinsics(K: torch.Tensor) -> torch.Tensor:
+    index = _INTRINSICS_INDEX.get(K.device)
+    if index is None:
+        index = _INTRINSICS_INDEX[K.device] = torch.tensor([0, 4, 2, 5], device=K.device)
+    return K.reshape(9).index_select(0, index)
 
 
 def rasterize(
@@ -252,7 +276,7 @@ def rasterize(
 
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
-    feats = features if (features is not None and "features" in outputs) else means.new_zeros(n, 0)
+    feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
     settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min, transmittance_min)
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1])

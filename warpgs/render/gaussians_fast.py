@@ -13,6 +13,7 @@ So two renders in flight (two forwards, then their backwards in any order) share
 """
 from __future__ import annotations
 
+import math
 import threading
 from typing import Dict
 
@@ -132,11 +133,14 @@ def _features_arg(t, num_features: int, layout: str, state: "_DeviceState"):
 
 def detached_inputs(ctx, primitives, viewmat: torch.Tensor, intrinsics: torch.Tensor):
     """(primitives, viewmat, intrinsics) as the fast ops hand them to Warp: the per-primitive tensors (means, quats,
-    scales, opacities, coeffs, features) detached and contiguous, the camera as [1, 4, 4] and [1, 4]. Records the
-    camera's shapes (ctx.camera_shapes) for its gradients."""
+    scales, opacities, coeffs, features) contiguous, the camera as [1, 4, 4] and [1, 4]. Records the camera's
+    shapes (ctx.camera_shapes) for its gradients, and tells autograd not to materialise zero gradients for outputs
+    the loss did not use (the backward takes None there). No detach: inside an autograd.Function's forward the
+    inputs record nothing, and each detach is a dispatch (host time is most of a 100k-primitive GPU render)."""
     ctx.camera_shapes = (viewmat.shape, intrinsics.shape)
-    return ([t.detach().contiguous() for t in primitives], viewmat.detach().reshape(1, 4, 4).contiguous(),
-            intrinsics.detach().reshape(1, 4).contiguous())
+    ctx.set_materialize_grads(False)
+    return ([t if t.is_contiguous() else t.contiguous() for t in primitives],
+            viewmat.reshape(1, 4, 4).contiguous(), intrinsics.reshape(1, 4).contiguous())
 
 
 _PROJECTION_DTYPES = (wp.vec3, wp.vec4, None, wp.vec3, wp.mat44, wp.vec4)  # scales: vec3 or vec2 (surfels)
@@ -160,12 +164,26 @@ def projection_gradients(state: "_DeviceState", grads, scale_dtype) -> list:
 def gradient_buffers(saved, camera_shapes, needs):
     """(grads, opacity gradient, feature gradient): the op's eight input gradients (zeros where `needs`, else None)
     from its saved (means, quats, scales, opacities, coeffs, features, ...) and the camera's shapes, and the two
-    buffers the blend adjoint always writes (the gradients themselves where wanted)."""
-    shapes = [t.shape for t in saved[:6]] + list(camera_shapes)
-    grads = [saved[0].new_zeros(shape) if need else None for shape, need in zip(shapes, needs)]
-    g_opac = grads[3] if grads[3] is not None else torch.zeros_like(saved[3])
-    g_features = grads[5] if grads[5] is not None else torch.zeros_like(saved[5])
-    return grads, g_opac, g_features
+    buffers the blend adjoint always writes (the gradients themselves where wanted). All are contiguous views of
+    one zeroed block: on a GPU one allocation and one fill instead of one of each per input."""
+    shapes = [tuple(t.shape) for t in saved[:6]] + [tuple(s) for s in camera_shapes]
+    taken = [need or i in (3, 5) for i, need in enumerate(needs)]  # opacities and features: always written
+    sizes = [math.prod(shape) if take else 0 for shape, take in zip(shapes, taken)]
+    block = saved[0].new_zeros(sum(sizes))
+    views, offset = [], 0
+    for shape, size, take in zip(shapes, sizes, taken):
+        views.append(block.as_strided(shape, _contiguous_strides(shape), offset) if take else None)
+        offset += size
+    grads = [v if need else None for v, need in zip(views, needs)]
+    return grads, views[3], views[5]
+
+
+def _contiguous_strides(shape) -> tuple:
+    strides, step = [], 1
+    for d in reversed(shape):
+        strides.append(step)
+        step *= max(d, 1)
+    return tuple(reversed(strides))
 
 
 def upstream_gradient(state: "_DeviceState", layout: str, alive: list, g, name: str, shape, dtype, rows_dtype=None):
@@ -220,7 +238,7 @@ class FastRasterizeFunction(torch.autograd.Function):
         w_opac = desc(opacities, wp.float32)
         w_feat = _features_arg(features, nf, layout, state)
 
-        empty = means.new_zeros(0)
+        empty = means.new_empty(0)
         color = means.new_empty(H, W, 3) if wanted.color else empty
         alpha = means.new_empty(H, W, 1)
         depth = means.new_empty(H, W, 1) if wanted.depth else empty

@@ -147,7 +147,7 @@ def rasterize_surfels(
 
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
-    feats = features if (features is not None and "features" in outputs) else means.new_zeros(n, 0)
+    feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
     settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min, transmittance_min)
     wanted = surfel_pipeline.SurfelWanted(
         color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,

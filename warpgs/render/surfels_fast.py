@@ -34,7 +34,7 @@ class FastSurfelsFunction(torch.autograd.Function):
         desc = state.desc
         inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec2)
 
-        empty = means.new_zeros(0)
+        empty = means.new_empty(0)
         images = [means.new_empty(H, W, c) if image_wanted(wanted, name) else empty for name, c, _ in IMAGES]
         # the per-thread CPU kernels accumulate features in place; the cooperative ones write every pixel
         feats = ((means.new_zeros if layout == "rows" else means.new_empty)(H, W, nf)) if nf else empty
