@@ -194,3 +194,25 @@ def test_intrinsics_changed_in_place_are_seen():
     fresh = _render(scene, dict(leaves, K=leaves["K"].clone()), ("rgb",)).rgb
     assert not torch.equal(changed, first)
     assert torch.equal(changed, fresh)
+
+
+@pytest.mark.parametrize("with_alpha", [False, True])
+def test_depth_division_kernel_matches_torch(with_alpha):
+    """The fast op divides accumulated depth by alpha in a kernel and runs that division's adjoint itself; the
+    legacy path leaves both to torch. Same images and gradients, uncovered pixels (alpha 0) included."""
+    scene = random_scene(n=120, seed=24, width=48, height=40)
+    results = []
+    for path in ("legacy", "fast"):
+        leaves = _leaves(scene)
+        with raster_options(path=path):
+            out = _render(scene, leaves, ("rgb", "alpha", "depth"))
+        assert bool((out.alpha == 0).any()), "the scene should leave some pixels uncovered"
+        weights = _weights(scene, ("depth", "alpha"), seed=7)
+        loss = (out.depth * weights["depth"]).sum()
+        if with_alpha:
+            loss = loss + (out.alpha * weights["alpha"]).sum()
+        loss.backward()
+        results.append((out.depth.detach(), {k: v.grad for k, v in leaves.items() if v is not None}))
+    _assert_same(results[1][0], results[0][0], "depth")
+    for name, g in results[0][1].items():
+        _assert_same(results[1][1][name], g, f"grad {name}")

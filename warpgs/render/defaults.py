@@ -15,6 +15,7 @@ DEFAULT_TRANSMITTANCE_MIN = 1.0e-4  # a pixel stops blending before its transmit
 # The adjoint recovers each Gaussian's transmittance from the final one by division, so the final one must stay a
 # normal float32: a smaller transmittance_min (0 included) would let it underflow and corrupt the gradients.
 LOWEST_TRANSMITTANCE_MIN = 1.0e-30
+DEPTH_EPS = 1e-10  # expected depth = accumulated depth / max(alpha, DEPTH_EPS)
 
 
 def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool) -> int:

@@ -21,7 +21,7 @@ from typing import Callable, Optional
 
 import warp as wp
 
-from warpgs.kernels import binning, blend, blend_gpu, project
+from warpgs.kernels import binning, blend, blend_gpu, depth_norm, project
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.defaults import SORT_MODES
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
@@ -172,6 +172,23 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
         L.launch("ranges64", binning.tile_ranges_dense64, total, [keys, total, s.num_tiles, tile_start, tile_end])
     _stage(on_stage, "sort: tile ranges")
     return total, tile_start, tile_end, sorted_ids
+
+
+def normalize_depth(ws: Workspace, zacc, alpha, depth, npix: int, eps: float) -> None:
+    """depth = zacc / max(alpha, eps) per pixel (kernels/depth_norm.py), in one launch."""
+    ws.launches.launch("normalize_depth", depth_norm.normalize_depth, npix, [zacc, alpha, eps, depth])
+
+
+def normalize_depth_backward(ws: Workspace, grad_depth, zacc, transmittance, grad_alpha, npix: int, eps: float):
+    """The adjoint of `normalize_depth`: (depth upstream, alpha upstream) for the blend adjoint, in the workspace
+    (valid until the next backward on it). grad_alpha None: the loss did not use alpha."""
+    up_zacc = ws.array("up_zacc", npix, float)
+    up_alpha = ws.array("up_alpha_total", npix, float)
+    has_alpha = grad_alpha is not None
+    ws.launches.launch("normalize_depth_adjoint", depth_norm.normalize_depth_adjoint, npix,
+                       [grad_depth, zacc, transmittance, eps, int(has_alpha),
+                        grad_alpha if has_alpha else ws.dummy(float), up_zacc, up_alpha])
+    return up_zacc, up_alpha
 
 
 def _stage(on_stage, name: str) -> None:

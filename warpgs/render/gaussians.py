@@ -13,13 +13,12 @@ import torch
 import warp as wp
 
 from warpgs.render import pipeline_gaussians as pipeline
-from warpgs.render.defaults import (DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, LOWEST_TRANSMITTANCE_MIN,
-                                    choose_tile_size, current_raster_options)
+from warpgs.render.defaults import (DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, DEPTH_EPS,
+                                    LOWEST_TRANSMITTANCE_MIN, choose_tile_size, current_raster_options)
 from warpgs.render.gaussians_fast import FastRasterizeFunction
 from warpgs.render.validation import check_finite, check_same_device, check_tensor
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
-DEPTH_EPS = 1e-10
 
 
 @dataclass
@@ -77,13 +76,14 @@ def _to_wp(t: torch.Tensor, dtype, grad: Optional[torch.Tensor] = None):
     return wp.from_torch(t, dtype=dtype, grad=grad)
 
 
-def set_image_outputs(out: RenderOutput, wanted, color, alpha, zacc, inv, fout, background) -> RenderOutput:
+def set_image_outputs(out: RenderOutput, wanted, color, alpha, zacc, inv, fout, background,
+                      depth_normalized: bool = False) -> RenderOutput:
     """Fills the image outputs every primitive kind shares: rgb (over `background`), depth (accumulated z over
-    alpha), inverse depth and features, each only if `wanted`."""
+    alpha; `depth_normalized`: the op divided already), inverse depth and features, each only if `wanted`."""
     if wanted.color:
         out.rgb = color if background is None else color + (1.0 - alpha) * background
     if wanted.depth:
-        out.depth = zacc / alpha.clamp_min(DEPTH_EPS)
+        out.depth = zacc if depth_normalized else zacc / alpha.clamp_min(DEPTH_EPS)
     if wanted.inv_depth:
         out.inv_depth = inv
     if wanted.num_features:
@@ -282,7 +282,8 @@ def rasterize(
                              num_features=feats.shape[1])
     device = means.device
     options = current_raster_options()
-    if options.path == "fast" and n > 0:
+    fast = options.path == "fast" and n > 0
+    if fast:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, fout, visible, count = FastRasterizeFunction.apply(
             settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
             probe)
@@ -293,7 +294,7 @@ def rasterize(
                 probe)
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible,
                        num_intersections=int(count), means2d=probe)
-    return set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background)
+    return set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background, depth_normalized=fast)
 
 
 def _stack(per_camera: list) -> RenderOutput:

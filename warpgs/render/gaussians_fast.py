@@ -21,6 +21,7 @@ import torch
 import warp as wp
 
 from warpgs.render import fast_pipeline as fast
+from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.workspace import Workspace
 
 class _DeviceState:
@@ -245,15 +246,18 @@ class FastRasterizeFunction(torch.autograd.Function):
         inv_depth = means.new_empty(H, W, 1) if wanted.inv_depth else empty
         # the per-thread CPU kernels accumulate features in place; the cooperative ones write every pixel
         feats = ((means.new_zeros if layout == "rows" else means.new_empty)(H, W, nf)) if nf else empty
+        keep = ws.lease_frame() if any_grad else None  # back to the pool with ctx.state
+        # the blend accumulates depth in `zacc`; `depth` gets it over alpha (fast.normalize_depth)
+        zacc = (keep if keep is not None else ws)("zacc", npix, float) if wanted.depth else ws.dummy(float)
         outputs = [desc(color.view(npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3),
-                   desc(alpha.view(npix), wp.float32),
-                   desc(depth.view(npix), wp.float32) if wanted.depth else ws.dummy(float),
+                   desc(alpha.view(npix), wp.float32), zacc,
                    desc(inv_depth.view(npix), wp.float32) if wanted.inv_depth else ws.dummy(float),
                    _features_arg(feats.view(npix, nf), nf, layout, state)]
 
-        keep = ws.lease_frame() if any_grad else None  # back to the pool with ctx.state
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, options.sort)
+            if wanted.depth:
+                fast.normalize_depth(ws, zacc, outputs[1], desc(depth.view(npix), wp.float32), npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
             if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
                 means2d_probe.data.copy_(state.tensor(frame.means2d).view(-1, 2))
@@ -261,7 +265,7 @@ class FastRasterizeFunction(torch.autograd.Function):
         count = torch.tensor(frame.total)
         ctx.mark_non_differentiable(visible, count)
         if any_grad:
-            ctx.state = (frame, keep, settings, wanted, options, needs, layout)
+            ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
         ctx.device = device
         return color, alpha, depth, inv_depth, feats, visible, count
@@ -269,7 +273,7 @@ class FastRasterizeFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count):
         fast._stage(None, "between (loss, autograd)")
-        frame, keep, settings, wanted, options, needs, layout = ctx.state
+        frame, keep, zacc, settings, wanted, options, needs, layout = ctx.state
         means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors
         device = ctx.device
         state = device_state(device)
@@ -288,6 +292,7 @@ class FastRasterizeFunction(torch.autograd.Function):
         gc = upstream(g_color, "up_color", (npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3)
         ga = upstream(g_alpha, "up_alpha", (npix,), wp.float32)
         gd = upstream(g_depth, "up_depth", (npix,), wp.float32) if wanted.depth else ws.dummy(float)
+        normalized_depth_grad = wanted.depth and g_depth is not None  # goes through the division's adjoint first
         gi = upstream(g_inv, "up_inv_depth", (npix,), wp.float32) if wanted.inv_depth else ws.dummy(float)
         gf = upstream_features(state, layout, alive, g_feat, npix, nf)
         w_opac = desc(opacities, wp.float32)
@@ -296,6 +301,9 @@ class FastRasterizeFunction(torch.autograd.Function):
         adj_feat = feature_gradient_arg(g_features, nf, layout, state)
         probe_grad = None
         with state.scope():
+            if normalized_depth_grad:
+                gd, ga = fast.normalize_depth_backward(ws, gd, zacc, frame.transmittance,
+                                                       None if g_alpha is None else ga, npix, DEPTH_EPS)
             projected = fast.blend_backward(ws, frame, settings, wanted, w_opac, w_feat, (gc, ga, gd, gi, gf),
                                             adj_opac, adj_feat, features.shape[0], options.backward_kernel)
             if ctx.needs_input_grad[11]:  # dL/dmeans2d, read before the projection adjoint

@@ -155,7 +155,8 @@ def rasterize_surfels(
         num_features=feats.shape[1], distortion_scale=DISTORTION_SCALE)
     device = means.device
     options = current_raster_options()
-    if options.path == "fast" and n > 0:
+    fast = options.path == "fast" and n > 0
+    if fast:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = FastSurfelsFunction.apply(
             settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K))
     else:
@@ -164,7 +165,7 @@ def rasterize_surfels(
                 _RasterizeSurfelsFunction.apply(settings, wanted, means, quats, scales, opacities, coeffs, feats,
                                                 viewmat, _intrinsics_vector(K))
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible, num_intersections=int(count))
-    set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background)
+    set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background, depth_normalized=fast)
     if wanted.normal:
         out.normal = normal
     if wanted.median:

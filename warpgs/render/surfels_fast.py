@@ -7,11 +7,14 @@ import torch
 import warp as wp
 
 from warpgs.render import fast_pipeline_surfels as fast
-from warpgs.render.fast_pipeline import feature_layout
+from warpgs.render.defaults import DEPTH_EPS
+from warpgs.render.fast_pipeline import feature_layout, normalize_depth, normalize_depth_backward
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
                                           gradient_buffers, projection_gradients, projection_inputs,
                                           upstream_features, upstream_gradient)
 from warpgs.render.pipeline_surfels import IMAGES, image_wanted
+
+ALPHA, DEPTH = (next(i for i, (name, _, _) in enumerate(IMAGES) if name == n) for n in ("alpha", "depth"))
 
 
 class FastSurfelsFunction(torch.autograd.Function):
@@ -41,23 +44,29 @@ class FastSurfelsFunction(torch.autograd.Function):
         outputs = [desc(img.view(npix, c) if c > 1 else img.view(npix), dtype) if image_wanted(wanted, name)
                    else ws.dummy(dtype) for img, (name, c, dtype) in zip(images, IMAGES)]
         outputs.append(_features_arg(feats.view(npix, nf), nf, layout, state))
-
         keep = ws.lease_frame() if any_grad else None  # back to the pool with ctx.state
+        # the blend accumulates depth in `zacc`; the depth image gets it over alpha (fast_pipeline.normalize_depth)
+        depth_out, zacc = outputs[DEPTH], ws.dummy(float)
+        if wanted.depth:
+            zacc = outputs[DEPTH] = (keep if keep is not None else ws)("zacc", npix, float)
+
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
                                  _features_arg(features, nf, layout, state), outputs, keep, options.sort)
+            if wanted.depth:
+                normalize_depth(ws, zacc, outputs[ALPHA], depth_out, npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
         count = torch.tensor(frame.total)
         ctx.mark_non_differentiable(visible, count)
         if any_grad:
-            ctx.state = (frame, keep, settings, wanted, options, needs, layout)
+            ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
         ctx.device = means.device
         return tuple(images) + (feats, visible, count)
 
     @staticmethod
     def backward(ctx, *upstream):
-        frame, keep, settings, wanted, options, needs, layout = ctx.state
+        frame, keep, zacc, settings, wanted, options, needs, layout = ctx.state
         means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors
         state = device_state(ctx.device)
         ws = state.ws
@@ -73,6 +82,10 @@ class FastSurfelsFunction(torch.autograd.Function):
         ups.append(upstream_features(state, layout, alive, upstream[len(IMAGES)], npix, nf))
         desc = state.desc
         with state.scope():
+            if wanted.depth and upstream[DEPTH] is not None:  # through the division's adjoint first
+                ups[DEPTH], ups[ALPHA] = normalize_depth_backward(
+                    ws, ups[DEPTH], zacc, frame.transmittance, None if upstream[ALPHA] is None else ups[ALPHA],
+                    npix, DEPTH_EPS)
             projected = fast.blend_backward(ws, frame, settings, wanted, desc(opacities, wp.float32),
                                             _features_arg(features, nf, layout, state), ups,
                                             state.array(g_opac, g_opac.shape[0], wp.float32),
