@@ -60,7 +60,32 @@ def warpgs_grads(trainer: Trainer, view) -> tuple:
     return out.rgb.detach(), grads
 
 
-def compare(trainer: Trainer, views: list, rasterization) -> dict:
+@torch.no_grad()
+def sh0_outliers(trainer: Trainer, view, ga: torch.Tensor, gb: torch.Tensor, k: int) -> list:
+    """The k primitives whose summed sh0 gradients differ most between the renderers, with what might explain it:
+    camera depth and screen position in the first view, opacity, largest scale, the two gradients."""
+    m = trainer.model
+    diff = (ga - gb).reshape(len(ga), -1).norm(dim=1)
+    p = m.means @ view.viewmat[:3, :3].T + view.viewmat[:3, 3]
+    z = p[:, 2]
+    u = view.K[0, 0] * p[:, 0] / z + view.K[0, 2]
+    v = view.K[1, 1] * p[:, 1] / z + view.K[1, 2]
+    rows = []
+    for i in diff.topk(min(k, len(diff))).indices.tolist():
+        rows.append({"index": i, "diff": float(diff[i]), "warpgs": ga[i].flatten().tolist(),
+                     "gsplat": gb[i].flatten().tolist(), "depth": float(z[i]), "u": float(u[i]), "v": float(v[i]),
+                     "opacity": float(m.opacities[i]), "max_scale": float(m.scales[i].max()),
+                     "sh0": m.params["sh0"][i].flatten().tolist()})
+    share = float(diff.topk(min(k, len(diff))).values.pow(2).sum() / diff.pow(2).sum().clamp_min(1e-300))
+    print(f"top {k} sh0 gradient differences carry {100 * share:.1f}% of the squared difference", flush=True)
+    for r in rows:
+        print({key: (round(val, 5) if isinstance(val, float) else
+                     [round(x, 6) for x in val] if isinstance(val, list) else val) for key, val in r.items()},
+              flush=True)
+    return rows
+
+
+def compare(trainer: Trainer, views: list, rasterization, outliers: int = 0) -> dict:
     sums = {"warpgs": None, "gsplat": None}
     image_diff = 0.0
     for view in views:
@@ -75,6 +100,8 @@ def compare(trainer: Trainer, views: list, rasterization) -> dict:
         x, y = a[k].double().flatten(), b[k].double().flatten()
         row[f"{k}_cos"] = float(x @ y / (x.norm() * y.norm()).clamp_min(1e-300))
         row[f"{k}_rel_err"] = float((x - y).norm() / y.norm().clamp_min(1e-300))
+    if outliers:
+        row["sh0_outliers"] = sh0_outliers(trainer, views[0], a["sh0"], b["sh0"], outliers)
     ga, gb = a["logit_opacities"].double(), b["logit_opacities"].double()
     scale = torch.maximum(ga.abs(), gb.abs())
     touched = scale > 1e-6 * float(scale.max().clamp_min(1e-300))
@@ -95,6 +122,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--views", type=int, default=8, help="training views per comparison")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tag", default="")
+    ap.add_argument("--outliers", type=int, default=0,
+                    help="print the primitives whose sh0 gradients differ most (what they are: depth, opacity, ...)")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args(argv)
     try:
@@ -116,7 +145,7 @@ def main(argv=None) -> dict:
             while trainer.step < mark:
                 trainer.train_step()
             trainer.model.active_sh_degree = min(trainer.model.max_sh_degree, mark // max(cfg.model.sh_interval, 1))
-            row = {"step": mark, "primitives": trainer.model.num_primitives, **compare(trainer, views, rasterization)}
+            row = {"step": mark, "primitives": trainer.model.num_primitives, **compare(trainer, views, rasterization, args.outliers)}
             rows.append(row)
             print({k: (round(v, 5) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
     print_table(rows, ["step", "primitives", "image_max_abs_diff", "logit_opacities_cos", "logit_opacities_rel_err",

@@ -69,6 +69,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--gsplat-reset", choices=("auto", "off"), default="auto",
                     help="auto: the gsplat loop applies the opacity resets gsplat 1.5.3's DefaultStrategy skips "
                          "(see benchmarks/train_compare.py); off: the release as it is")
+    ap.add_argument("--loop-raster", choices=("gsplat", "warpgs", "warpgs+gsplat-visibility"), default="gsplat",
+                    help="the gsplat loop's rasterizer: gsplat's, or warpgs's through benchmarks/strategy_compare.py's "
+                         "shim (then the loop and strategy are gsplat's and the renderer is ours: tells a renderer "
+                         "difference from a loop one on the GPU); warpgs+gsplat-visibility: the same, with the "
+                         "strategy counting a primitive as seen by gsplat's rule (benchmarks/visibility_compare.py)")
     ap.add_argument("--tag", default="", help="suffix of the result file name")
     ap.add_argument("--lpips", action="store_true", help="score LPIPS at the end (needs its weights locally)")
     ap.add_argument("--out", default=None, help="output folder for the warpgs run (default: a temp folder)")
@@ -106,7 +111,17 @@ def main(argv=None) -> dict:
           f"from {trainer.init_source}", flush=True)
     runs = [] if args.only == "gsplat" else [run_warpgs(trainer, counts, eval_every)]
     if args.gsplat and args.only != "warpgs":
-        runs.append(run_gsplat(cfg, eval_every, scene, start, args.gsplat_reset))
+        if args.loop_raster != "gsplat":
+            from functools import partial
+
+            from strategy_compare import warpgs_as_gsplat
+
+            rule = "gsplat" if args.loop_raster.endswith("gsplat-visibility") else "warpgs"
+            runs.append(run_gsplat(cfg, eval_every, scene, start, args.gsplat_reset,
+                                   rasterization=partial(warpgs_as_gsplat, visibility=rule),
+                                   system=f"gsplat loop, warpgs raster, {rule} visibility"))
+        else:
+            runs.append(run_gsplat(cfg, eval_every, scene, start, args.gsplat_reset))
 
     rows = [{"system": r["system"], "step": p["step"], "seconds": p["seconds"], "psnr": p["psnr"], "ssim": p["ssim"],
              "primitives": p["num_primitives"]} for r in runs for p in r["points"] if p["step"] in [0] + marks]
@@ -121,13 +136,16 @@ def main(argv=None) -> dict:
     payload = {"data": str(data), "scene": scene.summary(), "device": args.device, "steps": marks,
                "seed": args.seed, "config": cfg.to_dict(), "runs": runs, "ms_per_step": per_step,
                "init_source": str(trainer.init_source), "gsplat_reset": args.gsplat_reset if args.gsplat else None}
-    if len(per_step) == 2:
+    payload["loop_raster"] = args.loop_raster
+    if len(per_step) == 2 and "gsplat" in per_step:
         payload["step_time_ratio"] = per_step["warpgs"] / per_step["gsplat"]
         print(f"time per step warpgs / gsplat = {payload['step_time_ratio']:.2f}")
     if args.device.startswith("cuda"):
         payload["gpu"] = torch.cuda.get_device_name()
     name = f"real_capture_{data.resolve().name}_{torch.device(args.device).type}" + ("_gsplat" if args.gsplat else "")
     name += f"_{args.only}_only" if args.only else ""
+    if args.loop_raster != "gsplat" and args.only != "warpgs":
+        name += "_warpgs_raster" + ("_gsplat_visibility" if args.loop_raster.endswith("visibility") else "")
     name += f"_{marks[-1]}" if marks[-1] != 7000 else ""
     name += f"_seed{args.seed}" if args.seed else ""
     name += f"_{args.tag}" if args.tag else ""

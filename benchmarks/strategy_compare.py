@@ -44,12 +44,21 @@ class _ScreenMeans:
 
 
 def warpgs_as_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
-                     packed=False, backgrounds=None, near_plane=0.01, far_plane=1e10):
-    """gsplat's `rasterization` signature (one camera, packed=False) over warpgs.rasterize."""
+                     packed=False, backgrounds=None, near_plane=0.01, far_plane=1e10, visibility="warpgs"):
+    """gsplat's `rasterization` signature (one camera, packed=False) over warpgs.rasterize. visibility: which
+    primitives the strategy counts as seen (its radii > 0): "warpgs" (reaches a tile, `out.visible`) or "gsplat"
+    (gsplat 1.5.3's opacity-aware box meets the image, benchmarks/visibility_compare.py)."""
     out = rasterize(means, quats, scales, opacities, colors, viewmats[0], Ks[0], width, height,
                     sh_degree=sh_degree, background=None if backgrounds is None else backgrounds[0],
                     outputs=("rgb", "alpha"), near=near_plane, far=far_plane, track_means2d=True)
-    visible = out.visible.to(means.dtype)[None, :, None].expand(1, -1, 2)  # gsplat selects radii > 0
+    if visibility == "gsplat":
+        from visibility_compare import gsplat_visible_mask
+
+        seen = gsplat_visible_mask(means.detach(), quats.detach(), scales.detach(), opacities.detach(),
+                                   viewmats[0], Ks[0], width, height, near_plane, far_plane)
+    else:
+        seen = out.visible
+    visible = seen.to(means.dtype)[None, :, None].expand(1, -1, 2)  # gsplat selects radii > 0
     info = {"means2d": _ScreenMeans(out.means2d), "radii": visible, "width": width, "height": height,
             "n_cameras": 1, "gaussian_ids": None}
     return out.rgb[None], out.alpha[None], info

@@ -30,22 +30,28 @@ MAX_EXTENT = 3.33  # gsplat's box half-size in standard deviations, before the o
 
 @torch.no_grad()
 def gsplat_visible(model, view, near: float, far: float) -> torch.Tensor:
+    """[N] bool: gsplat 1.5.3's radii > 0 for the model seen from one view (`gsplat_visible_mask`)."""
+    return gsplat_visible_mask(model.means, model.quats, model.scales, model.opacities.detach(), view.viewmat,
+                               view.K, view.width, view.height, near, far)
+
+
+@torch.no_grad()
+def gsplat_visible_mask(means, quats, scales, opacity, viewmat, K, width: int, height: int, near: float,
+                        far: float) -> torch.Tensor:
     """[N] bool: gsplat 1.5.3's radii > 0 for one camera (ProjectionEWA3DGSFused.cu, without compensation). The
     torch reference gives the blurred 2D covariance; the opacity-aware shrink of the box is the CUDA kernel's."""
     from gsplat.cuda._torch_impl import _fully_fused_projection, _quat_scale_to_covar_preci
 
-    covars, _ = _quat_scale_to_covar_preci(model.quats, model.scales, compute_covar=True, compute_preci=False,
-                                           triu=False)
-    radii, means2d, _, conics, _ = _fully_fused_projection(model.means[None], covars[None], view.viewmat[None, None],
-                                                           view.K[None, None], view.width, view.height,
-                                                           near_plane=near, far_plane=far)
-    opacity = model.opacities.detach()
+    covars, _ = _quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False, triu=False)
+    radii, means2d, _, conics, _ = _fully_fused_projection(means[None], covars[None], viewmat[None, None],
+                                                           K[None, None], width, height, near_plane=near,
+                                                           far_plane=far)
     extent = torch.sqrt(2.0 * torch.log(torch.clamp(opacity / ALPHA_THRESHOLD, min=1.0))).clamp(max=MAX_EXTENT)
     a, b, c = conics[0, 0].unbind(-1)  # the inverse of the blurred covariance [[a, b], [b, c]]
     det = a * c - b * b
     rx, ry = torch.ceil(extent * torch.sqrt(c / det)), torch.ceil(extent * torch.sqrt(a / det))
     mx, my = means2d[0, 0].unbind(-1)
-    inside = (mx + rx > 0) & (mx - rx < view.width) & (my + ry > 0) & (my - ry < view.height)
+    inside = (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height)
     return (radii[0, 0] > 0).all(-1) & (opacity >= ALPHA_THRESHOLD) & inside & ((rx > 0) | (ry > 0))
 
 

@@ -88,14 +88,19 @@ def test_cpu_renders_are_bit_identical(kind, path, monkeypatch):
             torch.testing.assert_close(g, ref, rtol=1e-3, atol=1e-4 * ref.abs().max().item())
 
 
-def test_fast_and_legacy_paths_agree_bitwise(monkeypatch):
+def test_fast_and_legacy_paths_agree(monkeypatch):
+    """Images bit-identical; gradients equal up to float32 rounding. With a background and depth in the loss, alpha's
+    gradient has three parts: the fast op's depth kernel adds the division's part to the sum autograd made of the
+    other two, the legacy path leaves all three to autograd, which adds them in another order."""
     monkeypatch.setenv("WARPGS_CPU_THREADS", "2")
     results = []
     for path in ("fast", "legacy"):
         with raster_options(path=path):
-            images, grads = render_once("gaussians", "cpu")
-        results.append((digest(images), digest(grads)))
-    assert results[0] == results[1]
+            results.append(render_once("gaussians", "cpu"))
+    (fast_images, fast_grads), (legacy_images, legacy_grads) = results
+    assert digest(fast_images) == digest(legacy_images)
+    for k, ref in legacy_grads.items():
+        torch.testing.assert_close(fast_grads[k], ref, rtol=1e-5, atol=1e-6 * ref.abs().max().item())
 
 
 def _cuda_available() -> bool:
