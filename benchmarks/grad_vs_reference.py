@@ -25,7 +25,7 @@ from common import ROOT, capture_config, print_table, write_json
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from reference import render_reference  # noqa: E402  (the test suite's float64 oracle)
+from reference import render_reference, sh_to_rgb  # noqa: E402  (the test suite's float64 oracle)
 
 from warpgs import rasterize  # noqa: E402
 from warpgs.train.trainer import Trainer  # noqa: E402
@@ -60,7 +60,7 @@ def gradients(trainer: Trainer, view, pixels: torch.Tensor, weights: torch.Tenso
             {k: exact[k].grad if exact[k].grad is not None else zero(exact[k]) for k in NAMES})
 
 
-def compare(a: dict, b: dict, top: int) -> dict:
+def compare(a: dict, b: dict, top: int, trainer: Trainer, view) -> dict:
     row = {}
     for k in NAMES:
         x, y = a[k].double().flatten(), b[k].double().flatten()
@@ -69,8 +69,27 @@ def compare(a: dict, b: dict, top: int) -> dict:
     diff = (a["sh0"].double() - b["sh0"]).reshape(len(b["sh0"]), -1).norm(dim=1)
     idx = diff.topk(min(top, len(diff))).indices
     row["sh0_worst"] = [{"index": int(i), "diff": float(diff[i]), "warpgs": a["sh0"][i].flatten().tolist(),
-                         "reference": b["sh0"][i].flatten().tolist()} for i in idx]
+                         "reference": b["sh0"][i].flatten().tolist(),
+                         "means_grad_warpgs": a["means"][i].tolist(), "means_grad_reference": b["means"][i].tolist(),
+                         "opacity_grad_warpgs": float(a["logit_opacities"][i]),
+                         "opacity_grad_reference": float(b["logit_opacities"][i]),
+                         **describe(trainer, view, int(i))} for i in idx]
     return row
+
+
+@torch.no_grad()
+def describe(trainer: Trainer, view, i: int) -> dict:
+    """What primitive i is, seen from the first view: camera depth, pixel position, opacity, scales, and its colour
+    before the clamp at 0 (SH + 0.5)."""
+    m = trainer.model
+    p = m.means[i] @ view.viewmat[:3, :3].T + view.viewmat[:3, 3]
+    centre = -view.viewmat[:3, :3].T @ view.viewmat[:3, 3]
+    d = m.means[i] - centre
+    sh = torch.cat([m.params["sh0"][i], m.params["shN"][i]], 0)[None].double()
+    rgb = sh_to_rgb(sh, m.active_sh_degree, (d / d.norm())[None].double())[0]
+    return {"depth": float(p[2]), "u": float(view.K[0, 0] * p[0] / p[2] + view.K[0, 2]),
+            "v": float(view.K[1, 1] * p[1] / p[2] + view.K[1, 2]), "opacity": float(m.opacities[i]),
+            "scales": m.scales[i].tolist(), "colour_clamped_at_0": rgb.tolist()}
 
 
 def main(argv=None) -> dict:
@@ -107,7 +126,7 @@ def main(argv=None) -> dict:
                 sums = (a, b) if sums is None else ({k: sums[0][k] + a[k] for k in NAMES},
                                                      {k: sums[1][k] + b[k] for k in NAMES})
             row = {"step": mark, "primitives": trainer.model.num_primitives,
-                   "sh_degree": trainer.model.active_sh_degree, **compare(*sums, args.top)}
+                   "sh_degree": trainer.model.active_sh_degree, **compare(*sums, args.top, trainer, views[0])}
             rows.append(row)
             print({k: (round(v, 6) if isinstance(v, float) else v) for k, v in row.items() if k != "sh0_worst"},
                   flush=True)

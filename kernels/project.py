@@ -6,7 +6,7 @@ finite values (they receive a zero adjoint because they never reach a tile).
 import warp as wp
 
 from .gaussian_math import clamp_scale, quat_wxyz_to_rotation, rotation_of, symmetric2_inverse, translation_of
-from .sh import eval_sh
+from .sh import colour_from_sh, eval_sh
 
 LOW_PASS = wp.constant(0.3)  # px², added to the projected covariance as in 3DGS
 COLOR_DIRECT = wp.constant(0)
@@ -75,8 +75,7 @@ def project_gaussians(
         campos = -(wp.transpose(R) * t)
         d = mu - campos
         d = d / wp.sqrt(wp.max(wp.dot(d, d), 1.0e-24))
-        rgb = eval_sh(coeffs, i, sh_degree, d) + wp.vec3(0.5, 0.5, 0.5)
-        colors[i] = wp.vec3(wp.max(rgb[0], 0.0), wp.max(rgb[1], 0.0), wp.max(rgb[2], 0.0))
+        colors[i] = colour_from_sh(eval_sh(coeffs, i, sh_degree, d))
     else:
         colors[i] = coeffs[i, 0]
 

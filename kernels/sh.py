@@ -50,3 +50,14 @@ def eval_sh(coeffs: wp.array2d(dtype=wp.vec3), i: int, degree: int, d: wp.vec3) 
                     + SH_C3_6 * x * (xx - 3.0 * yy) * coeffs[i, 15]
                 )
     return result
+
+
+@wp.func
+def colour_from_sh(rgb: wp.vec3) -> wp.vec3:
+    """SH value + 0.5, clamped at 0 per channel, with the derivative torch.clamp_min (and so gsplat and the 3DGS
+    reference) gives: 1 where the value is >= 0, boundary included. wp.max would send a value of exactly 0 the
+    constant's derivative, and a colour initialised at exactly 0 (a black SfM point: sh0 = -0.5 / C0) would then
+    never get a gradient, nor would its split and cloned children."""
+    c = rgb + wp.vec3(0.5, 0.5, 0.5)
+    return wp.vec3(wp.where(c[0] >= 0.0, c[0], 0.0), wp.where(c[1] >= 0.0, c[1], 0.0),
+                   wp.where(c[2] >= 0.0, c[2], 0.0))

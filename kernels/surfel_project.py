@@ -12,7 +12,7 @@ surfel plane exactly through M (no affine approximation).
 import warp as wp
 
 from .gaussian_math import clamp_scale, quat_wxyz_to_rotation, rotation_of, translation_of
-from .sh import eval_sh
+from .sh import colour_from_sh, eval_sh
 
 COLOR_DIRECT = wp.constant(0)
 COLOR_SH = wp.constant(1)
@@ -87,8 +87,7 @@ def project_surfels(
 
     if color_mode == COLOR_SH:
         d = d / wp.sqrt(wp.max(wp.dot(d, d), 1.0e-24))
-        rgb = eval_sh(coeffs, i, sh_degree, d) + wp.vec3(0.5, 0.5, 0.5)
-        colors[i] = wp.vec3(wp.max(rgb[0], 0.0), wp.max(rgb[1], 0.0), wp.max(rgb[2], 0.0))
+        colors[i] = colour_from_sh(eval_sh(coeffs, i, sh_degree, d))
     else:
         colors[i] = coeffs[i, 0]
 

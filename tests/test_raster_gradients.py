@@ -2,6 +2,8 @@
 import pytest
 import torch
 
+from warpgs.model.primitive_math import rgb_to_sh0
+
 from random_scenes import random_scene
 from raster_helpers import render_ours, render_ref, requested
 
@@ -121,3 +123,23 @@ def test_frozen_geometry_still_gives_opacity_and_feature_gradients():
     ref = render_ref(dict(frozen, **ref_leaves))
     sum((ref[n] * w).sum() for n, w in weights.items()).backward()
     compare({k: v.grad.double() for k, v in leaves.items()}, {k: v.grad for k, v in ref_leaves.items()})
+
+
+BLACK_SH0 = float(rgb_to_sh0(torch.zeros(1))[0])  # what a black initial point gets: its colour is 0 (float32)
+
+
+def test_colours_at_exactly_zero_get_gradients():
+    """A black initial point (sh0 = -0.5 / C0: colour exactly 0 in float32) gets the colour gradient of
+    torch.clamp_min at its boundary (the reference's and gsplat's): with wp.max's derivative it got none, and it and
+    its split children stayed black for good (found on the beer capture, benchmarks/grad_vs_reference.py)."""
+    scene = random_scene(n=40, seed=5, sh_degree=1)
+    black = torch.arange(0, 40, 2)
+    scene["colors"][black] = 0.0
+    scene["colors"][black, 0] = BLACK_SH0
+    g = torch.Generator().manual_seed(11)
+    weights = {"rgb": torch.randn(scene["height"], scene["width"], 3, generator=g, dtype=torch.float64)}
+    bg = torch.tensor([0.1, 0.6, 0.3], dtype=torch.float64)
+    ours = gradients(lambda s, b: render_ours(s, ("rgb",), background=b), scene, weights, bg, torch.float32)
+    ref = gradients(lambda s, b: render_ref(s, background=b), scene, weights, bg, torch.float64)
+    assert ref["colors"][black, 0].abs().sum() > 0  # the black points are on screen
+    compare(ours, ref)

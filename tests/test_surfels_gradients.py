@@ -2,6 +2,8 @@
 import pytest
 import torch
 
+from warpgs.model.primitive_math import rgb_to_sh0
+
 from reference_surfels import ALL_OUTPUTS, CHANNELS, random_surfel_scene, render_surfels_ours, render_surfels_ref
 
 INPUTS = ("means", "quats", "scales", "opacities", "colors", "features", "viewmat", "K")
@@ -88,3 +90,12 @@ def test_no_gradient_buffers_for_inputs_that_do_not_require_grad():
     (out.rgb.sum() + out.normal.sum()).backward()
     assert means.grad is not None and torch.isfinite(means.grad).all() and means.grad.abs().sum() > 0
     assert s["scales"].grad is None
+
+
+def test_black_surfel_colours_get_gradients():
+    """As tests/test_raster_gradients.py::test_colours_at_exactly_zero_get_gradients, for surfels."""
+    scene = random_surfel_scene(n=40, seed=5, sh_degree=1)
+    black = torch.arange(0, 40, 2)
+    scene["colors"][black] = 0.0
+    scene["colors"][black, 0] = float(rgb_to_sh0(torch.zeros(1))[0])  # a black initial point
+    check(scene, ("rgb",), 12)
