@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 
 import torch
 
 from common import ROOT, print_table, write_json
+from gradient_agreement import NAMES, agreement, render_inputs, sh0_outliers, trained_at
 
 sys.path.insert(0, str(ROOT))
 
@@ -26,8 +26,6 @@ from warpgs.cli.commands import resolve_config_source  # noqa: E402
 from warpgs.config.loader import load_config  # noqa: E402
 from warpgs.metrics.image import ssim  # noqa: E402
 from warpgs.train.trainer import Trainer  # noqa: E402
-
-NAMES = ("means", "log_scales", "quats", "logit_opacities", "sh0", "shN")
 
 
 def loss_of(img: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -38,10 +36,9 @@ def gsplat_grads(trainer: Trainer, view, rasterization) -> tuple:
     m = trainer.model
     leaves = {k: m.params[k].detach().clone().requires_grad_(True) for k in NAMES}
     deg = m.active_sh_degree
-    colors = torch.cat([leaves["sh0"], leaves["shN"][:, : (deg + 1) ** 2 - 1]], 1)
+    means, quats, scales, opacities, colors = render_inputs(leaves, deg)
     t = trainer.config.train
-    img, _, _ = rasterization(leaves["means"], leaves["quats"], torch.exp(leaves["log_scales"]),
-                              torch.sigmoid(leaves["logit_opacities"]), colors, view.viewmat[None], view.K[None],
+    img, _, _ = rasterization(means, quats, scales, opacities, colors, view.viewmat[None], view.K[None],
                               view.width, view.height, sh_degree=deg, packed=False,
                               backgrounds=trainer.background[None], near_plane=t.near, far_plane=t.far)
     img = img[0]
@@ -60,31 +57,6 @@ def warpgs_grads(trainer: Trainer, view) -> tuple:
     return out.rgb.detach(), grads
 
 
-@torch.no_grad()
-def sh0_outliers(trainer: Trainer, view, ga: torch.Tensor, gb: torch.Tensor, k: int) -> list:
-    """The k primitives whose summed sh0 gradients differ most between the renderers, with what might explain it:
-    camera depth and screen position in the first view, opacity, largest scale, the two gradients."""
-    m = trainer.model
-    diff = (ga - gb).reshape(len(ga), -1).norm(dim=1)
-    p = m.means @ view.viewmat[:3, :3].T + view.viewmat[:3, 3]
-    z = p[:, 2]
-    u = view.K[0, 0] * p[:, 0] / z + view.K[0, 2]
-    v = view.K[1, 1] * p[:, 1] / z + view.K[1, 2]
-    rows = []
-    for i in diff.topk(min(k, len(diff))).indices.tolist():
-        rows.append({"index": i, "diff": float(diff[i]), "warpgs": ga[i].flatten().tolist(),
-                     "gsplat": gb[i].flatten().tolist(), "depth": float(z[i]), "u": float(u[i]), "v": float(v[i]),
-                     "opacity": float(m.opacities[i]), "max_scale": float(m.scales[i].max()),
-                     "sh0": m.params["sh0"][i].flatten().tolist()})
-    share = float(diff.topk(min(k, len(diff))).values.pow(2).sum() / diff.pow(2).sum().clamp_min(1e-300))
-    print(f"top {k} sh0 gradient differences carry {100 * share:.1f}% of the squared difference", flush=True)
-    for r in rows:
-        print({key: (round(val, 5) if isinstance(val, float) else
-                     [round(x, 6) for x in val] if isinstance(val, list) else val) for key, val in r.items()},
-              flush=True)
-    return rows
-
-
 def compare(trainer: Trainer, views: list, rasterization, outliers: int = 0) -> dict:
     sums = {"warpgs": None, "gsplat": None}
     image_diff = 0.0
@@ -95,13 +67,9 @@ def compare(trainer: Trainer, views: list, rasterization, outliers: int = 0) -> 
         for key, g in (("warpgs", a), ("gsplat", b)):
             sums[key] = g if sums[key] is None else {k: sums[key][k] + g[k] for k in NAMES}
     a, b = sums["warpgs"], sums["gsplat"]
-    row = {"image_max_abs_diff": image_diff}
-    for k in NAMES:
-        x, y = a[k].double().flatten(), b[k].double().flatten()
-        row[f"{k}_cos"] = float(x @ y / (x.norm() * y.norm()).clamp_min(1e-300))
-        row[f"{k}_rel_err"] = float((x - y).norm() / y.norm().clamp_min(1e-300))
+    row = {"image_max_abs_diff": image_diff, **agreement(a, b)}
     if outliers:
-        row["sh0_outliers"] = sh0_outliers(trainer, views[0], a["sh0"], b["sh0"], outliers)
+        row["sh0_outliers"] = sh0_outliers(trainer, views[0], a, b, outliers, "gsplat")
     ga, gb = a["logit_opacities"].double(), b["logit_opacities"].double()
     scale = torch.maximum(ga.abs(), gb.abs())
     touched = scale > 1e-6 * float(scale.max().clamp_min(1e-300))
@@ -137,17 +105,12 @@ def main(argv=None) -> dict:
         overrides.append(f"data.downscale={args.downscale}")
     cfg = load_config(resolve_config_source(args.config), overrides)
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        cfg.output.dir = tmp
-        trainer = Trainer(cfg, quiet=True)
-        views = [trainer.view(i) for i in trainer.scene.train[: args.views]]
-        for mark in marks:
-            while trainer.step < mark:
-                trainer.train_step()
-            trainer.model.active_sh_degree = min(trainer.model.max_sh_degree, mark // max(cfg.model.sh_interval, 1))
-            row = {"step": mark, "primitives": trainer.model.num_primitives, **compare(trainer, views, rasterization, args.outliers)}
-            rows.append(row)
-            print({k: (round(v, 5) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+    for mark, trainer, views in trained_at(cfg, marks, args.views):
+        row = {"step": mark, "primitives": trainer.model.num_primitives,
+               **compare(trainer, views, rasterization, args.outliers)}
+        rows.append(row)
+        print({k: (round(v, 5) if isinstance(v, float) else v) for k, v in row.items() if k != "sh0_outliers"},
+              flush=True)
     print_table(rows, ["step", "primitives", "image_max_abs_diff", "logit_opacities_cos", "logit_opacities_rel_err",
                        "opacity_sign_disagree", "opacity_pushed_down_warpgs", "opacity_pushed_down_gsplat",
                        "means_cos", "log_scales_cos", "sh0_cos"])

@@ -15,30 +15,19 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 
 import torch
 
 from common import ROOT, capture_config, print_table, write_json
+from gradient_agreement import NAMES, agreement, render_inputs, sh0_outliers, trained_at
 
-sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from reference import render_reference, sh_to_rgb  # noqa: E402  (the test suite's float64 oracle)
+from reference import render_reference  # noqa: E402  (the test suite's float64 oracle)
 
 from warpgs import rasterize  # noqa: E402
 from warpgs.train.trainer import Trainer  # noqa: E402
-
-NAMES = ("means", "log_scales", "quats", "logit_opacities", "sh0", "shN")
-
-
-def render_inputs(params: dict, degree: int) -> tuple:
-    """(means, quats, scales, opacities, SH coefficients) as the op takes them, from the model's raw parameters."""
-    k = (degree + 1) ** 2
-    colors = torch.cat([params["sh0"], params["shN"][:, : k - 1]], 1)
-    return (params["means"], params["quats"], torch.exp(params["log_scales"]), torch.sigmoid(params["logit_opacities"]),
-            colors)
 
 
 def gradients(trainer: Trainer, view, pixels: torch.Tensor, weights: torch.Tensor, chunk: int = 128) -> tuple:
@@ -60,38 +49,6 @@ def gradients(trainer: Trainer, view, pixels: torch.Tensor, weights: torch.Tenso
             {k: exact[k].grad if exact[k].grad is not None else zero(exact[k]) for k in NAMES})
 
 
-def compare(a: dict, b: dict, top: int, trainer: Trainer, view) -> dict:
-    row = {}
-    for k in NAMES:
-        x, y = a[k].double().flatten(), b[k].double().flatten()
-        row[f"{k}_cos"] = float(x @ y / (x.norm() * y.norm()).clamp_min(1e-300))
-        row[f"{k}_rel_err"] = float((x - y).norm() / y.norm().clamp_min(1e-300))
-    diff = (a["sh0"].double() - b["sh0"]).reshape(len(b["sh0"]), -1).norm(dim=1)
-    idx = diff.topk(min(top, len(diff))).indices
-    row["sh0_worst"] = [{"index": int(i), "diff": float(diff[i]), "warpgs": a["sh0"][i].flatten().tolist(),
-                         "reference": b["sh0"][i].flatten().tolist(),
-                         "means_grad_warpgs": a["means"][i].tolist(), "means_grad_reference": b["means"][i].tolist(),
-                         "opacity_grad_warpgs": float(a["logit_opacities"][i]),
-                         "opacity_grad_reference": float(b["logit_opacities"][i]),
-                         **describe(trainer, view, int(i))} for i in idx]
-    return row
-
-
-@torch.no_grad()
-def describe(trainer: Trainer, view, i: int) -> dict:
-    """What primitive i is, seen from the first view: camera depth, pixel position, opacity, scales, and its colour
-    before the clamp at 0 (SH + 0.5)."""
-    m = trainer.model
-    p = m.means[i] @ view.viewmat[:3, :3].T + view.viewmat[:3, 3]
-    centre = -view.viewmat[:3, :3].T @ view.viewmat[:3, 3]
-    d = m.means[i] - centre
-    sh = torch.cat([m.params["sh0"][i], m.params["shN"][i]], 0)[None].double()
-    rgb = sh_to_rgb(sh, m.active_sh_degree, (d / d.norm())[None].double())[0]
-    return {"depth": float(p[2]), "u": float(view.K[0, 0] * p[0] / p[2] + view.K[0, 2]),
-            "v": float(view.K[1, 1] * p[1] / p[2] + view.K[1, 2]), "opacity": float(m.opacities[i]),
-            "scales": m.scales[i].tolist(), "colour_clamped_at_0": rgb.tolist()}
-
-
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("data", help="scene folder (COLMAP, transforms.json or LLFF)")
@@ -109,29 +66,20 @@ def main(argv=None) -> dict:
                          overrides=args.overrides)
     g = torch.Generator().manual_seed(args.seed)
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        cfg.output.dir = tmp
-        trainer = Trainer(cfg, quiet=True)
-        views = [trainer.view(i) for i in trainer.scene.train[: args.views]]
-        for mark in marks:
-            while trainer.step < mark:
-                trainer.train_step()
-            trainer.model.active_sh_degree = min(trainer.model.max_sh_degree, mark // max(cfg.model.sh_interval, 1))
-            sums = None
-            for v in views:
-                pixels = torch.stack([torch.randint(0, v.width, (args.pixels,), generator=g),
-                                      torch.randint(0, v.height, (args.pixels,), generator=g)], 1)
-                weights = torch.rand(args.pixels, 3, generator=g)
-                a, b = gradients(trainer, v, pixels, weights)
-                sums = (a, b) if sums is None else ({k: sums[0][k] + a[k] for k in NAMES},
-                                                     {k: sums[1][k] + b[k] for k in NAMES})
-            row = {"step": mark, "primitives": trainer.model.num_primitives,
-                   "sh_degree": trainer.model.active_sh_degree, **compare(*sums, args.top, trainer, views[0])}
-            rows.append(row)
-            print({k: (round(v, 6) if isinstance(v, float) else v) for k, v in row.items() if k != "sh0_worst"},
-                  flush=True)
-            for w in row["sh0_worst"]:
-                print("   ", w, flush=True)
+    for mark, trainer, views in trained_at(cfg, marks, args.views):
+        sums = None
+        for v in views:
+            pixels = torch.stack([torch.randint(0, v.width, (args.pixels,), generator=g),
+                                  torch.randint(0, v.height, (args.pixels,), generator=g)], 1)
+            weights = torch.rand(args.pixels, 3, generator=g)
+            a, b = gradients(trainer, v, pixels, weights)
+            sums = (a, b) if sums is None else ({k: sums[0][k] + a[k] for k in NAMES},
+                                                 {k: sums[1][k] + b[k] for k in NAMES})
+        row = {"step": mark, "primitives": trainer.model.num_primitives,
+               "sh_degree": trainer.model.active_sh_degree, **agreement(*sums)}
+        print({k: (round(v, 6) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+        row["sh0_worst"] = sh0_outliers(trainer, views[0], *sums, args.top, "reference")
+        rows.append(row)
     print_table(rows, ["step", "primitives", "sh_degree"] + [f"{k}_cos" for k in NAMES] + ["sh0_rel_err"])
     name = f"grad_vs_reference_{Path(args.data).name}" + (f"_{args.tag}" if args.tag else "")
     print(f"wrote {write_json(name, {'data': args.data, 'downscale': args.downscale, 'views': args.views, 'pixels': args.pixels, 'rows': rows})}")
