@@ -1,0 +1,59 @@
+"""benchmarks/real_capture_seeds.py: warpgs and gsplat runs pair by capture and seed across files."""
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import real_capture_seeds  # noqa: E402
+
+
+def _result(tmp_path, name, seed, runs, data="/data/beer"):
+    payload = {"data": data, "seed": seed, "runs": [
+        {"system": system, "points": [{"step": s, "psnr": p} for s, p in points.items()]}
+        for system, points in runs.items()]}
+    path = tmp_path / f"{name}.json"
+    path.write_text(json.dumps(payload))
+    return str(path)
+
+
+def test_systems_pair_by_seed_across_files(tmp_path, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path / "out"))
+    files = [_result(tmp_path, "w1", 1, {"warpgs": {7000: 22.0, 30000: 21.0}}),
+             _result(tmp_path, "g1", 1, {"gsplat": {7000: 21.5, 30000: 21.5}}),
+             _result(tmp_path, "both2", 2, {"warpgs": {7000: 23.0, 30000: 20.0}, "gsplat": {7000: 23.5, 30000: 21.0}}),
+             _result(tmp_path, "w3", 3, {"warpgs": {7000: 30.0}})]  # no gsplat run for seed 3: left out
+    out = real_capture_seeds.main(["pooled", *files])
+    by = {(s["step"]): s for s in out["summary"]}
+    assert by[7000]["seeds"] == 2 and by[7000]["delta_mean"] == pytest.approx(0.0)
+    assert by[30000]["delta_mean"] == pytest.approx(-0.75) and by[30000]["delta_min"] == pytest.approx(-1.0)
+    assert by[30000]["warpgs_mean"] == pytest.approx(20.5)
+    assert (tmp_path / "out" / "pooled.json").is_file()
+
+
+def test_a_seed_given_twice_names_both_files(tmp_path, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path / "out"))
+    a = _result(tmp_path, "old", 1, {"warpgs": {7000: 22.0}})
+    b = _result(tmp_path, "new", 1, {"warpgs": {7000: 22.5}})
+    with pytest.raises(SystemExit, match="old.json"):
+        real_capture_seeds.main(["x", a, b])
+
+
+def test_captures_stay_apart_and_other_loops_are_ignored(tmp_path, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path / "out"))
+    files = [_result(tmp_path, "beer", 1, {"warpgs": {7000: 22.0}, "gsplat": {7000: 21.0}}),
+             _result(tmp_path, "fern", 1, {"warpgs": {7000: 26.0}, "gsplat": {7000: 25.0},
+                                           "gsplat loop, warpgs raster, warpgs visibility": {7000: 0.0}},
+                     data="/data/fern8")]
+    out = real_capture_seeds.main(["x", *files, "--marks", "7000"])
+    assert {(s["capture"], s["seeds"]) for s in out["summary"]} == {("beer", 1), ("fern8", 1)}
+
+
+def test_unreadable_file_is_named(tmp_path, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path / "out"))
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(SystemExit, match="bad.json"):
+        real_capture_seeds.main(["x", str(bad)])
