@@ -59,13 +59,18 @@ def render_shard(shard: GaussianModel, viewmats: torch.Tensor, Ks: torch.Tensor,
                           track_means2d=track_means2d, **options)
 
 
+def require_gaussians(kind: str) -> None:
+    """Model-parallel rendering exists for 3D Gaussians only (the splat exchange carries their projection)."""
+    if kind != "gaussians":
+        raise ValueError(f"train.parallel=model: model.kind={kind}; model-parallel rendering exists for 3D "
+                         f"Gaussians only (use train.parallel=data)")
+
+
 def shard_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strategy, ranks: Ranks) -> slice:
     """Turn a whole model's training state into this rank's share, in place: its rows of the model (Ranks.shard),
     of the optimizer's moments and of the strategy's statistics; the strategy's budget becomes this rank's share of
     it. Every rank must hold the same whole state. Returns the rows kept."""
-    if model.kind != "gaussians":
-        raise ValueError(f"train.parallel=model: model.kind={model.kind}; model-parallel rendering exists for 3D "
-                         f"Gaussians only (use train.parallel=data)")
+    require_gaussians(model.kind)
     rows = ranks.shard(model.num_primitives)
     keep = torch.arange(rows.start, rows.stop, device=model.means.device)
     update_rows(model, optimizer, keep=keep)

@@ -16,7 +16,7 @@ import torch
 from warpgs.train import setup as train_setup
 from warpgs.train.batch import ViewPass, batch_result, batch_summary, local_sums, scalar_names
 from warpgs.train.guard import NonFiniteError
-from warpgs.train.model_parallel import render_shard
+from warpgs.train.model_parallel import render_shard, require_gaussians
 from warpgs.train.optim import update_learning_rates
 from warpgs.train.step import end_step
 
@@ -25,9 +25,7 @@ def check_config(cfg, world_size: int) -> None:
     """What train.parallel=model needs of a config, checked before anything is built: 3D Gaussians, rounds of one
     view per rank that the batch fills, no footprint truncation (the splat exchange's culling does not take it), no
     live viewer (each process holds only a share of the primitives)."""
-    if cfg.model.kind != "gaussians":
-        raise ValueError(f"train.parallel=model: model.kind={cfg.model.kind}; model-parallel rendering exists for 3D "
-                         f"Gaussians only (use train.parallel=data)")
+    require_gaussians(cfg.model.kind)
     train = cfg.train
     if train.batch_size % world_size:
         raise ValueError(f"train.batch_size: {train.batch_size} is not a multiple of the {world_size} processes; "
