@@ -34,12 +34,12 @@ stage_hook: Optional[Callable[[str], None]] = None
 
 
 @dataclass
-class Frame:
-    """What a forward pass leaves for its backward (in the `keep` buffers when given) and for the op's outputs."""
+class TileFrame:
+    """What any primitive kind's forward pass leaves for its backward (in the `keep` buffers when given) and for
+    the op's outputs; each kind's frame adds its own projected quantities."""
     n: int
-    total: int  # Gaussian-tile pairs
+    total: int  # primitive-tile pairs
     means2d: wp.array
-    conics: wp.array
     depths: wp.array
     colors: wp.array
     q_cut: wp.array
@@ -48,6 +48,12 @@ class Frame:
     transmittance: wp.array
     last: wp.array
     counts: wp.array  # workspace: valid until the next call on this workspace
+
+
+@dataclass
+class Frame(TileFrame):
+    """The 3D Gaussians' frame."""
+    conics: wp.array
 
 
 def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, features, outputs, keep: Optional[Keep],

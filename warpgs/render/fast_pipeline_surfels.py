@@ -14,7 +14,8 @@ import warp as wp
 from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
 from warpgs.kernels.blend_gpu import warp_sums_supported
 from warpgs.render.cpu_threads import run_threads
-from warpgs.render.fast_pipeline import FEATURES, OPACITIES, Keep, _stage, bin_into_tiles, run_blend_adjoint
+from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, Keep, TileFrame, _stage, bin_into_tiles,
+                                         run_blend_adjoint)
 from warpgs.render.pipeline_gaussians import Settings, _block_dims, _block_reduce, _cooperative, _tile_launches
 from warpgs.render.pipeline_surfels import SurfelWanted, surfel_blend_params
 from warpgs.render.workspace import Workspace
@@ -25,23 +26,12 @@ ADJOINT_FIELDS = [("transforms", 9, wp.mat33), ("means2d", 2, wp.vec2), ("depths
 
 
 @dataclass
-class SurfelFrame:
-    """What a forward pass leaves for its backward (in the `keep` buffers when given) and for the op's outputs."""
-    n: int
-    total: int  # surfel-tile pairs
+class SurfelFrame(TileFrame):
+    """The surfels' frame."""
     transforms: wp.array
-    means2d: wp.array
-    depths: wp.array
     normals: wp.array
-    colors: wp.array
-    q_cut: wp.array
-    tile_start: wp.array
-    sorted_ids: wp.array
-    transmittance: wp.array
-    last: wp.array
     median_index: wp.array  # a dummy unless the median depth was rendered
     dist_stats: wp.array  # a dummy unless the distortion was rendered
-    counts: wp.array  # workspace: valid until the next call on this workspace
 
 
 def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, features, outputs,
