@@ -148,12 +148,13 @@ def test_opacity_scale_count_by_hand():
 
 
 def test_count_is_log_n_for_opaque_primitives_and_ignores_faint_ones():
+    assert (gestalt.SETTINGS.count_tau, gestalt.SETTINGS.count_temperature) == (0.005, 0.05)
     opaque = torch.full((1000,), 0.99)
-    assert float(gestalt.log_soft_count(opaque, 0.005, 0.05)) == pytest.approx(math.log(1000), rel=1e-5)
+    assert value("count", None, None, SimpleNamespace(opacities=opaque)) == pytest.approx(math.log(1000), rel=1e-5)
     faint = torch.cat([opaque, torch.full((500,), 1e-4)])
     # each faint primitive still counts sigmoid(-0.0049 / 0.05) ~ 0.48: the soft count is soft below tau too
     s = 1000 / (1 + math.exp(-(0.99 - 0.005) / 0.05)) + 500 / (1 + math.exp((0.005 - 1e-4) / 0.05))
-    assert float(gestalt.log_soft_count(faint, 0.005, 0.05)) == pytest.approx(math.log(s), rel=1e-5)
+    assert value("count", None, None, SimpleNamespace(opacities=faint)) == pytest.approx(math.log(s), rel=1e-5)
     with pytest.raises(ValueError):
         gestalt.configure(count_temperature=0)
 

@@ -51,39 +51,16 @@ def configure(**kwargs) -> GestaltSettings:
     return SETTINGS
 
 
-# ----- pure functions (tests use these directly) --------------------------------------------------------------
-def mean_opacity(opacities: torch.Tensor) -> torch.Tensor:
-    o = opacities.reshape(-1)
-    return o.sum() / max(o.numel(), 1)
-
-
+# ----- per-primitive quantities -------------------------------------------------------------------------------
 def scale_norms(scales: torch.Tensor) -> torch.Tensor:
     """‖s_i‖₂ of [N, k] scales, [N]; the norm's gradient is guarded at s = 0."""
     sq = (scales * scales).sum(-1)
     return torch.where(sq > 0, sq.clamp_min(1e-30).sqrt(), torch.zeros_like(sq))
 
 
-def mean_scale_norm(scales: torch.Tensor) -> torch.Tensor:
-    """mean_i ‖s_i‖₂ of [N, k] scales."""
-    if scales.numel() == 0:
-        return scales.sum()
-    return scale_norms(scales).mean()
-
-
 def soft_on(opacities: torch.Tensor, tau: float, temperature: float) -> torch.Tensor:
     """sigmoid((α_i - τ) / T), [N]: how much each primitive counts."""
     return torch.sigmoid((opacities.reshape(-1) - tau) / temperature)
-
-
-def soft_count(opacities: torch.Tensor, tau: float, temperature: float) -> torch.Tensor:
-    """Σ_i sigmoid((α_i - τ) / T)."""
-    return soft_on(opacities, tau, temperature).sum()
-
-
-def log_soft_count(opacities: torch.Tensor, tau: float, temperature: float) -> torch.Tensor:
-    """log(Σ_i sigmoid((α_i - τ) / T) + 1e-6): log N when every primitive is well above τ; finite (log 1e-6)
-    for an empty model."""
-    return torch.log(soft_count(opacities, tau, temperature) + 1e-6)
 
 
 # ----- registered terms ----------------------------------------------------------------------------------------
@@ -105,30 +82,21 @@ def _mean_over_rows(model, per_row: torch.Tensor) -> torch.Tensor:
     return total / n.clamp_min(1.0)
 
 
-def _sharded(model) -> bool:
-    return getattr(model, "reduce_rows", None) is not None
-
-
 @register_loss("opacity", outputs=(), weight=0.05)
 def opacity(render_out, batch, model, step) -> torch.Tensor:
     """L_o = mean_i α_i."""
-    if _sharded(model):
-        return _mean_over_rows(model, _opacities(model).reshape(-1))
-    return mean_opacity(_opacities(model))
+    return _mean_over_rows(model, _opacities(model).reshape(-1))
 
 
 @register_loss("scale", outputs=(), weight=0.008)
 def scale(render_out, batch, model, step) -> torch.Tensor:
     """L_s = mean_i ‖s_i‖₂."""
-    if _sharded(model):
-        return _mean_over_rows(model, scale_norms(model.scales))
-    return mean_scale_norm(model.scales)
+    return _mean_over_rows(model, scale_norms(model.scales))
 
 
 @register_loss("count", outputs=(), weight=0.001)
 def count(render_out, batch, model, step) -> torch.Tensor:
-    """L_count = log Σ_i sigmoid((α_i - τ) / T) (a differentiable log N, see the module doc)."""
-    if _sharded(model):
-        on, _ = _sum_over_rows(model, soft_on(_opacities(model), SETTINGS.count_tau, SETTINGS.count_temperature))
-        return torch.log(on + 1e-6)
-    return log_soft_count(_opacities(model), SETTINGS.count_tau, SETTINGS.count_temperature)
+    """L_count = log(Σ_i sigmoid((α_i - τ) / T) + 1e-6) (a differentiable log N, see the module doc): log N when
+    every primitive is well above τ; finite (log 1e-6) for an empty model."""
+    on, _ = _sum_over_rows(model, soft_on(_opacities(model), SETTINGS.count_tau, SETTINGS.count_temperature))
+    return torch.log(on + 1e-6)
