@@ -3,20 +3,16 @@
 One thread per pixel; a launch covers num_tiles * tile_size² threads so that the threads of one block
 share one tile's list. The kernels here are the per-thread versions the CPU runs; `blend_gpu.py` has the
 block-cooperative versions of the same per-pixel steps (the @wp.func's below) for GPUs.
-Rules as in 3DGS: alpha = min(0.99, o exp(-q/2)), skip alpha < alpha_min (1/255), stop before transmittance
-would drop under t_min (1e-4); the two thresholds are per-launch settings (`BlendParams`), so they can be
-traded for speed. The background is not blended here: the op adds T_final * bg.
+Rules as in 3DGS: alpha = min(alpha_max, o exp(-q/2)) with alpha_max = 0.99 (gsplat: 0.999), skip alpha <
+alpha_min (1/255), stop before transmittance would drop under t_min (1e-4); all three are per-launch settings
+(`BlendParams`): the two thresholds can be traded for speed, the clamp matched to another renderer. The background is not blended here: the op adds T_final * bg.
 
 The backward walks each pixel's list back to front from the stored stopping point, recovering T_i from
-T_final by division (alpha <= 0.99 keeps that safe). Every output channel (rgb, alpha, depth, inverse
+T_final by division (alpha <= alpha_max < 1 keeps that safe). Every output channel (rgb, alpha, depth, inverse
 depth, features) is a weighted sum Σ c_i α_i T_i, so the upstream gradients are folded into one scalar
 c̃_i = Σ_channels c_i·g per Gaussian and one scalar suffix carries dL/dα_i = T_i (c̃_i − suffix).
 """
 import warp as wp
-
-ALPHA_MIN = wp.constant(1.0 / 255.0)  # the 3DGS defaults of BlendParams.alpha_min / t_min
-ALPHA_MAX = wp.constant(0.99)
-T_MIN = wp.constant(1.0e-4)
 
 
 @wp.struct
@@ -33,6 +29,7 @@ class BlendParams:
     want_inv_depth: int
     num_features: int
     alpha_min: float  # contributions below this alpha are skipped
+    alpha_max: float  # alpha is clamped here (3DGS: 0.99, gsplat: 0.999); the clamp passes no gradient
     t_min: float  # blending stops before transmittance would drop under this
 
 
@@ -78,7 +75,7 @@ def blend_one(st: PixelState, k: int, mean: wp.vec2, conic: wp.vec3, opacity: fl
     q = mahalanobis(conic, dx, dy)
     if q > q_cut:  # outside the footprint: alpha would be < alpha_min, skip the exp()
         return st
-    alpha = wp.min(ALPHA_MAX, opacity * wp.exp(-0.5 * q))
+    alpha = wp.min(p.alpha_max, opacity * wp.exp(-0.5 * q))
     if alpha < p.alpha_min:
         return st
     next_T = st.T * (1.0 - alpha)
@@ -213,7 +210,7 @@ def seen_alpha(mean: wp.vec2, conic: wp.vec3, opacity: float, q_cut: float, fx: 
         return wp.vec3(0.0)
     G = wp.exp(-0.5 * q)
     raw = opacity * G
-    alpha = wp.min(ALPHA_MAX, raw)
+    alpha = wp.min(p.alpha_max, raw)
     if alpha < p.alpha_min:
         return wp.vec3(0.0)
     return wp.vec3(alpha, raw, G)
@@ -250,7 +247,7 @@ def pixel_gradient(
     row[9] = w * (up.depth - up.inv_depth / (z * z))
     c_tilde += feature_dot
     d_alpha = T * (c_tilde - suffix)
-    if raw < ALPHA_MAX:  # the 0.99 clamp has zero derivative
+    if raw < p.alpha_max:  # the clamp has zero derivative
         row[5] = d_alpha * G
         d_q = -0.5 * alpha * d_alpha
         row[2] = d_q * dx * dx

@@ -69,7 +69,7 @@ def blend_forward(
         sp = splat_point(transforms[g], means2d[g], depths[g], fx, fy, p.near)
         if sp[0] > q_cut[g]:  # outside the footprint: alpha would be < alpha_min, skip the exp()
             continue
-        alpha = blend_alpha(opacities[g], wp.exp(-0.5 * sp[0]))
+        alpha = blend_alpha(opacities[g], wp.exp(-0.5 * sp[0]), p.base.alpha_max)
         if alpha < p.base.alpha_min:
             continue
         if saturates(st.T, alpha, p.base.t_min):
@@ -138,7 +138,7 @@ def blend_backward(
             continue
         G = wp.exp(-0.5 * sp[0])
         o = opacities[g]
-        if blend_alpha(o, G) < p.base.alpha_min:
+        if blend_alpha(o, G, p.base.alpha_max) < p.base.alpha_min:
             continue
         feature_dot = float(0.0)
         for c in range(p.base.num_features):

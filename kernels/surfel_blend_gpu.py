@@ -123,7 +123,7 @@ def forward_kernel(block_dim: int, num_features: int):
                                  p.near)
                 if sp[0] > wp.tile_extract(q_t, j):
                     continue
-                alpha = blend_alpha(wp.tile_extract(o_t, j), wp.exp(-0.5 * sp[0]))
+                alpha = blend_alpha(wp.tile_extract(o_t, j), wp.exp(-0.5 * sp[0]), p.base.alpha_max)
                 if alpha < p.base.alpha_min:
                     continue
                 if saturates(st.T, alpha, p.base.t_min):
@@ -218,7 +218,7 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
                     if not (sp[0] > wp.tile_extract(q_t, j)):  # the tests of the per-thread kernel, negated
                         G = wp.exp(-0.5 * sp[0])
                         o = wp.tile_extract(o_t, j)
-                        if not (blend_alpha(o, G) < p.base.alpha_min):
+                        if not (blend_alpha(o, G, p.base.alpha_max) < p.base.alpha_min):
                             feature_dot = float(0.0)
                             if wp.static(has_features):
                                 feature_dot = wp.dot(features[g], up_features)
@@ -338,7 +338,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int):
                     sp = splat_point(M, mean, wp.tile_extract(z_t, j), fx, fy, p.near)
                     if not (sp[0] > wp.tile_extract(q_t, j)):
                         G = wp.exp(-0.5 * sp[0])
-                        if not (blend_alpha(o, G) < p.base.alpha_min):
+                        if not (blend_alpha(o, G, p.base.alpha_max) < p.base.alpha_min):
                             blended = 1
                 if lane_any(blended) != 0:  # some pixel of the warp blended it (uniform per warp)
                     g = wp.tile_extract(ids, j)

@@ -29,7 +29,7 @@ and is within ~10% on the backward.
 """
 import warp as wp
 
-from .blend import ALPHA_MAX, BlendParams
+from .blend import BlendParams
 from .surfel_project import FILTER_INV_SQUARE
 
 # The blend adjoint is hand-written from these steps: Warp's generated adjoints are never used, so skip them.
@@ -85,9 +85,9 @@ def splat_point(M: wp.mat33, mean: wp.vec2, center_depth: float, px: float, py: 
 
 
 @wp.func
-def blend_alpha(opacity: float, G: float) -> float:
+def blend_alpha(opacity: float, G: float, alpha_max: float) -> float:
     """alpha from G = exp(-s/2); worth the exp() only when s <= q_cut. Skip the surfel if alpha < alpha_min."""
-    return wp.min(ALPHA_MAX, opacity * G)
+    return wp.min(alpha_max, opacity * G)
 
 
 @wp.func
@@ -276,7 +276,7 @@ def surfel_pixel_gradient(
     row = SurfelGradRow()
     z = sp[1]
     raw = opacity * G
-    alpha = wp.min(ALPHA_MAX, raw)
+    alpha = wp.min(p.base.alpha_max, raw)
     T = T / (1.0 - alpha)  # transmittance in front of this surfel
     w = alpha * T
 
@@ -309,7 +309,7 @@ def surfel_pixel_gradient(
 
     d_alpha = T * (c_tilde - suffix)
     d_s = float(0.0)
-    if raw < ALPHA_MAX:  # the 0.99 clamp has zero derivative
+    if raw < p.base.alpha_max:  # the clamp has zero derivative
         row[ROW_OPACITY] = d_alpha * G
         d_s = -0.5 * alpha * d_alpha
 

@@ -47,7 +47,7 @@ def sh_to_rgb(sh, degree, d):
 
 def render_reference(means, quats, scales, opacities, colors, viewmat, K, width, height, *, sh_degree=None,
                      features=None, background=None, near=0.01, far=1e10, pixels=None, alpha_min=1.0 / 255.0,
-                     transmittance_min=1e-4):
+                     transmittance_min=1e-4, alpha_max=0.99):
     """Returns a dict of [H,W,C] float64 images: rgb, alpha, depth, inv_depth and (if given) features.
 
     pixels: optional [P,2] integer (x, y) pixel indices; then only those are rendered and values are [P,C]
@@ -90,7 +90,7 @@ def render_reference(means, quats, scales, opacities, colors, viewmat, K, width,
         pix = pixels.to(means.dtype) + 0.5
     delta = pix[:, None, :] - mean2d[None, :, :]  # [P,N,2]
     q = torch.einsum("pni,nij,pnj->pn", delta, conic, delta)
-    alpha = torch.clamp(opacities[None, :] * torch.exp(-0.5 * q), max=0.99)
+    alpha = torch.clamp(opacities[None, :] * torch.exp(-0.5 * q), max=alpha_max)
     keep = valid[None, :] & (alpha >= alpha_min)
     alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
 

@@ -143,3 +143,31 @@ def test_colours_at_exactly_zero_get_gradients():
     ref = gradients(lambda s, b: render_ref(s, background=b), scene, weights, bg, torch.float64)
     assert ref["colors"][black, 0].abs().sum() > 0  # the black points are on screen
     compare(ours, ref)
+
+
+def opaque_scene(seed):
+    """Mostly near-opaque Gaussians: many pixels' alpha sits between 3DGS's clamp (0.99) and gsplat's (0.999)."""
+    scene = random_scene(n=40, seed=seed, sh_degree=1)
+    scene["opacities"] = 0.993 + 0.0069 * torch.rand(40, generator=torch.Generator().manual_seed(seed),
+                                                     dtype=torch.float64)
+    return scene
+
+
+@pytest.mark.parametrize("alpha_max", [0.99, 0.999])
+def test_alpha_clamp_is_a_setting_and_its_gradients_match_the_reference(alpha_max):
+    scene = opaque_scene(3)
+    ours = render_ours(scene, ("rgb", "alpha", "depth"), alpha_max=alpha_max)
+    ref = render_ref(scene, alpha_max=alpha_max)
+    for name in ("rgb", "alpha", "depth"):
+        assert torch.allclose(getattr(ours, name).double(), ref[name], atol=2e-5), name
+    other = render_ref(scene, alpha_max=1.989 - alpha_max)  # the other clamp gives another image
+    assert (other["alpha"] - ref["alpha"]).abs().max() > 1e-3
+    g = torch.Generator().manual_seed(4)
+    weights = {n: torch.randn(scene["height"], scene["width"], c, generator=g, dtype=torch.float64)
+               for n, c in (("rgb", 3), ("alpha", 1), ("depth", 1))}
+    bg = torch.tensor([0.2, 0.3, 0.4], dtype=torch.float64)
+    outputs = tuple(weights)
+    compare(gradients(lambda s, b: render_ours(s, outputs, background=b, alpha_max=alpha_max), scene, weights, bg,
+                      torch.float32),
+            gradients(lambda s, b: render_ref(s, background=b, alpha_max=alpha_max), scene, weights, bg,
+                      torch.float64))

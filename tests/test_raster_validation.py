@@ -76,6 +76,8 @@ def test_mixed_devices():
     (dict(sh_degree=2, colors=torch.zeros(8, 4, 3)), "needs 9 SH coefficients"),
     (dict(outputs=("rgb", "normals")), "unknown"),
     (dict(outputs=("features",)), "features"),
+    (dict(alpha_max=1.0), "alpha_max"),
+    (dict(alpha_max=0.5, alpha_min=0.6), "alpha_min"),
 ])
 def test_bad_arguments(over, match):
     with pytest.raises(ValueError, match=match):

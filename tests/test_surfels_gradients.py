@@ -99,3 +99,24 @@ def test_black_surfel_colours_get_gradients():
     scene["colors"][black] = 0.0
     scene["colors"][black, 0] = float(rgb_to_sh0(torch.zeros(1))[0])  # a black initial point
     check(scene, ("rgb",), 12)
+
+
+@pytest.mark.parametrize("alpha_max", [0.99, 0.999])
+def test_alpha_clamp_is_a_setting_for_surfels_too(alpha_max):
+    # A few large near-opaque surfels: many pixels' alpha sits between 3DGS's clamp (0.99) and gsplat's (0.999).
+    scene = random_surfel_scene(n=12, seed=6, sh_degree=1)
+    scene["scales"] = scene["scales"] * 5.0
+    scene["opacities"] = 0.993 + 0.0069 * torch.rand(12, generator=torch.Generator().manual_seed(6),
+                                                     dtype=torch.float64)
+    outputs = ("rgb", "alpha", "depth", "normal")
+    ours = render_surfels_ours(scene, outputs, alpha_max=alpha_max)
+    ref = render_surfels_ref(scene, alpha_max=alpha_max)
+    for name in outputs:
+        assert torch.allclose(getattr(ours, name).double(), ref[name], atol=5e-5), name
+    assert (render_surfels_ref(scene, alpha_max=1.989 - alpha_max)["alpha"] - ref["alpha"]).abs().max() > 1e-3
+    bg = torch.tensor([0.2, 0.3, 0.4], dtype=torch.float64)
+    weights = weights_for(scene, outputs, 7)
+    compare(gradients(lambda s, b: render_surfels_ours(s, outputs, background=b, alpha_max=alpha_max), scene,
+                      weights, bg, torch.float32),
+            gradients(lambda s, b: render_surfels_ref(s, background=b, alpha_max=alpha_max), scene, weights, bg,
+                      torch.float64))

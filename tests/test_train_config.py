@@ -62,6 +62,8 @@ def test_unknown_key_names_it_and_suggests(override, key, words):
     ("train.transmittance_min=0", "train.transmittance_min"),
     ("train.alpha_min=0.2", "train.alpha_min"),  # not below model.init_opacity (0.1)
     ("train.max_sigmas=-2", "train.max_sigmas"),
+    ("train.alpha_max=1", "train.alpha_max"),  # the adjoint divides by 1 - alpha
+    ("train.alpha_max=0.002", "train.alpha_min"),  # below alpha_min (1/255) every contribution would be skipped
 ])
 def test_bad_value_names_the_key(override, key):
     with pytest.raises(ConfigError) as e:

@@ -8,7 +8,7 @@ import os
 import typing
 from typing import Any, Dict, List, Mapping, Union
 
-from warpgs.render.defaults import LOWEST_TRANSMITTANCE_MIN
+from warpgs.render.defaults import LOWEST_TRANSMITTANCE_MIN, alpha_clamp_problem
 from warpgs.config.schema import (ALIASES, BACKGROUNDS, CHOICES, NON_NEGATIVE, POSITIVE, SECTIONS, Config, ConfigError,
                                   all_keys)
 
@@ -265,8 +265,9 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError("train.tile_size", f"at most 32, got {cfg.train.tile_size}")
     if cfg.train.max_sigmas < 0:
         raise ConfigError("train.max_sigmas", f"expected >= 0 (0: exact footprint), got {cfg.train.max_sigmas}")
-    if not 0.0 < cfg.train.alpha_min < 0.99:
-        raise ConfigError("train.alpha_min", f"expected a value in (0, 0.99), got {cfg.train.alpha_min}")
+    problem = alpha_clamp_problem(cfg.train.alpha_min, cfg.train.alpha_max)
+    if problem:
+        raise ConfigError(f"train.{problem[0]}", problem[1])
     if not LOWEST_TRANSMITTANCE_MIN <= cfg.train.transmittance_min < 1.0:  # see raster_defaults
         raise ConfigError("train.transmittance_min", f"expected a value in [{LOWEST_TRANSMITTANCE_MIN:g}, 1), got "
                           f"{cfg.train.transmittance_min} (smaller ones let the transmittance underflow)")

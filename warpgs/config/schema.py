@@ -9,7 +9,7 @@ from typing import Any, Dict, List, Optional
 import yaml
 
 from warpgs.train.optim import OptimConfig
-from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.train.strategy import StrategyConfig
 
 
@@ -73,6 +73,7 @@ class TrainConfig:
     max_sigmas: float = 0.0  # > 0: truncate each footprint at this many sigmas
     alpha_min: float = DEFAULT_ALPHA_MIN  # skip contributions below this alpha
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN  # stop blending a pixel before its transmittance drops under this
+    alpha_max: float = DEFAULT_ALPHA_MAX  # clamp of each contribution's alpha: 3DGS's 0.99, gsplat's 0.999 (a modelling choice)
     scene_extent: Optional[float] = None  # None: from the cameras (3DGS); scales means_lr and densify sizes
     checkpoint_every: int = 1000  # 0: only at the end (and on Ctrl-C)
     log_every: int = 100  # progress line period when the output is not a terminal
@@ -97,7 +98,7 @@ class TrainConfig:
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""
         return dict(near=self.near, far=self.far, tile_size=self.tile_size, max_sigmas=self.max_sigmas,
-                    alpha_min=self.alpha_min, transmittance_min=self.transmittance_min)
+                    alpha_min=self.alpha_min, transmittance_min=self.transmittance_min, alpha_max=self.alpha_max)
 
 
 @dataclass

@@ -10,7 +10,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.render.gaussians import OUTPUTS as GAUSSIAN_OUTPUTS
 from warpgs.render.gaussians import RenderOutput, rasterize
 from warpgs.render.surfels import OUTPUTS as SURFEL_OUTPUTS
@@ -34,7 +34,7 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
                  features: Optional[torch.Tensor] = None, inputs: Optional[dict] = None,
                  track_means2d: bool = False, near: float = 0.01, far: float = 1e10,
                  tile_size: Optional[int] = None, max_sigmas: float = 0.0, alpha_min: float = DEFAULT_ALPHA_MIN,
-                 transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
+                 transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN, alpha_max: float = DEFAULT_ALPHA_MAX,
                  check_inputs: bool = True) -> RenderOutput:
     """One camera. `inputs` (default: model.render_inputs()) may be edited by the caller, e.g. colours from
     an MLP; `features` [N, C] is rendered when "features" is in outputs. track_means2d is honoured for 3D
@@ -47,7 +47,7 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
         inputs["features"] = features
     kwargs = dict(viewmat=viewmat, K=K, width=width, height=height, outputs=tuple(outputs), background=background,
                   near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
-                  transmittance_min=transmittance_min, check_inputs=check_inputs, **inputs)
+                  transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=check_inputs, **inputs)
     if kind == "gaussians":
         return rasterize(track_means2d=track_means2d, **kwargs)
     return rasterize_surfels(**kwargs)

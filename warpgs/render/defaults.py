@@ -11,11 +11,25 @@ from dataclasses import dataclass, replace
 DEFAULT_TILE_SIZE = 8  # the CPU, and GPU renders that will be differentiated (training)
 GPU_FORWARD_ONLY_TILE_SIZE = 16  # GPU renders nobody differentiates (evaluation, viewers)
 DEFAULT_ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
+DEFAULT_ALPHA_MAX = 0.99  # alpha is clamped here (3DGS; gsplat uses 0.999)
 DEFAULT_TRANSMITTANCE_MIN = 1.0e-4  # a pixel stops blending before its transmittance drops under this
 # The adjoint recovers each Gaussian's transmittance from the final one by division, so the final one must stay a
 # normal float32: a smaller transmittance_min (0 included) would let it underflow and corrupt the gradients.
 LOWEST_TRANSMITTANCE_MIN = 1.0e-30
 DEPTH_EPS = 1e-10  # expected depth = accumulated depth / max(alpha, DEPTH_EPS)
+
+
+# The adjoint divides by 1 - alpha to recover each transmittance: a clamp closer to 1 would lose float32 precision.
+HIGHEST_ALPHA_MAX = 0.9999
+
+
+def alpha_clamp_problem(alpha_min: float, alpha_max: float):
+    """(argument, what is wrong) for a blend's alpha_min and alpha_max, or None when they are usable."""
+    if not 0.0 < alpha_max <= HIGHEST_ALPHA_MAX:
+        return "alpha_max", f"expected a value in (0, {HIGHEST_ALPHA_MAX}], got {alpha_max} (the adjoint divides by 1 - alpha)"
+    if not 0.0 < alpha_min < alpha_max:  # alpha never exceeds alpha_max, so a larger threshold would drop everything
+        return "alpha_min", f"expected a value in (0, alpha_max = {alpha_max}), got {alpha_min}"
+    return None
 
 
 def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool) -> int:

@@ -309,8 +309,8 @@ def _flat(ws: Workspace, name: str, a):
 
 
 def _params(ws: Workspace, s: Settings, want: Wanted, first: int):
-    key = ("blend_params", s.width, s.height, s.tile_size, s.alpha_min, s.transmittance_min, want.color, want.depth,
-           want.inv_depth, want.num_features, first)
+    key = ("blend_params", s.width, s.height, s.tile_size, s.alpha_min, s.transmittance_min, s.alpha_max, want.color,
+           want.depth, want.inv_depth, want.num_features, first)
     return ws.memo(key, lambda: blend_params(s, want, first))
 
 

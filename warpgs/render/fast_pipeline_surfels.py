@@ -124,7 +124,7 @@ def _projection_settings(s: Settings) -> list:
 
 
 def _params(ws: Workspace, s: Settings, want: SurfelWanted, first: int):
-    key = ("surfel_blend_params", s.width, s.height, s.tile_size, s.alpha_min, s.transmittance_min, s.near,
+    key = ("surfel_blend_params", s.width, s.height, s.tile_size, s.alpha_min, s.transmittance_min, s.alpha_max, s.near,
            want.color, want.depth, want.inv_depth, want.normal, want.median, want.distortion, want.num_features,
            want.distortion_scale, first)
     return ws.memo(key, lambda: surfel_blend_params(s, want, first))

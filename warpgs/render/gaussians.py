@@ -13,8 +13,9 @@ import torch
 import warp as wp
 
 from warpgs.render import pipeline_gaussians as pipeline
-from warpgs.render.defaults import (DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, DEPTH_EPS,
-                                    LOWEST_TRANSMITTANCE_MIN, choose_tile_size, current_raster_options)
+from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, DEPTH_EPS,
+                                    LOWEST_TRANSMITTANCE_MIN, alpha_clamp_problem, choose_tile_size,
+                                    current_raster_options)
 from warpgs.render.gaussians_fast import FastRasterizeFunction
 from warpgs.render.validation import check_finite, check_same_device, check_tensor
 
@@ -53,12 +54,12 @@ def on_torch_stream(device: torch.device):
 
 
 def raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,
-                    transmittance_min) -> pipeline.Settings:
+                    transmittance_min, alpha_max=DEFAULT_ALPHA_MAX) -> pipeline.Settings:
     """The pipeline's Settings from a render call's arguments (sh_degree None: plain colours)."""
     return pipeline.Settings(width=int(width), height=int(height), near=float(near), far=float(far),
                              tile_size=int(tile_size), max_sigmas=float(max_sigmas),
                              sh_degree=-1 if sh_degree is None else int(sh_degree), alpha_min=float(alpha_min),
-                             transmittance_min=float(transmittance_min))
+                             transmittance_min=float(transmittance_min), alpha_max=float(alpha_max))
 
 
 def _zero_grad(t: torch.Tensor) -> torch.Tensor:
@@ -238,6 +239,7 @@ def rasterize(
     max_sigmas: float = 0.0,
     alpha_min: float = DEFAULT_ALPHA_MIN,
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
+    alpha_max: float = DEFAULT_ALPHA_MAX,
     check_inputs: bool = True,
     track_means2d: bool = False,
     _means2d_probe: Optional[torch.Tensor] = None,
@@ -253,18 +255,19 @@ def rasterize(
     Accuracy knobs (defaults: the 3DGS rules, exact within them): `max_sigmas` > 0 truncates each footprint at
     that many sigmas; `alpha_min` skips contributions below that alpha; blending stops before transmittance
     would drop under `transmittance_min`. Raising any of them trades accuracy for speed
-    (benchmarks/speed_vs_error.py measures how much).
+    (benchmarks/speed_vs_error.py measures how much). `alpha_max` clamps each contribution's alpha (3DGS's 0.99;
+    gsplat's 0.999), a modelling choice, not a speed knob.
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, check_inputs,
                                       max_sigmas, alpha_min, transmittance_min, scale_dims=3,
-                                      track_means2d=track_means2d)
+                                      track_means2d=track_means2d, alpha_max=alpha_max)
     if viewmat.dim() == 3:
         probe = means.new_zeros(viewmat.shape[0], means.shape[0], 2, requires_grad=True) if track_means2d else None
         per_camera = [rasterize(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
                                 sh_degree=sh_degree, features=features, background=background, outputs=outputs,
                                 near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
-                                transmittance_min=transmittance_min, check_inputs=False,
+                                transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=False,
                                 _means2d_probe=None if probe is None else probe[b])
                       for b in range(viewmat.shape[0])]
         out = _stack(per_camera)
@@ -277,7 +280,8 @@ def rasterize(
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
     feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
-    settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min, transmittance_min)
+    settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min, transmittance_min,
+                               alpha_max)
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1])
     device = means.device
@@ -310,7 +314,7 @@ def _stack(per_camera: list) -> RenderOutput:
 
 def checked_call(known_outputs, outputs, means, quats, scales, opacities, colors, viewmat, K, width, height,
                  sh_degree, features, background, near, far, tile_size, check_values, max_sigmas, alpha_min,
-                 transmittance_min, scale_dims, track_means2d=False):
+                 transmittance_min, scale_dims, track_means2d=False, alpha_max=DEFAULT_ALPHA_MAX):
     """What both render ops check before rendering (a ValueError naming the argument), and the settings they
     derive: (outputs as a tuple, the tile size to use)."""
     outputs = tuple(outputs)
@@ -321,7 +325,7 @@ def checked_call(known_outputs, outputs, means, quats, scales, opacities, colors
         raise ValueError("outputs: 'features' requested but features=None")
     _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
                      background, near, far, tile_size, check_values, scale_dims)
-    check_blend_knobs(max_sigmas, alpha_min, transmittance_min)
+    check_blend_knobs(max_sigmas, alpha_min, transmittance_min, alpha_max)
     grad = track_means2d or _needs_grad(means, quats, scales, opacities, colors, features, viewmat, K, background)
     return outputs, choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda")
 
@@ -331,12 +335,13 @@ def _needs_grad(*tensors) -> bool:
     return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
 
 
-def check_blend_knobs(max_sigmas, alpha_min, transmittance_min) -> None:
-    """The accuracy knobs shared by every primitive kind."""
+def check_blend_knobs(max_sigmas, alpha_min, transmittance_min, alpha_max=DEFAULT_ALPHA_MAX) -> None:
+    """The blending knobs shared by every primitive kind."""
     if not max_sigmas >= 0.0:
         raise ValueError(f"max_sigmas: expected >= 0 (0: exact footprint), got {max_sigmas}")
-    if not 0.0 < alpha_min < 0.99:  # alpha is clamped at 0.99, so a larger threshold would drop everything
-        raise ValueError(f"alpha_min: expected a value in (0, 0.99), got {alpha_min}")
+    problem = alpha_clamp_problem(alpha_min, alpha_max)
+    if problem:
+        raise ValueError("%s: %s" % problem)
     if not LOWEST_TRANSMITTANCE_MIN <= transmittance_min < 1.0:  # see raster_defaults
         raise ValueError(f"transmittance_min: expected a value in [{LOWEST_TRANSMITTANCE_MIN:g}, 1), got "
                          f"{transmittance_min} (smaller ones let the transmittance underflow)")

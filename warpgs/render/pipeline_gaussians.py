@@ -16,7 +16,8 @@ if os.environ.get("WARPGS_CPU_COOPERATIVE") == "1":
     wp.config.enable_cpu_blocks = True
 
 from warpgs.render.cpu_threads import cpu_threads, run_threads, tile_ranges_per_thread  # noqa: E402
-from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN  # noqa: E402
+from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE,  # noqa: E402
+                                    DEFAULT_TRANSMITTANCE_MIN)
 from warpgs.kernels import binning, blend, blend_gpu, project  # noqa: E402  (after setting the log level)
 
 
@@ -31,6 +32,7 @@ class Settings:
     sh_degree: int = -1  # -1: plain colours
     alpha_min: float = DEFAULT_ALPHA_MIN  # blending skips contributions below this alpha (3DGS: 1/255)
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN  # blending stops before transmittance drops under this
+    alpha_max: float = DEFAULT_ALPHA_MAX  # alpha is clamped here (3DGS: 0.99, gsplat: 0.999)
 
     @property
     def tiles_x(self) -> int:
@@ -166,7 +168,7 @@ def blend_params(s: Settings, want: Wanted, first_tile: int = 0) -> blend.BlendP
     bp.width, bp.height, bp.tiles_x, bp.tile_size, bp.first_tile = s.width, s.height, s.tiles_x, s.tile_size, first_tile
     bp.want_color, bp.want_depth, bp.want_inv_depth = int(want.color), int(want.depth), int(want.inv_depth)
     bp.num_features = want.num_features
-    bp.alpha_min, bp.t_min = s.alpha_min, s.transmittance_min
+    bp.alpha_min, bp.t_min, bp.alpha_max = s.alpha_min, s.transmittance_min, s.alpha_max
     return bp
 
 

@@ -11,7 +11,7 @@ from typing import Optional, Sequence
 import torch
 import torch.distributed as dist
 
-from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.render.exchange import exchange_rows
 from warpgs.render.gaussians import RenderOutput
 from warpgs.render.splats import Splats, blend_splats, project_splats
@@ -37,6 +37,7 @@ def render_sharded(means, quats, scales, opacities, colors, viewmats, Ks, width,
                    background: Optional[torch.Tensor] = None, outputs: Sequence[str] = ("rgb", "alpha"),
                    near: float = 0.01, far: float = 1e10, tile_size: Optional[int] = None,
                    alpha_min: float = DEFAULT_ALPHA_MIN, transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
+                   alpha_max: float = DEFAULT_ALPHA_MAX,
                    group: Optional[dist.ProcessGroup] = None, track_means2d: bool = False) -> RenderOutput:
     """This rank's camera (viewmats[rank], Ks[rank]) rendered from the primitives of every rank in `group`.
 
@@ -44,8 +45,8 @@ def render_sharded(means, quats, scales, opacities, colors, viewmats, Ks, width,
     width; a shard may be empty). viewmats [R,4,4] and Ks [R,3,3]: one camera per rank, the same tensors on every
     rank; width and height: one size for all, or one per camera (sequences of R). The result is what `rasterize`
     gives for that camera on all primitives, up to the blend order of primitives at exactly equal depth;
-    `out.visible` counts received splats, not this rank's primitives. tile_size, alpha_min and transmittance_min
-    are the blend's, as `rasterize` takes them.
+    `out.visible` counts received splats, not this rank's primitives. tile_size, alpha_min, transmittance_min and
+    alpha_max are the blend's, as `rasterize` takes them.
 
     track_means2d (what densification needs, per owner): `out.means2d` is then a [R, N, 2] leaf whose .grad after
     backward is dL/dmeans2d of this rank's primitives in every rank's camera, `out.sent` the [R, N] bool mask of
@@ -70,7 +71,8 @@ def render_sharded(means, quats, scales, opacities, colors, viewmats, Ks, width,
         sends.append(splats.select(rows).pack())
     received = exchange_rows(sends, group)
     out = blend_splats(Splats.unpack(torch.cat(received)), widths[rank], heights[rank], background=background,
-                       outputs=outputs, tile_size=tile_size, alpha_min=alpha_min, transmittance_min=transmittance_min)
+                       outputs=outputs, tile_size=tile_size, alpha_min=alpha_min, transmittance_min=transmittance_min,
+                       alpha_max=alpha_max)
     if probe is not None:
         out.means2d, out.sent = probe, torch.stack(sent)
         out.seen = _binned_by_camera(out.visible, [r.shape[0] for r in received], sent_rows, means.shape[0], group)

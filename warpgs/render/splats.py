@@ -13,7 +13,7 @@ import torch
 import warp as wp
 
 from warpgs.render import pipeline_gaussians as pipeline
-from warpgs.render.defaults import DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.render.gaussians import (OUTPUTS, RenderOutput, _intrinsics_vector, _to_wp, _zero_grad,
                                      blended_images, check_blend_knobs, checked_call, on_torch_stream,
                                      raster_settings, set_image_outputs, upstream_image_gradients)
@@ -155,13 +155,14 @@ def project_splats(means, quats, scales, opacities, colors, viewmat, K, width: i
 def blend_splats(splats: Splats, width: int, height: int, *, background: Optional[torch.Tensor] = None,
                  outputs: Sequence[str] = ("rgb", "alpha"), tile_size: Optional[int] = None,
                  alpha_min: float = DEFAULT_ALPHA_MIN,
-                 transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN) -> RenderOutput:
+                 transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
+                 alpha_max: float = DEFAULT_ALPHA_MAX) -> RenderOutput:
     """Bin and blend splats (from `project_splats`, possibly gathered from several processes) into one image, with
     the outputs of `rasterize`. Invalid rows are dropped first; `out.visible` is over the valid rows."""
     unknown = [o for o in outputs if o not in OUTPUTS]
     if unknown:
         raise ValueError(f"outputs: unknown {unknown}; expected some of {OUTPUTS}")
-    check_blend_knobs(0.0, alpha_min, transmittance_min)
+    check_blend_knobs(0.0, alpha_min, transmittance_min, alpha_max)
     if splats.means2d.dim() != 2 or splats.means2d.shape[1] != 2:
         raise ValueError(f"splats.means2d: expected [N, 2], got {list(splats.means2d.shape)}")
     if not bool(splats.valid.all()):
@@ -170,7 +171,7 @@ def blend_splats(splats: Splats, width: int, height: int, *, background: Optiona
         raise ValueError("outputs: 'features' asked for, but the splats carry no feature columns")
     feats = splats.features if "features" in outputs else splats.features[:, :0]
     settings = raster_settings(width, height, 0.01, 1e10, tile_size or DEFAULT_TILE_SIZE, 0.0, None, alpha_min,
-                               transmittance_min)
+                               transmittance_min, alpha_max)
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1])
     with on_torch_stream(splats.means2d.device):

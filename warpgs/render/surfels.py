@@ -17,7 +17,7 @@ from warpgs.render import pipeline_surfels as surfel_pipeline
 from warpgs.render.pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.surfels_fast import FastSurfelsFunction
 from warpgs.render.pipeline_gaussians import Settings
-from warpgs.render.defaults import (DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN,
+from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN,
                                     current_raster_options)
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, _wp_device, _zero_grad,
                                      checked_call, on_torch_stream, raster_settings, set_image_outputs)
@@ -122,6 +122,7 @@ def rasterize_surfels(
     max_sigmas: float = 0.0,
     alpha_min: float = DEFAULT_ALPHA_MIN,
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
+    alpha_max: float = DEFAULT_ALPHA_MAX,
     check_inputs: bool = True,
 ) -> RenderOutput:
     """Render N 2D Gaussian surfels from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
@@ -130,25 +131,27 @@ def rasterize_surfels(
     and the normal as its third. colors/sh_degree/features/background as in `rasterize`.
     outputs: any of rgb, alpha, depth (Σ w z / alpha, z the ray-surfel hit depth), inv_depth (Σ w / z),
     normal (Σ w n, world space, each normal facing the camera), median_depth, distortion, features.
-    Only the requested outputs are computed. tile_size, max_sigmas / alpha_min / transmittance_min: as in
-    `rasterize`.
+    Only the requested outputs are computed. tile_size, max_sigmas / alpha_min / transmittance_min / alpha_max:
+    as in `rasterize`.
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, check_inputs,
-                                      max_sigmas, alpha_min, transmittance_min, scale_dims=2)
+                                      max_sigmas, alpha_min, transmittance_min, scale_dims=2, alpha_max=alpha_max)
     if viewmat.dim() == 3:
         per_camera = [rasterize_surfels(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
                                         sh_degree=sh_degree, features=features, background=background,
                                         outputs=outputs, near=near, far=far, tile_size=tile_size,
                                         max_sigmas=max_sigmas, alpha_min=alpha_min,
-                                        transmittance_min=transmittance_min, check_inputs=False)
+                                        transmittance_min=transmittance_min, alpha_max=alpha_max,
+                                        check_inputs=False)
                       for b in range(viewmat.shape[0])]
         return _stack(per_camera)
 
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
     feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
-    settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min, transmittance_min)
+    settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min, transmittance_min,
+                               alpha_max)
     wanted = surfel_pipeline.SurfelWanted(
         color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
         normal="normal" in outputs, median="median_depth" in outputs, distortion="distortion" in outputs,
