@@ -9,12 +9,10 @@ appear once only."""
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from pathlib import Path
 
 import ablation
-from common import write_json
+from common import read_results, write_json
 
 # What every merged file must share (the run-specific parts, seeds and settings, are pooled).
 SHARED = ("steps", "device", "budget", "prior_fill", "prior_options")
@@ -57,13 +55,9 @@ def main(argv=None) -> dict:
     ap.add_argument("name", help="result file name (written to benchmarks/results/, or $OUT)")
     ap.add_argument("files", nargs="+", help="ablation JSON files written by benchmarks/ablation.py")
     args = ap.parse_args(argv)
-    payloads = []
-    for f in args.files:
-        try:
-            payloads.append((f, json.loads(Path(f).read_text())))
-        except (OSError, json.JSONDecodeError) as e:
-            raise SystemExit(f"{f}: not a readable ablation result ({e})")
-        if "settings" not in payloads[-1][1]:
+    payloads = read_results(args.files, "ablation result")
+    for f, payload in payloads:
+        if "settings" not in payload:
             raise SystemExit(f"{f}: no 'settings' in it: not written by benchmarks/ablation.py")
     return write_table(args.name, merge(payloads))
 

@@ -84,6 +84,17 @@ def write_json(name: str, payload: dict) -> Path:
     return path
 
 
+def read_results(files, what: str) -> list:
+    """[(file, payload)] of result JSON files; a file that cannot be read or parsed stops the run, named."""
+    payloads = []
+    for f in files:
+        try:
+            payloads.append((f, json.loads(Path(f).read_text())))
+        except (OSError, json.JSONDecodeError) as e:
+            raise SystemExit(f"{f}: not a readable {what} ({e})")
+    return payloads
+
+
 def print_table(rows: list[dict], columns: list[str]) -> None:
     widths = [max(len(c), *(len(_fmt(r.get(c))) for r in rows)) for c in columns]
     print(" | ".join(c.ljust(w) for c, w in zip(columns, widths)))

@@ -9,12 +9,11 @@ pass the files of one code version, not old and new together."""
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 from pathlib import Path
 
-from common import print_table, write_json
+from common import print_table, read_results, write_json
 
 SYSTEMS = ("warpgs", "gsplat")  # real_capture.py's names for the Trainer and the plain gsplat loop
 
@@ -70,12 +69,7 @@ def main(argv=None) -> dict:
     ap.add_argument("files", nargs="+", help="real_capture.py result JSON files")
     ap.add_argument("--marks", default="7000,30000", help="comma-separated steps to compare")
     args = ap.parse_args(argv)
-    payloads = []
-    for f in args.files:
-        try:
-            payloads.append((f, json.loads(Path(f).read_text())))
-        except (OSError, json.JSONDecodeError) as e:
-            raise SystemExit(f"{f}: cannot read a result: {e}")
+    payloads = read_results(args.files, "real_capture.py result")
     marks = [int(m) for m in args.marks.split(",")]
     rows = paired(runs_by_seed(payloads), marks)
     if not rows:
