@@ -13,14 +13,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import ablation
 import ablation_merge
+from job_pool import Job, run_jobs
 
 HERE = Path(__file__).resolve().parent
 
@@ -50,37 +49,19 @@ def parse(argv):
 
 def main(argv=None) -> dict:
     args, rest, keys, seeds = parse(argv)
-    jobs = [(k, s) for k in keys for s in seeds]
     with tempfile.TemporaryDirectory(prefix="warpgs-ablation-jobs-") as tmp:
-        env = dict(os.environ, OUT=tmp)
-        waiting, running, done = list(jobs), {}, []
-        start = time.perf_counter()
-        while waiting or running:
-            while waiting and len(running) < args.jobs:
-                key, seed = waiting.pop(0)
-                part = f"part_{key}_s{seed}"
-                cmd = [sys.executable, str(HERE / "ablation.py"), *rest, "--only", key, "--seeds", str(seed),
-                       "--name", part]
-                log = open(Path(tmp) / f"{part}.log", "w")
-                running[part] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log)
-            for part, (proc, log) in list(running.items()):
-                if proc.poll() is None:
-                    continue
-                log.close()
-                del running[part]
-                text = (Path(tmp) / f"{part}.log").read_text()
-                if proc.returncode != 0:
-                    for other, _ in running.values():
-                        other.terminate()
-                    raise SystemExit(f"{part} failed (exit {proc.returncode}); the end of its log:\n{text[-2000:]}")
-                line = next((ln.strip() for ln in text.splitlines() if " seed " in ln and "psnr" in ln), part)
-                print(f"  [{time.perf_counter() - start:6.0f} s] {line}", file=sys.stderr, flush=True)
-                done.append(part)
-            time.sleep(1.0)
-        payloads = [(p, json.loads((Path(tmp) / f"{p}.json").read_text())) for p in done]
+        jobs = [Job(f"part_{key}_s{seed}", [sys.executable, str(HERE / "ablation.py"), *rest, "--only", key,
+                                            "--seeds", str(seed), "--name", f"part_{key}_s{seed}"])
+                for key in keys for seed in seeds]
+        done = run_jobs(jobs, args.jobs, Path(tmp), env=dict(os.environ, OUT=tmp), summary=_summary)
+        payloads = [(j.name, json.loads((Path(tmp) / f"{j.name}.json").read_text())) for j in done]
     merged = ablation_merge.merge(payloads)
     merged["processes_at_once"] = args.jobs  # shared device: the runs' seconds are not one run's alone
     return ablation_merge.write_table(args.name, merged)
+
+
+def _summary(job: Job, log: str) -> str:
+    return next((ln.strip() for ln in log.splitlines() if " seed " in ln and "psnr" in ln), job.name)
 
 
 if __name__ == "__main__":

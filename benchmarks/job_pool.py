@@ -1,0 +1,60 @@
+"""Run benchmark processes side by side: at most `at_once` per group (a GPU, or one group for all), each with its
+own log, reported as each one ends. The first failure stops the others and shows the end of its log.
+
+Used by ablation_jobs.py and real_capture_jobs.py (few-view and real-capture runs leave a GPU mostly idle, so
+several share one)."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+
+@dataclass
+class Job:
+    name: str  # also the log's file name: <log_dir>/<name>.log
+    cmd: List[str]
+    group: str = ""  # jobs of one group share its `at_once` slots (e.g. one GPU)
+    env: Dict[str, str] = field(default_factory=dict)  # added to the environment
+
+
+def run_jobs(jobs: List[Job], at_once: int, log_dir: Path, *, env: Optional[dict] = None,
+             summary: Callable[[Job, str], str] = lambda job, log: job.name, poll_seconds: float = 1.0) -> List[Job]:
+    """Runs every job (in order, as slots free up) and returns them in the order they ended. summary(job, log text)
+    is the line printed (to stderr) when a job ends."""
+    if at_once < 1:
+        raise ValueError(f"at_once: expected at least 1, got {at_once}")
+    names = [j.name for j in jobs]
+    if len(set(names)) != len(names):
+        raise ValueError(f"job names must differ (they name the logs): {names}")
+    log_dir = Path(log_dir)
+    log_dir.mkdir(parents=True, exist_ok=True)
+    base = dict(os.environ if env is None else env)
+    waiting, running, done = list(jobs), {}, []
+    start = time.perf_counter()
+    while waiting or running:
+        for job in list(waiting):
+            if sum(1 for j, _, _ in running.values() if j.group == job.group) < at_once:
+                waiting.remove(job)
+                log = open(log_dir / f"{job.name}.log", "w")
+                proc = subprocess.Popen(job.cmd, stdout=log, stderr=subprocess.STDOUT, env={**base, **job.env})
+                running[job.name] = (job, proc, log)
+        for name, (job, proc, log) in list(running.items()):
+            if proc.poll() is None:
+                continue
+            log.close()
+            del running[name]
+            text = (log_dir / f"{name}.log").read_text()
+            if proc.returncode != 0:
+                for _, other, _ in running.values():
+                    other.terminate()
+                raise SystemExit(f"{name} failed (exit {proc.returncode}); the end of its log:\n{text[-2000:]}")
+            print(f"  [{time.perf_counter() - start:6.0f} s] {summary(job, text)}", file=sys.stderr, flush=True)
+            done.append(job)
+        if waiting or running:
+            time.sleep(poll_seconds)
+    return done

@@ -1,0 +1,88 @@
+"""warpgs against gsplat's loop on one real capture over several seeds, as side-by-side processes on one or more
+GPUs, then the seeds pooled (benchmarks/real_capture_seeds.py).
+
+Each (seed, system) is one `real_capture.py --only SYSTEM --seed S` process; the two systems of a seed run on the
+same GPU, seeds go round-robin over `--gpus`, at most `--per-gpu` processes share one. Every process writes its
+own JSON when it ends (to --out, default benchmarks/results or $OUT), so a run cut short keeps the finished seeds.
+Step times of processes that share a GPU are not a comparison: time a solo pair for that.
+
+    python benchmarks/real_capture_jobs.py data/beer --seeds 1,2,3 --gpus 0,1,2 --per-gpu 2 --name beer_30k \\
+        -- --device cuda --gsplat --steps 7000,30000 --eval-every 1000
+
+Everything after `--` goes to every real_capture.py process unchanged (not --only, --seed or --tag)."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import real_capture_seeds
+from common import RESULTS
+from job_pool import Job, run_jobs
+
+HERE = Path(__file__).resolve().parent
+SYSTEMS = ("warpgs", "gsplat")
+
+
+def parse(argv):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 epilog="then `--` and real_capture.py's arguments for every process")
+    ap.add_argument("data", help="scene folder (as real_capture.py takes it)")
+    ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
+    ap.add_argument("--gpus", default="", help="comma-separated CUDA device indices (default: leave "
+                                               "CUDA_VISIBLE_DEVICES alone, one group)")
+    ap.add_argument("--per-gpu", type=int, default=2, help="processes at once on one GPU (default 2: a seed's pair)")
+    ap.add_argument("--name", required=True, help="result name: the pooled table, and the runs' tag")
+    ap.add_argument("--out", default=None, help="folder for every run's JSON (default: $OUT or benchmarks/results)")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    cut = argv.index("--") if "--" in argv else len(argv)  # after `--`: real_capture.py's arguments
+    args, rest = ap.parse_args(argv[:cut]), argv[cut + 1:]
+    for flag in ("--only", "--seed", "--tag"):
+        if flag in rest:
+            raise SystemExit(f"{flag}: real_capture_jobs.py sets it for each process; leave it out after `--`")
+    if "--gsplat" not in rest:
+        raise SystemExit("give --gsplat after `--`: the runs compare warpgs with gsplat's loop")
+    try:
+        seeds = [int(s) for s in args.seeds.split(",")]
+        gpus = [int(g) for g in args.gpus.split(",")] if args.gpus else []
+    except ValueError as e:
+        raise SystemExit(f"--seeds / --gpus: comma-separated integers expected ({e})")
+    if args.per_gpu < 1:
+        raise SystemExit(f"--per-gpu: expected at least 1, got {args.per_gpu}")
+    return args, rest, seeds, gpus
+
+
+def plan(data: str, seeds, gpus, rest, name: str):
+    """The processes: both systems of each seed, a seed's pair on one GPU, seeds round-robin over the GPUs."""
+    jobs = []
+    for i, seed in enumerate(seeds):
+        group = str(gpus[i % len(gpus)]) if gpus else ""
+        env = {"CUDA_VISIBLE_DEVICES": group} if gpus else {}
+        for system in SYSTEMS:
+            cmd = [sys.executable, str(HERE / "real_capture.py"), data, *rest, "--only", system, "--seed", str(seed),
+                   "--tag", name]
+            jobs.append(Job(f"{system}_s{seed}", cmd, group, env))
+    return jobs
+
+
+def main(argv=None) -> dict:
+    args, rest, seeds, gpus = parse(argv)
+    out = Path(args.out or os.environ.get("OUT") or RESULTS)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = plan(args.data, seeds, gpus, rest, args.name)
+    run_jobs(jobs, args.per_gpu, out / f"{args.name}_logs", env=dict(os.environ, OUT=str(out)), summary=_summary)
+    pooled = f"real_capture_seeds_{args.name}"
+    files = sorted(str(p) for p in out.glob(f"real_capture_*_{args.name}.json") if p.stem != pooled)
+    os.environ["OUT"] = str(out)  # the pooled table goes beside the runs
+    return real_capture_seeds.main([pooled, *files])
+
+
+def _summary(job: Job, log: str) -> str:
+    """The run's last scored line (system | step | seconds | psnr | ...), else its name."""
+    rows = [ln.strip() for ln in log.splitlines() if ln.startswith(SYSTEMS) and "|" in ln]
+    return f"{job.name}: {rows[-1]}" if rows else job.name
+
+
+if __name__ == "__main__":
+    main()

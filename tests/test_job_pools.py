@@ -1,0 +1,91 @@
+"""benchmarks/job_pool.py and real_capture_jobs.py: processes side by side per group, results pooled by seed."""
+import json
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import real_capture_jobs  # noqa: E402
+from job_pool import Job, run_jobs  # noqa: E402
+
+# Each job appends (start, end) to a file named after its group, so overlaps can be counted afterwards.
+SLEEPER = textwrap.dedent("""
+    import sys, time
+    t0 = time.time(); time.sleep(0.4)
+    open(sys.argv[1], "a").write(f"{t0} {time.time()}\\n")
+    print("done", sys.argv[2])
+""")
+
+
+def most_at_once(path):
+    spans = [tuple(map(float, ln.split())) for ln in Path(path).read_text().splitlines()]
+    return max(sum(1 for s, e in spans if s <= t < e) for t, _ in spans)
+
+
+def test_at_most_at_once_per_group_and_every_job_runs(tmp_path):
+    jobs = [Job(f"{g}{i}", [sys.executable, "-c", SLEEPER, str(tmp_path / f"{g}.spans"), f"{g}{i}"], group=g)
+            for g in "ab" for i in range(4)]
+    done = run_jobs(jobs, 2, tmp_path / "logs", summary=lambda job, log: log.strip())
+    assert sorted(j.name for j in done) == sorted(j.name for j in jobs)
+    assert most_at_once(tmp_path / "a.spans") == 2 and most_at_once(tmp_path / "b.spans") == 2
+    assert (tmp_path / "logs" / "a3.log").read_text().strip() == "done a3"
+
+
+def test_a_failing_job_stops_the_run_with_its_log(tmp_path):
+    jobs = [Job("ok", [sys.executable, "-c", "import time; time.sleep(5)"]),
+            Job("bad", [sys.executable, "-c", "raise SystemExit('broken input')"])]
+    with pytest.raises(SystemExit, match="(?s)bad failed.*broken input"):
+        run_jobs(jobs, 2, tmp_path)
+
+
+def test_plan_pairs_a_seed_on_one_gpu_and_spreads_seeds():
+    jobs = real_capture_jobs.plan("data/beer", [1, 2, 3], [0, 1], ["--gsplat"], "t")
+    assert [(j.name, j.group) for j in jobs] == [("warpgs_s1", "0"), ("gsplat_s1", "0"), ("warpgs_s2", "1"),
+                                                 ("gsplat_s2", "1"), ("warpgs_s3", "0"), ("gsplat_s3", "0")]
+    assert jobs[2].env == {"CUDA_VISIBLE_DEVICES": "1"}
+    assert jobs[3].cmd[-6:] == ["--only", "gsplat", "--seed", "2", "--tag", "t"]
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["d", "--name", "n", "--", "--gsplat", "--seed", "3"], "--seed"),
+    (["d", "--name", "n", "--", "--device", "cuda"], "--gsplat"),
+    (["d", "--name", "n", "--gpus", "0,x", "--", "--gsplat"], "--gpus"),
+    (["d", "--name", "n", "--per-gpu", "0", "--", "--gsplat"], "--per-gpu"),
+])
+def test_bad_arguments_are_named(argv, match):
+    with pytest.raises(SystemExit, match=match):
+        real_capture_jobs.parse(argv)
+
+
+FAKE_CAPTURE = textwrap.dedent("""
+    # Stands in for real_capture.py: writes the result file it would, with a PSNR made from the seed and system.
+    import argparse, json, os
+    ap = argparse.ArgumentParser()
+    ap.add_argument("data"); ap.add_argument("--only"); ap.add_argument("--seed", type=int); ap.add_argument("--tag")
+    ap.add_argument("--gsplat", action="store_true")
+    a = ap.parse_args()
+    psnr = 20.0 + a.seed + (0.5 if a.only == "warpgs" else 0.0)
+    name = f"real_capture_{os.path.basename(a.data)}_cpu_gsplat_{a.only}_only_seed{a.seed}_{a.tag}.json"
+    run = {"system": a.only, "points": [{"step": 7000, "psnr": psnr}]}
+    json.dump({"data": a.data, "seed": a.seed, "runs": [run]}, open(os.path.join(os.environ["OUT"], name), "w"))
+    print(f"{a.only} | 7000 | 1.0 | {psnr} | 0.9 | 10")
+""")
+
+
+def test_runs_write_their_files_and_the_seeds_are_pooled(tmp_path, monkeypatch):
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "bin" / "real_capture.py").write_text(FAKE_CAPTURE)
+    monkeypatch.setattr(real_capture_jobs, "HERE", tmp_path / "bin")
+    monkeypatch.setenv("OUT", str(tmp_path / "elsewhere"))
+    out = real_capture_jobs.main(["data/beer", "--seeds", "1,2", "--name", "t", "--out", str(tmp_path / "res"),
+                                  "--", "--gsplat"])
+    (row,) = out["summary"]
+    assert row["seeds"] == 2 and row["delta_mean"] == pytest.approx(0.5)
+    assert len(list((tmp_path / "res").glob("real_capture_beer_*_t.json"))) == 4
+    assert json.loads((tmp_path / "res" / "real_capture_seeds_t.json").read_text())["summary"] == out["summary"]
+    # a rerun under the same name pools the runs again, not the earlier pooled table
+    assert real_capture_jobs.main(["data/beer", "--seeds", "1,2", "--name", "t", "--out", str(tmp_path / "res"),
+                                   "--", "--gsplat"])["summary"] == out["summary"]
