@@ -5,7 +5,8 @@ share one tile's list. The kernels here are the per-thread versions the CPU runs
 block-cooperative versions of the same per-pixel steps (the @wp.func's below) for GPUs.
 Rules as in 3DGS: alpha = min(alpha_max, o exp(-q/2)) with alpha_max = 0.99 (gsplat: 0.999), skip alpha <
 alpha_min (1/255), stop before transmittance would drop under t_min (1e-4); all three are per-launch settings
-(`BlendParams`): the two thresholds can be traded for speed, the clamp matched to another renderer. The background is not blended here: the op adds T_final * bg.
+(`BlendParams`): the two thresholds can be traded for speed, the clamp matched to another renderer. The
+background is not blended here: the op adds T_final * bg.
 
 The backward walks each pixel's list back to front from the stored stopping point, recovering T_i from
 T_final by division (alpha <= alpha_max < 1 keeps that safe). Every output channel (rgb, alpha, depth, inverse

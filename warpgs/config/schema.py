@@ -73,7 +73,7 @@ class TrainConfig:
     max_sigmas: float = 0.0  # > 0: truncate each footprint at this many sigmas
     alpha_min: float = DEFAULT_ALPHA_MIN  # skip contributions below this alpha
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN  # stop blending a pixel before its transmittance drops under this
-    alpha_max: float = DEFAULT_ALPHA_MAX  # clamp of each contribution's alpha: 3DGS's 0.99, gsplat's 0.999 (a modelling choice)
+    alpha_max: float = DEFAULT_ALPHA_MAX  # each contribution's alpha clamp: 3DGS's 0.99, gsplat's 0.999 (not for speed)
     scene_extent: Optional[float] = None  # None: from the cameras (3DGS); scales means_lr and densify sizes
     checkpoint_every: int = 1000  # 0: only at the end (and on Ctrl-C)
     log_every: int = 100  # progress line period when the output is not a terminal

@@ -26,7 +26,8 @@ HIGHEST_ALPHA_MAX = 0.9999
 def alpha_clamp_problem(alpha_min: float, alpha_max: float):
     """(argument, what is wrong) for a blend's alpha_min and alpha_max, or None when they are usable."""
     if not 0.0 < alpha_max <= HIGHEST_ALPHA_MAX:
-        return "alpha_max", f"expected a value in (0, {HIGHEST_ALPHA_MAX}], got {alpha_max} (the adjoint divides by 1 - alpha)"
+        return "alpha_max", (f"expected a value in (0, {HIGHEST_ALPHA_MAX}], got {alpha_max} (the adjoint divides by "
+                             f"1 - alpha)")
     if not 0.0 < alpha_min < alpha_max:  # alpha never exceeds alpha_max, so a larger threshold would drop everything
         return "alpha_min", f"expected a value in (0, alpha_max = {alpha_max}), got {alpha_min}"
     return None
