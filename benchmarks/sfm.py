@@ -30,17 +30,18 @@ def capture_name(folder: Path) -> str:
     return folder.parent.name if folder.name == "images" else folder.name
 
 
-def reconstruct(folder: Path, out: Path, matcher: str, threads: int, peak_threshold=None) -> dict:
+def reconstruct(folder: Path, out: Path, matcher: str, threads: int, peak_threshold=None,
+                mapper: str = "incremental") -> dict:
     import pycolmap
 
     images = list_images(folder)
     t0 = time.perf_counter()
-    sparse = run_sfm(folder, out, matcher=matcher, num_threads=threads, peak_threshold=peak_threshold)
+    sparse = run_sfm(folder, out, matcher=matcher, num_threads=threads, peak_threshold=peak_threshold, mapper=mapper)
     seconds = time.perf_counter() - t0
     model = pycolmap.Reconstruction(str(sparse))
     models = [p for p in (out / "sparse").iterdir() if p.is_dir()]
     w, h = image_size(images[0])
-    return {"folder": str(folder), "images": len(images), "size": [w, h], "matcher": matcher,
+    return {"folder": str(folder), "images": len(images), "size": [w, h], "matcher": matcher, "mapper": mapper,
             "peak_threshold": peak_threshold,
             "registered": model.num_reg_images(), "registered_fraction": round(model.num_reg_images() / len(images), 4),
             "models": len(models), "points": model.num_points3D(),
@@ -52,6 +53,7 @@ def main(argv=None) -> list:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("folders", nargs="+", help="image folders, one capture each")
     ap.add_argument("--matcher", default="auto", help="auto | exhaustive | sequential | retrieval")
+    ap.add_argument("--mapper", default="incremental", help="incremental | global (GLOMAP)")
     ap.add_argument("--threads", type=int, default=-1, help="-1: every core")
     ap.add_argument("--peak-threshold", type=float, default=None, help="SIFT threshold (default: run_sfm's choice)")
     ap.add_argument("--out", default=None, help="keep the reconstructions under this folder")
@@ -64,7 +66,8 @@ def main(argv=None) -> list:
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(args.out or tmp)
         for f in map(Path, args.folders):
-            rows.append(reconstruct(f, base / capture_name(f), args.matcher, args.threads, args.peak_threshold))
+            rows.append(reconstruct(f, base / capture_name(f), args.matcher, args.threads, args.peak_threshold,
+                                    args.mapper))
             print_table([rows[-1]], ["images", "registered", "models", "points", "error_px", "seconds"])
     payload = {"runs": rows, "cores": pycolmap_threads() if args.threads < 1 else args.threads,
                "machine": platform.processor() or platform.machine(), "command": " ".join(sys.argv)}

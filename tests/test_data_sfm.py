@@ -30,8 +30,9 @@ def test_umeyama_recovers_a_similarity():
     assert abs(s - 2.5) < 1e-9 and np.allclose(R_est, R) and np.allclose(t, [1.0, -2.0, 0.5])
 
 
-@pytest.mark.parametrize("matcher", ["exhaustive", "sequential", "retrieval"])
-def test_sfm_recovers_the_orbit_poses(tmp_path, matcher, monkeypatch, capsys):
+@pytest.mark.parametrize("matcher,mapper", [("exhaustive", "incremental"), ("sequential", "incremental"),
+                                            ("retrieval", "incremental"), ("exhaustive", "global")])
+def test_sfm_recovers_the_orbit_poses(tmp_path, matcher, mapper, monkeypatch, capsys):
     truth = load_scene(synthetic_dir("orbit"), split="all")
     shutil.copytree(synthetic_dir("orbit") / "images", tmp_path / "images")
     K = truth.cameras[0].K
@@ -40,7 +41,7 @@ def test_sfm_recovers_the_orbit_poses(tmp_path, matcher, monkeypatch, capsys):
     start = time.perf_counter()
     model = run_sfm(tmp_path / "images", tmp_path, matcher="auto" if matcher == "retrieval" else matcher,
                     camera_model="PINHOLE", camera_params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
-                    refine_intrinsics=False, num_threads=1)
+                    refine_intrinsics=False, num_threads=1, mapper=mapper)
     seconds = time.perf_counter() - start
     err = capsys.readouterr().err
     for line in ("sfm [1/3] features (36 images", "sfm [2/3] matching", "sfm [mapping] done",
@@ -56,7 +57,7 @@ def test_sfm_recovers_the_orbit_poses(tmp_path, matcher, monkeypatch, capsys):
     errors = pose_errors([est.cameras[est.index(n)] for n in truth.names], truth.cameras)
     radius = np.linalg.norm(truth.cameras[0].center - [0.0, 0.0, 0.35])
     mean_rot = float(np.mean(errors["rotation_deg"]))
-    print(f"SfM ({matcher}) on 36 orbit views at 128x96: {seconds:.1f} s; rotation error max "
+    print(f"SfM ({matcher}, {mapper}) on 36 orbit views at 128x96: {seconds:.1f} s; rotation error max "
           f"{errors['max_rotation_deg']:.2f} deg, mean {mean_rot:.2f} deg; centre error max "
           f"{errors['max_center'] / radius:.2%} of the orbit radius")
     max_rot, max_mean_rot, max_centre = TOLERANCES[matcher]
@@ -107,3 +108,11 @@ def test_small_images_get_the_low_sift_threshold():
     assert default_peak_threshold(SMALL_IMAGE_SIDE) == SMALL_IMAGE_PEAK_THRESHOLD
     assert default_peak_threshold(SMALL_IMAGE_SIDE + 1) is None
     assert default_peak_threshold(None) is None
+
+
+@pytest.mark.parametrize("kwargs,match", [(dict(mapper="hierarchical"), "mapper"), (dict(matcher="vocab"), "matcher")])
+def test_unknown_mapper_or_matcher_is_named_before_any_work(tmp_path, kwargs, match):
+    shutil.copytree(synthetic_dir("orbit") / "images", tmp_path / "images")
+    with pytest.raises(ValueError, match=match):
+        run_sfm(tmp_path / "images", tmp_path / "out", **kwargs)
+    assert not (tmp_path / "out").exists()  # nothing written
