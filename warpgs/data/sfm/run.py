@@ -74,7 +74,7 @@ def run_sfm(image_dir: PathLike, out_dir: PathLike, *, matcher: str = "auto", ca
     peak_threshold: SIFT detection threshold; default COLMAP's 0.0067, or 0.002 for images up to 1024 px
     (features.SMALL_IMAGE_SIDE), where the default finds too few features to register every view.
     mapper: "incremental" (COLMAP's) or "global" (GLOMAP: rotation averaging and global positioning, then one
-    bundle adjustment; on a 292-photo capture 4.7x faster than incremental with every image registered,
+    bundle adjustment; on a 292-photo capture 4.4x faster than incremental with every image registered,
     benchmarks/results/sfm_bonsai800_*.json; no per-image progress).
     stage times end up in run_sfm.last_times (seconds per stage) for benchmarks.
     """
