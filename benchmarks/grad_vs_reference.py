@@ -82,7 +82,8 @@ def main(argv=None) -> dict:
         rows.append(row)
     print_table(rows, ["step", "primitives", "sh_degree"] + [f"{k}_cos" for k in NAMES] + ["sh0_rel_err"])
     name = f"grad_vs_reference_{Path(args.data).name}" + (f"_{args.tag}" if args.tag else "")
-    print(f"wrote {write_json(name, {'data': args.data, 'downscale': args.downscale, 'views': args.views, 'pixels': args.pixels, 'rows': rows})}")
+    payload = {"data": args.data, "downscale": args.downscale, "views": args.views, "pixels": args.pixels, "rows": rows}
+    print(f"wrote {write_json(name, payload)}")
     return {"rows": rows}
 
 

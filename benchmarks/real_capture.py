@@ -109,6 +109,7 @@ def main(argv=None) -> dict:
     scene = trainer.scene
     print(f"{data.name}: {scene.summary()}; init {trainer.model.num_primitives} primitives "
           f"from {trainer.init_source}", flush=True)
+    rule = "gsplat" if args.loop_raster == "warpgs+gsplat-visibility" else "warpgs"  # with --loop-raster warpgs*
     runs = [] if args.only == "gsplat" else [run_warpgs(trainer, counts, eval_every)]
     if args.gsplat and args.only != "warpgs":
         if args.loop_raster != "gsplat":
@@ -116,7 +117,6 @@ def main(argv=None) -> dict:
 
             from strategy_compare import warpgs_as_gsplat
 
-            rule = "gsplat" if args.loop_raster.endswith("gsplat-visibility") else "warpgs"
             runs.append(run_gsplat(cfg, eval_every, scene, start, args.gsplat_reset,
                                    rasterization=partial(warpgs_as_gsplat, visibility=rule),
                                    system=f"gsplat loop, warpgs raster, {rule} visibility"))
@@ -145,7 +145,7 @@ def main(argv=None) -> dict:
     name = f"real_capture_{data.resolve().name}_{torch.device(args.device).type}" + ("_gsplat" if args.gsplat else "")
     name += f"_{args.only}_only" if args.only else ""
     if args.loop_raster != "gsplat" and args.only != "warpgs":
-        name += "_warpgs_raster" + ("_gsplat_visibility" if args.loop_raster.endswith("visibility") else "")
+        name += "_warpgs_raster" + ("_gsplat_visibility" if rule == "gsplat" else "")
     name += f"_{marks[-1]}" if marks[-1] != 7000 else ""
     name += f"_seed{args.seed}" if args.seed else ""
     name += f"_{args.tag}" if args.tag else ""

@@ -308,9 +308,13 @@ def _flat(ws: Workspace, name: str, a):
     raise TypeError("expected a Warp array")
 
 
+def blend_settings_key(s: Settings) -> tuple:
+    """The Settings fields every kind's BlendParams is made from (memo keys of the memoised params)."""
+    return (s.width, s.height, s.tile_size, s.alpha_min, s.transmittance_min, s.alpha_max)
+
+
 def _params(ws: Workspace, s: Settings, want: Wanted, first: int):
-    key = ("blend_params", s.width, s.height, s.tile_size, s.alpha_min, s.transmittance_min, s.alpha_max, want.color,
-           want.depth, want.inv_depth, want.num_features, first)
+    key = ("blend_params", *blend_settings_key(s), want.color, want.depth, want.inv_depth, want.num_features, first)
     return ws.memo(key, lambda: blend_params(s, want, first))
 
 

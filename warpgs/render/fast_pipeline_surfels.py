@@ -15,7 +15,7 @@ from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
 from warpgs.kernels.blend_gpu import warp_sums_supported
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, Keep, TileFrame, _stage, bin_into_tiles,
-                                         run_blend_adjoint)
+                                         blend_settings_key, run_blend_adjoint)
 from warpgs.render.pipeline_gaussians import Settings, _block_dims, _block_reduce, _cooperative, _tile_launches
 from warpgs.render.pipeline_surfels import SurfelWanted, surfel_blend_params
 from warpgs.render.workspace import Workspace
@@ -124,9 +124,8 @@ def _projection_settings(s: Settings) -> list:
 
 
 def _params(ws: Workspace, s: Settings, want: SurfelWanted, first: int):
-    key = ("surfel_blend_params", s.width, s.height, s.tile_size, s.alpha_min, s.transmittance_min, s.alpha_max, s.near,
-           want.color, want.depth, want.inv_depth, want.normal, want.median, want.distortion, want.num_features,
-           want.distortion_scale, first)
+    key = ("surfel_blend_params", *blend_settings_key(s), s.near, want.color, want.depth, want.inv_depth,
+           want.normal, want.median, want.distortion, want.num_features, want.distortion_scale, first)
     return ws.memo(key, lambda: surfel_blend_params(s, want, first))
 
 

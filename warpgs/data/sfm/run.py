@@ -2,9 +2,9 @@
 
 features (SIFT, images above 1600 px downscaled) -> matching (exhaustive for small sets; for larger ones each
 image with its most similar ones by visual words, plus a sequential window when the names are in video order;
-see data/sfm/pairs.py) -> incremental mapping, or global mapping (GLOMAP, `mapper="global"`). Every core is used by default. Per-stage progress lines on
-stderr (warpgs.utils.progress.Stages). Output follows the COLMAP layout: <out>/database.db and <out>/sparse/0
-(the largest model).
+see data/sfm/pairs.py) -> incremental mapping, or global mapping (GLOMAP, `mapper="global"`). Every core is used
+by default. Per-stage progress lines on stderr (warpgs.utils.progress.Stages). Output follows the COLMAP layout:
+<out>/database.db and <out>/sparse/0 (the largest model).
 """
 from __future__ import annotations
 
