@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import re
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -59,6 +60,21 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     if not scene.train:
         raise ValueError(f"data.split: the scene at {scene.root} has no training views")
     return scene
+
+
+def warn_pose_jumps(scene) -> list:
+    """Warn (stderr) when a video capture's poses jump between neighbouring frames (warpgs.data.pose_checks): those
+    frames contradict the rest and training fits them anyway. Returns the jumps."""
+    from warpgs.data.pose_checks import video_pose_jumps
+
+    jumps = video_pose_jumps(scene.native_cameras)
+    if jumps:
+        listed = ", ".join(f"{j['from']} -> {j['to']} ({j['turn_deg']:.0f} deg)" for j in jumps[:5])
+        print(f"warning: {scene.root}: the poses jump between neighbouring frames: {listed}"
+              + (f" and {len(jumps) - 5} more" if len(jumps) > 5 else "")
+              + ". SfM may have put the frames between such jumps on the wrong side of the scene; see "
+              "benchmarks/pose_continuity.py", file=sys.stderr)
+    return jumps
 
 
 def plane_sweep(options: Optional[dict]):

@@ -75,7 +75,9 @@ def run_sfm(image_dir: PathLike, out_dir: PathLike, *, matcher: str = "auto", ca
     (features.SMALL_IMAGE_SIDE), where the default finds too few features to register every view.
     mapper: "incremental" (COLMAP's) or "global" (GLOMAP: rotation averaging and global positioning, then one
     bundle adjustment; on a 292-photo capture 4.4x faster than incremental with every image registered,
-    benchmarks/results/sfm_bonsai800_*.json; no per-image progress).
+    benchmarks/results/sfm_bonsai800_*.json; no per-image progress). Global is for ordered captures (video,
+    orbits): on an internet-photo collection it registered every photo and posed half of them wrongly
+    (sfm_liberty_global.json, checked against the author's poses).
     stage times end up in run_sfm.last_times (seconds per stage) for benchmarks.
     """
     import pycolmap

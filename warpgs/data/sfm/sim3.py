@@ -26,22 +26,52 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[
     return s, R, mu_d - s * R @ mu_s
 
 
-def pose_errors(estimated: Sequence[Camera], reference: Sequence[Camera]) -> dict:
-    """Align `estimated` camera centres to `reference` by a similarity, then compare every pose.
+def orientation_alignment(estimated: Sequence[Camera], reference: Sequence[Camera]) -> np.ndarray:
+    """The world rotation Q (estimated frame -> reference frame) that best maps the cameras' orientations,
+    R_est ~= R_ref Q for every camera: the chordal mean of R_ref^T R_est, refined once on the cameras within 10
+    degrees of it so that a few wrong poses do not pull it. Unlike aligning the centres, it is well posed when the
+    centres lie on a line or in a plane (a video sweep)."""
+    def mean_rotation(parts):
+        U, _, Vt = np.linalg.svd(sum(parts))
+        return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
 
+    parts = [np.asarray(r.viewmat, np.float64)[:3, :3].T @ np.asarray(e.viewmat, np.float64)[:3, :3]
+             for e, r in zip(estimated, reference)]
+    Q = mean_rotation(parts)
+    close = [p for p in parts if _angle_deg(p @ Q.T) < 10.0]
+    return mean_rotation(close) if close else Q
+
+
+def _angle_deg(rotation: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
+
+
+def pose_errors(estimated: Sequence[Camera], reference: Sequence[Camera], align: str = "centres") -> dict:
+    """Align `estimated` cameras to `reference` by a similarity, then compare every pose.
+
+    align: "centres" (Umeyama on the camera centres; needs centres spread in 3D, as an orbit) or "orientations"
+    (the rotation from the cameras' orientations, orientation_alignment, then scale and shift from the centres).
     Returns rotation errors (degrees), centre errors (reference units) and the fitted scale, as
     {"rotation_deg": [..], "center": [..], "max_rotation_deg", "max_center", "scale"}.
     """
     if len(estimated) != len(reference):
         raise ValueError("pose_errors: camera lists differ in length")
-    s, R, t = umeyama(np.stack([c.center for c in estimated]), np.stack([c.center for c in reference]))
+    if align not in ("centres", "orientations"):
+        raise ValueError(f"pose_errors: align must be 'centres' or 'orientations', got {align!r}")
+    src = np.stack([c.center for c in estimated])
+    dst = np.stack([c.center for c in reference])
+    if align == "centres":
+        s, R, t = umeyama(src, dst)
+    else:
+        R = orientation_alignment(estimated, reference)  # also maps estimated world points to the reference world
+        xs, xd = (src - src.mean(0)) @ R.T, dst - dst.mean(0)
+        s = float((xs * xd).sum() / max((xs * xs).sum(), 1e-300))
+        t = dst.mean(0) - s * R @ src.mean(0)
     rot_err, centre_err = [], []
     for est, ref in zip(estimated, reference):
         centre = s * R @ est.center + t
         # A world rotation R maps est's world to ref's world: R_cam,aligned = R_cam,est R^T.
-        rel = (est.viewmat[:3, :3] @ R.T) @ ref.viewmat[:3, :3].T
-        angle = np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1.0, 1.0)))
-        rot_err.append(float(angle))
+        rot_err.append(_angle_deg((est.viewmat[:3, :3] @ R.T) @ ref.viewmat[:3, :3].T))
         centre_err.append(float(np.linalg.norm(centre - ref.center)))
     return {"rotation_deg": rot_err, "center": centre_err, "max_rotation_deg": max(rot_err),
             "max_center": max(centre_err), "scale": s}

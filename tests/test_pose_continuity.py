@@ -1,0 +1,50 @@
+"""warpgs.data.pose_checks: a video's poses move smoothly; a frame put on the wrong side shows as jumps."""
+import numpy as np
+import pytest
+
+from warpgs.data.camera import Camera, look_at
+from warpgs.data.pose_checks import continuity, video_pose_jumps
+
+K = np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]])
+
+
+def orbit_frames(n=24, flipped=()):
+    """Frames of a slow orbit named frame_0 ... frame_23; `flipped` ones are placed half a turn away."""
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / 48 + (np.pi if i in flipped else 0.0)
+        cams.append(Camera(K, look_at((4 * np.cos(a), 4 * np.sin(a), 1.0), (0, 0, 0)), 80, 60, name=f"frame_{i}.png"))
+    return cams[::-1]  # any order in: they are sorted by name, frame_2 before frame_10
+
+
+def test_a_smooth_orbit_has_no_jumps_and_a_flipped_frame_gives_two():
+    smooth = continuity(orbit_frames())
+    assert smooth["frames"] == 24 and smooth["jumps"] == [] and 7.0 < smooth["median_turn_deg"] < 8.0
+    found = continuity(orbit_frames(flipped={10}))
+    assert [(j["from"], j["to"]) for j in found["jumps"]] == [("frame_9.png", "frame_10.png"),
+                                                                ("frame_10.png", "frame_11.png")]
+    assert all(j["turn_deg"] > 150 for j in found["jumps"])
+
+
+def test_only_a_video_like_set_is_judged():
+    assert [j["to"] for j in video_pose_jumps(orbit_frames(flipped={10}))] == ["frame_10.png", "frame_11.png"]
+    assert video_pose_jumps(orbit_frames()) == []
+    rng = np.random.default_rng(0)  # a photo collection: names say nothing about where the photos were taken
+    shuffled = orbit_frames()
+    names = rng.permutation([c.name for c in shuffled])
+    collection = [Camera(K, c.viewmat, 80, 60, name=n) for c, n in zip(shuffled, names)]
+    assert len(continuity(collection)["jumps"]) > 0 and video_pose_jumps(collection) == []
+    with pytest.raises(ValueError, match="3 frames"):
+        continuity(orbit_frames()[:2])
+
+
+def test_training_warns_about_a_video_whose_poses_jump(capsys):
+    from types import SimpleNamespace
+
+    from warpgs.train.setup import warn_pose_jumps
+
+    assert warn_pose_jumps(SimpleNamespace(native_cameras=orbit_frames(), root="scene")) == []
+    assert capsys.readouterr().err == ""
+    assert len(warn_pose_jumps(SimpleNamespace(native_cameras=orbit_frames(flipped={4, 5}), root="scene"))) == 2
+    err = capsys.readouterr().err
+    assert "scene" in err and "frame_3.png -> frame_4.png" in err and "frame_5.png -> frame_6.png" in err

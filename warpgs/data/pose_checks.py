@@ -1,0 +1,55 @@
+"""Pose sanity for video captures: consecutive frames of a video are a few degrees and a short step apart, so a
+pose that turns half around between two neighbouring frames was put on the wrong side of the scene by SfM (a
+symmetric object, repeated texture). Such frames contradict the others; training fits them anyway and held-out
+scores turn erratic (README, "Real captures": beer). Photo collections have no order and are not judged."""
+from __future__ import annotations
+
+import re
+from typing import Sequence
+
+import numpy as np
+
+from warpgs.data.camera import Camera
+
+# A set is judged as a video only when its frames, in name order, form a smooth path: the median step turns less
+# than this and the jumps are rare (unordered photo collections turn far more between names).
+VIDEO_MEDIAN_TURN_DEG = 15.0
+VIDEO_MAX_JUMP_FRACTION = 0.1
+
+
+def natural_key(name: str) -> list:
+    """Sort key that puts frame_2 before frame_10."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+def turn_degrees(a: Camera, b: Camera) -> float:
+    """The rotation between two cameras' orientations, in degrees."""
+    rel = np.asarray(b.viewmat, np.float64)[:3, :3] @ np.asarray(a.viewmat, np.float64)[:3, :3].T
+    return float(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1.0, 1.0))))
+
+
+def continuity(cameras: Sequence[Camera], max_turn: float = 60.0, max_step: float = 5.0) -> dict:
+    """Steps between consecutive frames in natural name order, and the jumps among them: a step turning more
+    than max_turn degrees, or moving more than max_step times the median distance."""
+    cams = sorted(cameras, key=lambda c: natural_key(c.name))
+    if len(cams) < 3:
+        raise ValueError(f"continuity: need at least 3 frames, got {len(cams)}")
+    turns = [turn_degrees(a, b) for a, b in zip(cams, cams[1:])]
+    steps = [float(np.linalg.norm(b.center - a.center)) for a, b in zip(cams, cams[1:])]
+    median_turn, median_step = float(np.median(turns)), float(np.median(steps))
+    jumps = [{"from": cams[i].name, "to": cams[i + 1].name, "turn_deg": round(t, 2),
+              "step_over_median": round(s / max(median_step, 1e-12), 2)}
+             for i, (t, s) in enumerate(zip(turns, steps)) if t > max_turn or s > max_step * median_step]
+    return {"frames": len(cams), "median_turn_deg": round(median_turn, 2), "median_step": round(median_step, 5),
+            "max_turn_deg": round(max(turns), 2), "jumps": jumps}
+
+
+def video_pose_jumps(cameras: Sequence[Camera]) -> list:
+    """The jumps of a set that looks like a video (see the module doc), else []: what a loader warns about."""
+    if len(cameras) < 10:
+        return []
+    found = continuity(cameras)
+    steps = found["frames"] - 1
+    if found["median_turn_deg"] > VIDEO_MEDIAN_TURN_DEG or len(found["jumps"]) > VIDEO_MAX_JUMP_FRACTION * steps:
+        return []
+    return found["jumps"]
