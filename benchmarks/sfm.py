@@ -21,6 +21,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -31,8 +32,8 @@ sys.path.insert(0, str(ROOT))
 from warpgs.data.formats.colmap import load_colmap  # noqa: E402
 from warpgs.data.formats.image_io import image_size, list_images  # noqa: E402
 from warpgs.data.formats.load import load_scene  # noqa: E402
-from warpgs.data.sfm.sim3 import pose_errors  # noqa: E402
 from warpgs.data.sfm.run import pycolmap_threads, run_sfm  # noqa: E402
+from warpgs.data.sfm.sim3 import pose_errors  # noqa: E402
 
 
 def capture_name(folder: Path) -> str:
@@ -42,8 +43,9 @@ def capture_name(folder: Path) -> str:
 
 def pose_agreement(estimated, reference) -> dict:
     """Registered cameras against reference cameras of the same images (matched by file name), after a similarity
-    alignment (rotation from the orientations, scale and shift from the centres): rotation errors in degrees, centre errors as a fraction of the reference cameras'
-    spread (the largest distance of a centre from their mean), and how many images were compared."""
+    alignment (rotation from the orientations, scale and shift from the centres): rotation errors in degrees,
+    centre errors as a fraction of the reference cameras' spread (the largest distance of a centre from their
+    mean), and how many images were compared."""
     ref = {c.name: c for c in reference}
     pairs = [(c, ref[c.name]) for c in estimated if c.name in ref]
     if len(pairs) < 3:
@@ -60,7 +62,7 @@ def pose_agreement(estimated, reference) -> dict:
 
 
 def reconstruct(folder: Path, out: Path, matcher: str, threads: int, peak_threshold=None,
-                mapper: str = "incremental", reference: Path = None) -> dict:
+                mapper: str = "incremental", reference: Optional[Path] = None) -> dict:
     import pycolmap
 
     images = list_images(folder)
@@ -71,11 +73,11 @@ def reconstruct(folder: Path, out: Path, matcher: str, threads: int, peak_thresh
     models = [p for p in (out / "sparse").iterdir() if p.is_dir()]
     w, h = image_size(images[0])
     row = {"folder": str(folder), "images": len(images), "size": [w, h], "matcher": matcher, "mapper": mapper,
-            "peak_threshold": peak_threshold,
-            "registered": model.num_reg_images(), "registered_fraction": round(model.num_reg_images() / len(images), 4),
-            "models": len(models), "points": model.num_points3D(),
-            "error_px": round(model.compute_mean_reprojection_error(), 4), "seconds": round(seconds, 1),
-            "stages": {k: round(v, 1) for k, v in run_sfm.last_times.items()}}
+           "peak_threshold": peak_threshold,
+           "registered": model.num_reg_images(), "registered_fraction": round(model.num_reg_images() / len(images), 4),
+           "models": len(models), "points": model.num_points3D(),
+           "error_px": round(model.compute_mean_reprojection_error(), 4), "seconds": round(seconds, 1),
+           "stages": {k: round(v, 1) for k, v in run_sfm.last_times.items()}}
     if reference is not None:
         estimated = load_colmap(out, model_dir=sparse, images_dir=folder, split="all", undistort=False).native_cameras
         given = load_scene(reference, split="all", run_sfm_if_needed=False, undistort=False).native_cameras

@@ -10,6 +10,7 @@ from typing import Sequence
 import numpy as np
 
 from warpgs.data.camera import Camera
+from warpgs.data.sfm.sim3 import rotation_angle_deg
 
 # A set is judged as a video only when its frames, in name order, form a smooth path: the median step turns less
 # than this and the jumps are rare (unordered photo collections turn far more between names).
@@ -24,8 +25,7 @@ def natural_key(name: str) -> list:
 
 def turn_degrees(a: Camera, b: Camera) -> float:
     """The rotation between two cameras' orientations, in degrees."""
-    rel = np.asarray(b.viewmat, np.float64)[:3, :3] @ np.asarray(a.viewmat, np.float64)[:3, :3].T
-    return float(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1.0, 1.0))))
+    return rotation_angle_deg(np.asarray(b.viewmat, np.float64)[:3, :3] @ np.asarray(a.viewmat, np.float64)[:3, :3].T)
 
 
 def continuity(cameras: Sequence[Camera], max_turn: float = 60.0, max_step: float = 5.0) -> dict:

@@ -38,11 +38,12 @@ def orientation_alignment(estimated: Sequence[Camera], reference: Sequence[Camer
     parts = [np.asarray(r.viewmat, np.float64)[:3, :3].T @ np.asarray(e.viewmat, np.float64)[:3, :3]
              for e, r in zip(estimated, reference)]
     Q = mean_rotation(parts)
-    close = [p for p in parts if _angle_deg(p @ Q.T) < 10.0]
+    close = [p for p in parts if rotation_angle_deg(p @ Q.T) < 10.0]
     return mean_rotation(close) if close else Q
 
 
-def _angle_deg(rotation: np.ndarray) -> float:
+def rotation_angle_deg(rotation: np.ndarray) -> float:
+    """The angle of a rotation matrix, in degrees."""
     return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
 
 
@@ -71,7 +72,7 @@ def pose_errors(estimated: Sequence[Camera], reference: Sequence[Camera], align:
     for est, ref in zip(estimated, reference):
         centre = s * R @ est.center + t
         # A world rotation R maps est's world to ref's world: R_cam,aligned = R_cam,est R^T.
-        rot_err.append(_angle_deg((est.viewmat[:3, :3] @ R.T) @ ref.viewmat[:3, :3].T))
+        rot_err.append(rotation_angle_deg((est.viewmat[:3, :3] @ R.T) @ ref.viewmat[:3, :3].T))
         centre_err.append(float(np.linalg.norm(centre - ref.center)))
     return {"rotation_deg": rot_err, "center": centre_err, "max_rotation_deg": max(rot_err),
             "max_center": max(centre_err), "scale": s}
