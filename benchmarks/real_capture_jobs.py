@@ -8,8 +8,14 @@ Step times of processes that share a GPU are not a comparison: time a solo pair 
 
     python benchmarks/real_capture_jobs.py data/beer --seeds 1,2,3 --gpus 0,1,2 --per-gpu 2 --name beer_30k \\
         -- --device cuda --gsplat --steps 7000,30000 --eval-every 1000
+    python benchmarks/real_capture_jobs.py data/phone64 --seeds 1,2,3,4 --gpus 0,1,2,3 --per-gpu 3 --name p \\
+        --variant clamp099 train.alpha_max=0.99 -- --device cuda --gsplat --downscale 2 --steps 7000,30000
 
-Everything after `--` goes to every real_capture.py process unchanged (not --only, --seed or --tag)."""
+Everything after `--` goes to every real_capture.py process unchanged (not --only, --seed or --tag).
+
+`--variant NAME KEY=VALUE ...` (repeatable) adds, for every seed, a third process on the pair's GPU: warpgs with
+those config overrides (e.g. `--variant clamp0999 train.alpha_max=0.999`), tagged NAME_VARIANT and pooled on its
+own against the same gsplat runs (real_capture_seeds_NAME_VARIANT.json)."""
 from __future__ import annotations
 
 import argparse
@@ -35,6 +41,8 @@ def parse(argv):
     ap.add_argument("--per-gpu", type=int, default=2, help="processes at once on one GPU (default 2: a seed's pair)")
     ap.add_argument("--name", required=True, help="result name: the pooled table, and the runs' tag")
     ap.add_argument("--out", default=None, help="folder for every run's JSON (default: $OUT or benchmarks/results)")
+    ap.add_argument("--variant", nargs="+", action="append", default=[], metavar=("NAME", "KEY=VALUE"),
+                    help="also run warpgs with these config overrides for every seed (repeatable)")
     argv = list(sys.argv[1:] if argv is None else argv)
     cut = argv.index("--") if "--" in argv else len(argv)  # after `--`: real_capture.py's arguments
     args, rest = ap.parse_args(argv[:cut]), argv[cut + 1:]
@@ -50,19 +58,30 @@ def parse(argv):
         raise SystemExit(f"--seeds / --gpus: comma-separated integers expected ({e})")
     if args.per_gpu < 1:
         raise SystemExit(f"--per-gpu: expected at least 1, got {args.per_gpu}")
+    variants = {}
+    for name, *overrides in args.variant:
+        if not name.isalnum() or name in variants:
+            raise SystemExit(f"--variant {name}: expected a new name of letters and digits (it ends file names)")
+        if not overrides or any("=" not in o for o in overrides):
+            raise SystemExit(f"--variant {name}: expected config overrides KEY=VALUE after the name, got {overrides}")
+        variants[name] = overrides
+    args.variant = variants
     return args, rest, seeds, gpus
 
 
-def plan(data: str, seeds, gpus, rest, name: str):
-    """The processes: both systems of each seed, a seed's pair on one GPU, seeds round-robin over the GPUs."""
+def plan(data: str, seeds, gpus, rest, name: str, variants=None):
+    """The processes: both systems of each seed (and warpgs once per variant), a seed's runs on one GPU, seeds
+    round-robin over the GPUs."""
     jobs = []
     for i, seed in enumerate(seeds):
         group = str(gpus[i % len(gpus)]) if gpus else ""
         env = {"CUDA_VISIBLE_DEVICES": group} if gpus else {}
-        for system in SYSTEMS:
-            cmd = [sys.executable, str(HERE / "real_capture.py"), data, *rest, "--only", system, "--seed", str(seed),
-                   "--tag", name]
-            jobs.append(Job(f"{system}_s{seed}", cmd, group, env))
+        runs = [(system, system, [], name) for system in SYSTEMS]
+        runs += [(f"warpgs_{v}", "warpgs", overrides, f"{name}_{v}") for v, overrides in (variants or {}).items()]
+        for label, system, overrides, tag in runs:
+            cmd = [sys.executable, str(HERE / "real_capture.py"), data, *rest, *overrides, "--only", system,
+                   "--seed", str(seed), "--tag", tag]
+            jobs.append(Job(f"{label}_s{seed}", cmd, group, env))
     return jobs
 
 
@@ -70,12 +89,21 @@ def main(argv=None) -> dict:
     args, rest, seeds, gpus = parse(argv)
     out = Path(args.out or os.environ.get("OUT") or RESULTS)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = plan(args.data, seeds, gpus, rest, args.name)
+    jobs = plan(args.data, seeds, gpus, rest, args.name, args.variant)
     run_jobs(jobs, args.per_gpu, out / f"{args.name}_logs", env=dict(os.environ, OUT=str(out)), summary=_summary)
-    pooled = f"real_capture_seeds_{args.name}"
-    files = sorted(str(p) for p in out.glob(f"real_capture_*_{args.name}.json") if p.stem != pooled)
-    os.environ["OUT"] = str(out)  # the pooled table goes beside the runs
-    return real_capture_seeds.main([pooled, *files])
+    os.environ["OUT"] = str(out)  # the pooled tables go beside the runs
+    files = _results(out, args.name)
+    gsplat_runs = [f for f in files if "_gsplat_only_" in Path(f).name]
+    for variant in args.variant:  # each variant against the same gsplat runs
+        real_capture_seeds.main([f"real_capture_seeds_{args.name}_{variant}", *gsplat_runs,
+                                 *_results(out, f"{args.name}_{variant}")])
+    return real_capture_seeds.main([f"real_capture_seeds_{args.name}", *files])
+
+
+def _results(out: Path, tag: str) -> list:
+    """The run files real_capture.py wrote under this tag (not a pooled table)."""
+    return sorted(str(p) for p in out.glob(f"real_capture_*_{tag}.json")
+                  if not p.name.startswith("real_capture_seeds_"))
 
 
 def _summary(job: Job, log: str) -> str:

@@ -49,7 +49,19 @@ def test_plan_pairs_a_seed_on_one_gpu_and_spreads_seeds():
     assert jobs[3].cmd[-6:] == ["--only", "gsplat", "--seed", "2", "--tag", "t"]
 
 
+def test_a_variant_adds_one_warpgs_run_per_seed_with_its_overrides():
+    args, rest, seeds, gpus = real_capture_jobs.parse(["d", "--seeds", "1,2", "--name", "t", "--variant", "c999",
+                                                       "train.alpha_max=0.999", "--", "--gsplat"])
+    jobs = real_capture_jobs.plan("d", seeds, gpus, rest, "t", args.variant)
+    assert [j.name for j in jobs] == ["warpgs_s1", "gsplat_s1", "warpgs_c999_s1", "warpgs_s2", "gsplat_s2",
+                                      "warpgs_c999_s2"]
+    assert jobs[2].cmd[-7:] == ["train.alpha_max=0.999", "--only", "warpgs", "--seed", "1", "--tag", "t_c999"]
+
+
 @pytest.mark.parametrize("argv,match", [
+    (["d", "--name", "n", "--variant", "a-b", "x=1", "--", "--gsplat"], "--variant a-b"),
+    (["d", "--name", "n", "--variant", "a", "--", "--gsplat"], "--variant a"),
+    (["d", "--name", "n", "--variant", "a", "x", "--", "--gsplat"], "KEY=VALUE"),
     (["d", "--name", "n", "--", "--gsplat", "--seed", "3"], "--seed"),
     (["d", "--name", "n", "--", "--device", "cuda"], "--gsplat"),
     (["d", "--name", "n", "--gpus", "0,x", "--", "--gsplat"], "--gpus"),
@@ -65,9 +77,10 @@ FAKE_CAPTURE = textwrap.dedent("""
     import argparse, json, os
     ap = argparse.ArgumentParser()
     ap.add_argument("data"); ap.add_argument("--only"); ap.add_argument("--seed", type=int); ap.add_argument("--tag")
-    ap.add_argument("--gsplat", action="store_true")
-    a = ap.parse_args()
+    ap.add_argument("--gsplat", action="store_true"); ap.add_argument("overrides", nargs="*")
+    a = ap.parse_intermixed_args()
     psnr = 20.0 + a.seed + (0.5 if a.only == "warpgs" else 0.0)
+    psnr += 0.25 if "train.alpha_max=0.999" in a.overrides else 0.0
     name = f"real_capture_{os.path.basename(a.data)}_cpu_gsplat_{a.only}_only_seed{a.seed}_{a.tag}.json"
     run = {"system": a.only, "points": [{"step": 7000, "psnr": psnr}]}
     json.dump({"data": a.data, "seed": a.seed, "runs": [run]}, open(os.path.join(os.environ["OUT"], name), "w"))
@@ -89,3 +102,14 @@ def test_runs_write_their_files_and_the_seeds_are_pooled(tmp_path, monkeypatch):
     # a rerun under the same name pools the runs again, not the earlier pooled table
     assert real_capture_jobs.main(["data/beer", "--seeds", "1,2", "--name", "t", "--out", str(tmp_path / "res"),
                                    "--", "--gsplat"])["summary"] == out["summary"]
+
+
+def test_a_variant_is_pooled_against_the_same_gsplat_runs(tmp_path, monkeypatch):
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "bin" / "real_capture.py").write_text(FAKE_CAPTURE)
+    monkeypatch.setattr(real_capture_jobs, "HERE", tmp_path / "bin")
+    out = real_capture_jobs.main(["data/beer", "--seeds", "1,2", "--name", "t", "--out", str(tmp_path),
+                                  "--variant", "c999", "train.alpha_max=0.999", "--", "--gsplat"])
+    assert out["summary"][0]["delta_mean"] == pytest.approx(0.5)  # the pair alone
+    variant = json.loads((tmp_path / "real_capture_seeds_t_c999.json").read_text())
+    assert variant["summary"][0]["seeds"] == 2 and variant["summary"][0]["delta_mean"] == pytest.approx(0.75)
