@@ -27,6 +27,7 @@ sys.path.insert(0, str(ROOT))
 from train_compare import initial_model, run_gsplat, run_warpgs  # noqa: E402
 from warpgs.cli.commands import resolve_config_source  # noqa: E402
 from warpgs.config.loader import load_config  # noqa: E402
+from warpgs.data.pose_checks import video_pose_jumps  # noqa: E402
 
 
 def plot(runs: list, title: str, path: Path) -> None:
@@ -137,6 +138,11 @@ def main(argv=None) -> dict:
                "seed": args.seed, "config": cfg.to_dict(), "runs": runs, "ms_per_step": per_step,
                "init_source": str(trainer.init_source), "gsplat_reset": args.gsplat_reset if args.gsplat else None}
     payload["loop_raster"] = args.loop_raster
+    # A video capture whose poses jump has views that contradict each other: its scores say less (README, beer).
+    payload["pose_jumps"] = video_pose_jumps(scene.native_cameras)
+    if payload["pose_jumps"]:
+        print(f"note: the capture's poses jump {len(payload['pose_jumps'])} times between neighbouring frames "
+              "(benchmarks/pose_continuity.py): its views contradict each other")
     if len(per_step) == 2 and "gsplat" in per_step:
         payload["step_time_ratio"] = per_step["warpgs"] / per_step["gsplat"]
         print(f"time per step warpgs / gsplat = {payload['step_time_ratio']:.2f}")
