@@ -72,8 +72,8 @@ def warn_pose_jumps(scene) -> list:
         listed = ", ".join(f"{j['from']} -> {j['to']} ({j['turn_deg']:.0f} deg)" for j in jumps[:5])
         print(f"warning: {scene.root}: the poses jump between neighbouring frames: {listed}"
               + (f" and {len(jumps) - 5} more" if len(jumps) > 5 else "")
-              + ". SfM may have put the frames between such jumps on the wrong side of the scene; see "
-              "benchmarks/pose_continuity.py", file=sys.stderr)
+              + ". SfM may have put the frames between such jumps on the wrong side of the scene "
+              "(warpgs.data.pose_checks; benchmarks/pose_continuity.py in the source tree)", file=sys.stderr)
     return jumps
 
 
