@@ -29,6 +29,7 @@ from common import ROOT, print_table, write_json
 
 sys.path.insert(0, str(ROOT))
 
+from warpgs.data.extent import camera_radius  # noqa: E402
 from warpgs.data.formats.colmap import load_colmap  # noqa: E402
 from warpgs.data.formats.image_io import image_size, list_images  # noqa: E402
 from warpgs.data.formats.load import load_scene  # noqa: E402
@@ -53,8 +54,7 @@ def pose_agreement(estimated, reference) -> dict:
                          "do the two folders hold the same file names?")
     # Aligned by orientations: a video sweep's centres lie near a line, where aligning the centres is ill-posed.
     errors = pose_errors([e for e, _ in pairs], [r for _, r in pairs], align="orientations")
-    centres = np.stack([r.center for _, r in pairs])
-    spread = float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
+    spread = camera_radius([r for _, r in pairs])
     rot, ctr = np.asarray(errors["rotation_deg"]), np.asarray(errors["center"]) / max(spread, 1e-12)
     return {"compared": len(pairs), "rotation_deg_median": round(float(np.median(rot)), 3),
             "rotation_deg_max": round(float(rot.max()), 3), "center_median": round(float(np.median(ctr)), 4),

@@ -5,13 +5,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pose_helpers import K, in_other_frame, with_pose
 from warpgs.data.camera import Camera, look_at
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import sfm  # noqa: E402
-
-K = np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]])
 
 
 def ring(n=8, radius=4.0, name="v{}.png"):
@@ -19,15 +18,9 @@ def ring(n=8, radius=4.0, name="v{}.png"):
             for i, a in enumerate(np.linspace(0, 2 * np.pi, n, endpoint=False))]
 
 
-def similar(cams, scale=2.5, shift=(1.0, -2.0, 0.5)):
+def similar(cams):
     """The same cameras in another frame (SfM's gauge): centres scaled and shifted, orientations unchanged."""
-    out = []
-    for c in cams:
-        V = np.array(c.viewmat, dtype=np.float64)
-        centre = scale * c.center + np.asarray(shift)
-        V[:3, 3] = -V[:3, :3] @ centre
-        out.append(Camera(K, V, 80, 60, name=c.name))
-    return out
+    return in_other_frame(cams, np.eye(3), s=0.4, t=(1.0, -2.0, 0.5))
 
 
 def test_a_similarity_transform_of_the_reference_agrees_and_a_wrong_pose_is_found():
@@ -35,11 +28,8 @@ def test_a_similarity_transform_of_the_reference_agrees_and_a_wrong_pose_is_foun
     found = sfm.pose_agreement(similar(reference), reference)
     assert found["compared"] == 8 and found["rotation_deg_max"] < 1e-6 and found["center_max"] < 1e-6
     wrong = similar(reference)
-    V = np.array(wrong[3].viewmat, dtype=np.float64)
-    centre = wrong[3].center
-    V[:3, :3] = np.array(look_at((0, 0, 9), (0, 0, 0), up=(0, 1, 0)))[:3, :3]  # one camera turned to look down,
-    V[:3, 3] = -V[:3, :3] @ centre  # from where it stood
-    wrong[3] = Camera(K, V, 80, 60, name=wrong[3].name)
+    down = np.array(look_at((0, 0, 9), (0, 0, 0), up=(0, 1, 0)))[:3, :3]
+    wrong[3] = with_pose(wrong[3], down, wrong[3].center)  # one camera turned to look down, from where it stood
     found = sfm.pose_agreement(wrong, reference)
     assert found["over_5deg"] == 1 and found["rotation_deg_max"] > 30 and found["rotation_deg_median"] < 1e-6
 

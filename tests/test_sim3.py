@@ -2,10 +2,9 @@
 import numpy as np
 import pytest
 
+from pose_helpers import K, in_other_frame, turned
 from warpgs.data.camera import Camera, look_at
 from warpgs.data.sfm.sim3 import orientation_alignment, pose_errors
-
-K = np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]])
 
 
 def rotation(axis, degrees):
@@ -21,22 +20,10 @@ def sweep(n=10):
                    name=f"f{i}.png") for i in range(n)]
 
 
-def moved(cams, Q, s=0.3, t=(4.0, 1.0, -2.0)):
-    """The same cameras in another frame: world points x -> Q^T (x - t) / s, so the reference is s Q x' + t."""
-    out = []
-    for c in cams:
-        V = np.array(c.viewmat, dtype=np.float64)
-        centre = Q.T @ (c.center - np.asarray(t)) / s
-        V[:3, :3] = V[:3, :3] @ Q
-        V[:3, 3] = -V[:3, :3] @ centre
-        out.append(Camera(K, V, 80, 60, name=c.name))
-    return out
-
-
 def test_orientations_align_a_sweep_exactly_where_its_centres_cannot_fix_the_roll():
     reference = sweep()
     Q = rotation((0.3, -1.0, 0.5), 70.0)
-    estimated = moved(reference, Q)
+    estimated = in_other_frame(reference, Q)
     assert np.abs(orientation_alignment(estimated, reference) - Q).max() < 1e-9
     found = pose_errors(estimated, reference, align="orientations")
     assert max(found["rotation_deg"]) < 1e-4 and max(found["center"]) < 1e-9 and found["scale"] == pytest.approx(0.3)
@@ -47,13 +34,9 @@ def test_orientations_align_a_sweep_exactly_where_its_centres_cannot_fix_the_rol
 def test_a_few_wrong_poses_do_not_move_the_orientation_fit():
     reference = sweep(12)
     Q = rotation((1.0, 0.2, 0.0), -40.0)
-    estimated = moved(reference, Q)
+    estimated = in_other_frame(reference, Q)
     for k in (2, 7):  # two cameras turned half around, as SfM does when it puts a view on the wrong side
-        V = np.array(estimated[k].viewmat, dtype=np.float64)
-        centre = estimated[k].center
-        V[:3, :3] = rotation((0, 1, 0), 180.0) @ V[:3, :3]
-        V[:3, 3] = -V[:3, :3] @ centre
-        estimated[k] = Camera(K, V, 80, 60, name=estimated[k].name)
+        estimated[k] = turned(estimated[k], rotation((0, 1, 0), 180.0))
     assert np.degrees(np.arccos((np.trace(orientation_alignment(estimated, reference) @ Q.T) - 1) / 2)) < 1e-4
     errors = pose_errors(estimated, reference, align="orientations")["rotation_deg"]
     assert sum(e > 5 for e in errors) == 2 and sorted(errors)[9] < 1e-4
