@@ -98,3 +98,15 @@ def test_surfels_train(tmp_path):
     loaded = load_ply(tmp_path / "point_cloud.ply")
     assert isinstance(loaded, SurfelModel) and loaded.num_primitives == result.num_primitives
     assert loaded.log_scales.shape[1] == 2
+
+
+def test_fit_loads_every_training_view_before_the_first_step(tmp_path, monkeypatch):
+    """So step times time steps, as in gsplat's loop, which loads its views before its clock starts (on bonsai800's
+    255 views warpgs's first 1000 steps took 13.6 s to gsplat's 5.5 s, its later ones within 15%), and a bad image
+    fails before step 1."""
+    trainer = Trainer(None, overrides=quick_overrides(tmp_path, steps=1), quiet=True)
+    kept_at_first_step = []
+    step = trainer.train_step
+    monkeypatch.setattr(trainer, "train_step", lambda: kept_at_first_step.append(len(trainer.views._kept)) or step())
+    trainer.fit()
+    assert kept_at_first_step == [len(trainer.scene.train)] and len(trainer.scene.train) > 1

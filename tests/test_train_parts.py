@@ -116,6 +116,19 @@ def test_views_keep_device_copies_only_when_preloading():
     assert scene.loads[2] == 2
 
 
+def test_views_load_all_keeps_every_training_view_once_and_nothing_without_preload():
+    scene = FakeScene(n=8, test=(7,))
+    views = TrainViews(scene, "cpu", seed=0, preload=True)
+    views.view(3)  # drawn already: not loaded again
+    assert views.load_all() == 6
+    assert sorted(scene.loads) == scene.train and set(scene.loads.values()) == {1}
+    assert views.load_all() == 0
+    _draw(views, 14)  # two epochs draw only kept copies
+    assert set(scene.loads.values()) == {1}
+    lazy_scene = FakeScene()
+    assert TrainViews(lazy_scene, "cpu", seed=0, preload=False).load_all() == 0 and not lazy_scene.loads
+
+
 def test_views_without_training_views_fail_on_draw_naming_the_scene():
     views = TrainViews(SimpleNamespace(train=[], root="/data/empty"), "cpu", seed=0)
     with pytest.raises(ValueError, match="/data/empty has no training views"):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, List, Optional
@@ -79,6 +80,10 @@ class TrainingLoop:
                      f"{tr.max_steps} steps on {tr.device}; output {tr.out_dir}")
         else:
             self.say(f"warpgs: resuming at step {tr.step} from {tr.checkpoint_path}")
+        t0 = time.perf_counter()
+        loaded = tr.views.load_all()  # outside the steps' clock, as gsplat's and 3DGS's loaders do
+        if loaded:
+            self.say(f"warpgs: {loaded} training views loaded onto {tr.device} in {time.perf_counter() - t0:.1f} s")
         try:
             with StopOnSigint(self.say) as sigint:
                 while tr.step < tr.max_steps:

@@ -1,6 +1,7 @@
-"""The training views a Trainer draws from: device copies kept when data.preload, and a seeded order reshuffled
-every epoch. The order's generator and queue go into checkpoints, so a resumed run draws the same views. The order
-is global (the same on every rank of a distributed run); each rank keeps only the views it renders."""
+"""The training views a Trainer draws from: device copies kept when data.preload (all of them loaded before the
+first step, as 3DGS does), and a seeded order reshuffled every epoch. The order's generator and queue go into
+checkpoints, so a resumed run draws the same views. The order is global (the same on every rank of a distributed
+run), so any rank may render any view and each keeps them all."""
 from __future__ import annotations
 
 from typing import Dict, List
@@ -28,6 +29,17 @@ class TrainViews:
                 return v
             self._kept[index] = v
         return self._kept[index]
+
+    def load_all(self) -> int:
+        """With preload, every training view onto the device now: step times then time steps (a first draw of each
+        view no longer reads its image mid-run), and a bad image stops the run before step 1. Returns how many views
+        were loaded (0 without preload, or when all were kept already)."""
+        if not self.preload:
+            return 0
+        missing = [i for i in self.indices if i not in self._kept]
+        for i in missing:
+            self.view(i)
+        return len(missing)
 
     def kept_or_new(self, index: int):
         """The kept copy when there is one, else a fresh view that is not kept (for evaluation)."""
