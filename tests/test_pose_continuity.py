@@ -48,3 +48,21 @@ def test_training_warns_about_a_video_whose_poses_jump(capsys):
     assert len(warn_pose_jumps(SimpleNamespace(native_cameras=orbit_frames(flipped={4, 5}), root="scene"))) == 2
     err = capsys.readouterr().err
     assert "scene" in err and "frame_3.png -> frame_4.png" in err and "frame_5.png -> frame_6.png" in err
+
+
+def test_the_warning_comes_once_per_training_run_not_when_a_trainer_is_only_built(tmp_path, monkeypatch):
+    """Render, eval and the viewer build Trainers too; a resumed run was warned when it started."""
+    from train_fixtures import quick_overrides
+    from warpgs.train import setup as train_setup
+    from warpgs.train.trainer import Trainer
+
+    warned = []
+    monkeypatch.setattr(train_setup, "warn_pose_jumps", lambda scene, say=None: warned.append(scene.root) or [])
+    trainer = Trainer(None, overrides=quick_overrides(tmp_path, steps=2))
+    assert warned == []
+    trainer.fit()
+    assert len(warned) == 1
+    resumed = Trainer(None, overrides=quick_overrides(tmp_path, steps=4), resume=True)
+    assert resumed.step == 2
+    resumed.fit()
+    assert len(warned) == 1

@@ -14,6 +14,7 @@ from typing import Callable, List, Optional
 import torch
 
 from warpgs.metrics.views import write_json
+from warpgs.train import setup as train_setup
 from warpgs.train.distributed import DistributedError
 from warpgs.train.guard import NonFiniteError
 from warpgs.utils.atomic_file import atomic_write_bytes
@@ -78,6 +79,8 @@ class TrainingLoop:
             self.say(f"warpgs: {tr.num_primitives} {tr.model.kind} from {tr.init_source}; "
                      f"losses {tr.loss_set.names} render {list(tr.outputs)}; "
                      f"{tr.max_steps} steps on {tr.device}; output {tr.out_dir}")
+            if cfg.data.path is not None and not tr.quiet:  # once per training run: not on resume, render or eval
+                train_setup.warn_pose_jumps(tr.scene, self.say)
         else:
             self.say(f"warpgs: resuming at step {tr.step} from {tr.checkpoint_path}")
         t0 = time.perf_counter()

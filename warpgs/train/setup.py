@@ -62,18 +62,19 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     return scene
 
 
-def warn_pose_jumps(scene) -> list:
-    """Warn (stderr) when a video capture's poses jump between neighbouring frames (warpgs.data.pose_checks): those
-    frames contradict the rest and training fits them anyway. Returns the jumps."""
+def warn_pose_jumps(scene, say=None) -> list:
+    """Warn (through `say`, default stderr) when a video capture's poses jump between neighbouring frames
+    (warpgs.data.pose_checks): those frames contradict the rest and training fits them anyway. Returns the jumps."""
     from warpgs.data.pose_checks import video_pose_jumps
 
     jumps = video_pose_jumps(scene.native_cameras)
     if jumps:
         listed = ", ".join(f"{j['from']} -> {j['to']} ({j['turn_deg']:.0f} deg)" for j in jumps[:5])
-        print(f"warning: {scene.root}: the poses jump between neighbouring frames: {listed}"
-              + (f" and {len(jumps) - 5} more" if len(jumps) > 5 else "")
-              + ". SfM may have put the frames between such jumps on the wrong side of the scene "
-              "(warpgs.data.pose_checks; benchmarks/pose_continuity.py in the source tree)", file=sys.stderr)
+        message = (f"warning: {scene.root}: the poses jump between neighbouring frames: {listed}"
+                   + (f" and {len(jumps) - 5} more" if len(jumps) > 5 else "")
+                   + ". SfM may have put the frames between such jumps on the wrong side of the scene "
+                   "(warpgs.data.pose_checks; benchmarks/pose_continuity.py in the source tree)")
+        (say or (lambda m: print(m, file=sys.stderr)))(message)
     return jumps
 
 

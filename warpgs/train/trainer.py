@@ -100,8 +100,6 @@ class Trainer:
         # Rank 0 first: loading can write caches (the built-in scene, estimated depth priors) the others then read.
         self.scene = scene if scene is not None else self.ranks.rank0_first(
             lambda: train_setup.load_training_scene(cfg.data, self.out_dir), "loading the scene")
-        if cfg.data.path is not None and not self.quiet:
-            train_setup.warn_pose_jumps(self.scene)
         self.extent = train_setup.scene_extent(self.scene, cfg.train.scene_extent)
         self.background = train_setup.resolve_background(cfg.train.background, self.scene, self.device)
         self.max_steps = cfg.train.steps
