@@ -38,16 +38,30 @@ def test_only_a_video_like_set_is_judged():
         continuity(orbit_frames()[:2])
 
 
-def test_training_warns_about_a_video_whose_poses_jump(capsys):
+def scene_of(frames, left_out=()):
     from types import SimpleNamespace
 
+    used = [i for i, cam in enumerate(frames) if cam.name not in {f"frame_{k}.png" for k in left_out}]
+    return SimpleNamespace(native_cameras=frames, root="scene", train=used[1:], test=used[:1])
+
+
+def test_training_warns_about_a_video_whose_poses_jump(capsys):
     from warpgs.train.setup import warn_pose_jumps
 
-    assert warn_pose_jumps(SimpleNamespace(native_cameras=orbit_frames(), root="scene")) == []
+    assert warn_pose_jumps(scene_of(orbit_frames())) == []
     assert capsys.readouterr().err == ""
-    assert len(warn_pose_jumps(SimpleNamespace(native_cameras=orbit_frames(flipped={4, 5}), root="scene"))) == 2
+    assert len(warn_pose_jumps(scene_of(orbit_frames(flipped={4, 5})))) == 2
     err = capsys.readouterr().err
     assert "scene" in err and "frame_3.png -> frame_4.png" in err and "frame_5.png -> frame_6.png" in err
+    assert "data.exclude" in err  # and says how to leave such frames out
+
+
+def test_no_warning_once_the_flipped_frames_are_left_out(capsys):
+    from warpgs.train.setup import warn_pose_jumps
+
+    assert warn_pose_jumps(scene_of(orbit_frames(flipped={4, 5}), left_out={4, 5})) == []
+    assert capsys.readouterr().err == ""
+    assert len(warn_pose_jumps(scene_of(orbit_frames(flipped={4, 5}), left_out={4}))) == 1  # 5 -> 6 is still used
 
 
 def test_the_warning_comes_once_per_training_run_not_when_a_trainer_is_only_built(tmp_path, monkeypatch):

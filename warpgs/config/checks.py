@@ -107,6 +107,10 @@ def _check_value(key: str, value, tp):
         vt = args[1] if len(args) == 2 else Any
         return {str(k): _check_value(f"{key}.{k}", v, vt) for k, v in value.items()}
     if origin in (list, List):
+        if isinstance(value, str) and args == (str,):  # one name, or a list YAML could not read: "[a?.png, b.png]"
+            text = value.strip()
+            value = ([item.strip().strip("'\"") for item in text[1:-1].split(",") if item.strip()]
+                     if text.startswith("[") and text.endswith("]") else [value])
         if not isinstance(value, (list, tuple)):
             raise ConfigError(key, f"expected a list, got {value!r}")
         return list(value)

@@ -224,7 +224,9 @@ class Scene(ViewMaps):
         counts = ", ".join(f"{k} {sum(getattr(f, k) is not None for f in self.files)}/{len(self)}" for k in extras)
         pts = f"{len(self.points)} points" if self.points is not None else "no points"
         return (f"{self.source or 'scene'} at {self.root}: {len(self)} views ({len(self.train)} train, "
-                f"{len(self.test)} test), {cam.width}x{cam.height} (1/{self.downscale}), {pts}"
+                f"{len(self.test)} test"
+                + (f", {len(self.metadata['excluded'])} left out" if self.metadata.get("excluded") else "")
+                + f"), {cam.width}x{cam.height} (1/{self.downscale}), {pts}"
                 + (f"; {counts}" if counts else ""))
 
     # --- torch views --------------------------------------------------------------------------------------------

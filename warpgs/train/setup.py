@@ -39,9 +39,10 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     points and writes the priors to <out_dir>/depth_priors (never into the scene's own folder); a later Trainer on
     the same output folder (resume, warpgs-render/eval) reuses them. Delete that folder to estimate again."""
     from warpgs.data import compute_depth_priors, default_scene, load_scene
+    from warpgs.data.exclude import excluding
 
     path = default_scene(data.synthetic, data.width, data.height) if data.path is None else Path(data.path)
-    scene = load_scene(path, split=data.split, n_train=data.n_train, downscale=data.downscale)
+    scene = excluding(load_scene(path, split=data.split, n_train=data.n_train, downscale=data.downscale), data.exclude)
     prior = data.depth_priors
     if prior in (None, "none"):
         if scene.has("depth_prior"):
@@ -58,7 +59,8 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
             folder = scene.root / prior
         scene = scene.with_depth_priors(folder)
     if not scene.train:
-        raise ValueError(f"data.split: the scene at {scene.root} has no training views")
+        left_out = " after data.exclude" if scene.metadata.get("excluded") else ""
+        raise ValueError(f"data.split: the scene at {scene.root} has no training views{left_out}")
     return scene
 
 
@@ -67,13 +69,15 @@ def warn_pose_jumps(scene, say=None) -> list:
     (warpgs.data.pose_checks): those frames contradict the rest and training fits them anyway. Returns the jumps."""
     from warpgs.data.pose_checks import video_pose_jumps
 
-    jumps = video_pose_jumps(scene.native_cameras)
+    used = {scene.native_cameras[i].name for i in [*scene.train, *scene.test]}  # a jump into a left-out view is moot
+    jumps = [j for j in video_pose_jumps(scene.native_cameras) if j["from"] in used and j["to"] in used]
     if jumps:
         listed = ", ".join(f"{j['from']} -> {j['to']} ({j['turn_deg']:.0f} deg)" for j in jumps[:5])
         message = (f"warning: {scene.root}: the poses jump between neighbouring frames: {listed}"
                    + (f" and {len(jumps) - 5} more" if len(jumps) > 5 else "")
                    + ". SfM may have put the frames between such jumps on the wrong side of the scene "
-                   "(warpgs.data.pose_checks; benchmarks/pose_continuity.py in the source tree)")
+                   "(warpgs.data.pose_checks; benchmarks/pose_continuity.py in the source tree); "
+                   "data.exclude=[NAME, ...] leaves such frames out")
         (say or (lambda m: print(m, file=sys.stderr)))(message)
     return jumps
 
