@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 from train_compare import initial_model, run_gsplat, run_warpgs  # noqa: E402
 from warpgs.cli.commands import resolve_config_source  # noqa: E402
 from warpgs.config.loader import load_config  # noqa: E402
-from warpgs.data.pose_checks import video_pose_jumps  # noqa: E402
+from warpgs.data.pose_checks import scene_pose_jumps  # noqa: E402
 
 
 def plot(runs: list, title: str, path: Path) -> None:
@@ -139,7 +139,7 @@ def main(argv=None) -> dict:
                "init_source": str(trainer.init_source), "gsplat_reset": args.gsplat_reset if args.gsplat else None}
     payload["loop_raster"] = args.loop_raster
     # A video capture whose poses jump has views that contradict each other: its scores say less (README, beer).
-    payload["pose_jumps"] = video_pose_jumps(scene.native_cameras)
+    payload["pose_jumps"] = scene_pose_jumps(scene)
     if payload["pose_jumps"]:
         print(f"note: the capture's poses jump {len(payload['pose_jumps'])} times between neighbouring frames "
               "(benchmarks/pose_continuity.py): its views contradict each other")

@@ -53,3 +53,10 @@ def video_pose_jumps(cameras: Sequence[Camera]) -> list:
     if found["median_turn_deg"] > VIDEO_MEDIAN_TURN_DEG or len(found["jumps"]) > VIDEO_MAX_JUMP_FRACTION * steps:
         return []
     return found["jumps"]
+
+
+def scene_pose_jumps(scene) -> list:
+    """video_pose_jumps over all of a scene's frames (so that gaps left by data.exclude are not judged as steps),
+    keeping the jumps between two views the scene still trains or scores on: one into a left-out frame is moot."""
+    used = {scene.native_cameras[i].name for i in [*scene.train, *scene.test]}
+    return [j for j in video_pose_jumps(scene.native_cameras) if j["from"] in used and j["to"] in used]

@@ -67,10 +67,9 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
 def warn_pose_jumps(scene, say=None) -> list:
     """Warn (through `say`, default stderr) when a video capture's poses jump between neighbouring frames
     (warpgs.data.pose_checks): those frames contradict the rest and training fits them anyway. Returns the jumps."""
-    from warpgs.data.pose_checks import video_pose_jumps
+    from warpgs.data.pose_checks import scene_pose_jumps
 
-    used = {scene.native_cameras[i].name for i in [*scene.train, *scene.test]}  # a jump into a left-out view is moot
-    jumps = [j for j in video_pose_jumps(scene.native_cameras) if j["from"] in used and j["to"] in used]
+    jumps = scene_pose_jumps(scene)
     if jumps:
         listed = ", ".join(f"{j['from']} -> {j['to']} ({j['turn_deg']:.0f} deg)" for j in jumps[:5])
         message = (f"warning: {scene.root}: the poses jump between neighbouring frames: {listed}"
