@@ -30,6 +30,15 @@ def test_names_and_globs_leave_views_out_and_keep_the_rest_of_the_split(orbit):
     assert excluding(orbit, []) is orbit
 
 
+def test_a_range_of_names_in_natural_order_both_ends_included(orbit):
+    out = excluding(orbit, ["orbit_002.png..orbit_004.png", "orbit_015.png..orbit_015.png"])
+    assert out.metadata["excluded"] == ["orbit_002.png", "orbit_003.png", "orbit_004.png", "orbit_015.png"]
+    with pytest.raises(ValueError, match=r"'orbit_02.png' is not a view of the scene .*'orbit_000.png'..'orbit_015.png'"):
+        excluding(orbit, ["orbit_000.png..orbit_02.png"])
+    with pytest.raises(ValueError, match="'orbit_009.png' comes after 'orbit_004.png' in name order"):
+        excluding(orbit, ["orbit_009.png..orbit_004.png"])
+
+
 def test_a_pattern_that_matches_no_view_is_named(orbit):
     with pytest.raises(ValueError, match=r"data.exclude: 'frame_0014.png' matches no view of the scene at .*orbit64 "
                                          r"\(its views are named like 'orbit_000.png'\)"):

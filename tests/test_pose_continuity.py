@@ -80,3 +80,20 @@ def test_the_warning_comes_once_per_training_run_not_when_a_trainer_is_only_buil
     assert resumed.step == 2
     resumed.fit()
     assert len(warned) == 1
+
+
+def test_a_video_folded_in_half_splits_into_two_sides_and_the_warning_names_the_smaller(capsys):
+    from warpgs.data.pose_checks import folded_halves
+    from warpgs.train.setup import warn_pose_jumps
+
+    folded = orbit_frames(flipped=set(range(4, 10)))  # frames 4-9 half a turn around: two half-turn jumps
+    assert folded_halves(folded) == [[("frame_0.png", "frame_3.png", 4), ("frame_10.png", "frame_23.png", 14)],
+                                     [("frame_4.png", "frame_9.png", 6)]]
+    assert folded_halves(orbit_frames()) == []
+    quarter = [Camera(K, look_at((4 * np.cos(a), 4 * np.sin(a), 1.0), (0, 0, 0)), 80, 60, name=f"frame_{i}.png")
+               for i, a in enumerate(2 * np.pi * i / 48 + (np.pi / 2 if i >= 12 else 0.0) for i in range(24))]
+    assert len(video_pose_jumps(quarter)) == 1 and folded_halves(quarter) == []  # a 90-degree jump: no fold
+    warn_pose_jumps(scene_of(folded))
+    err = capsys.readouterr().err
+    assert "frame_0.png..frame_3.png, frame_10.png..frame_23.png (18 frames)" in err
+    assert "Train on the larger with data.exclude=[frame_4.png..frame_9.png]" in err

@@ -16,6 +16,8 @@ from warpgs.data.sfm.sim3 import rotation_angle_deg
 # than this and the jumps are rare (unordered photo collections turn far more between names).
 VIDEO_MEDIAN_TURN_DEG = 15.0
 VIDEO_MAX_JUMP_FRACTION = 0.1
+# A jump at least this large is read as SfM folding an orbit in half (a symmetric subject seen from opposite sides).
+HALF_TURN_DEG = 150.0
 
 
 def natural_key(name: str) -> list:
@@ -60,3 +62,23 @@ def scene_pose_jumps(scene) -> list:
     keeping the jumps between two views the scene still trains or scores on: one into a left-out frame is moot."""
     used = {scene.native_cameras[i].name for i in [*scene.train, *scene.test]}
     return [j for j in video_pose_jumps(scene.native_cameras) if j["from"] in used and j["to"] in used]
+
+
+def folded_halves(cameras: Sequence[Camera]) -> list:
+    """When every jump of a video (video_pose_jumps) is about half a turn, SfM has likely folded an orbit around a
+    symmetric subject in half (beer: the azimuth around the can runs over about the same half circle four times).
+    The runs of frames between jumps then sit alternately on the two sides of the fold, each side consistent in
+    itself.
+    Returns the two sides, the larger first, each as its runs [(first name, last name, frames), ...]; [] when there
+    is no jump or a jump is not a half turn."""
+    jumps = video_pose_jumps(cameras)
+    if not jumps or any(j["turn_deg"] < HALF_TURN_DEG for j in jumps):
+        return []
+    starts = {j["to"] for j in jumps}
+    runs: list = []
+    for name in sorted((c.name for c in cameras), key=natural_key):
+        if not runs or name in starts:
+            runs.append([])
+        runs[-1].append(name)
+    sides = sorted([runs[0::2], runs[1::2]], key=lambda side: -sum(len(r) for r in side))
+    return [[(r[0], r[-1], len(r)) for r in side] for side in sides]

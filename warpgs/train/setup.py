@@ -66,8 +66,10 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
 
 def warn_pose_jumps(scene, say=None) -> list:
     """Warn (through `say`, default stderr) when a video capture's poses jump between neighbouring frames
-    (warpgs.data.pose_checks): those frames contradict the rest and training fits them anyway. Returns the jumps."""
-    from warpgs.data.pose_checks import scene_pose_jumps
+    (warpgs.data.pose_checks): those frames contradict the rest and training fits them anyway. When every jump is a
+    half turn (SfM folded the orbit in half), the warning names the two consistent halves and the data.exclude that
+    keeps the larger one. Returns the jumps."""
+    from warpgs.data.pose_checks import folded_halves, scene_pose_jumps
 
     jumps = scene_pose_jumps(scene)
     if jumps:
@@ -75,8 +77,16 @@ def warn_pose_jumps(scene, say=None) -> list:
         message = (f"warning: {scene.root}: the poses jump between neighbouring frames: {listed}"
                    + (f" and {len(jumps) - 5} more" if len(jumps) > 5 else "")
                    + ". SfM may have put the frames between such jumps on the wrong side of the scene "
-                   "(warpgs.data.pose_checks; benchmarks/pose_continuity.py in the source tree); "
-                   "data.exclude=[NAME, ...] leaves such frames out")
+                   "(warpgs.data.pose_checks; benchmarks/pose_continuity.py in the source tree)")
+        halves = folded_halves(scene.native_cameras)
+        if halves:
+            runs = [", ".join(f"{a}..{b}" for a, b, _ in side) for side in halves]
+            sizes = [sum(n for *_, n in side) for side in halves]
+            message += (f". Every jump is a half turn: the orbit is likely folded in half, each half consistent in "
+                        f"itself: {runs[0]} ({sizes[0]} frames) and {runs[1]} ({sizes[1]}). "
+                        f"Train on the larger with data.exclude=[{runs[1]}]")
+        else:
+            message += "; data.exclude=[NAME, ...] leaves such frames out"
         (say or (lambda m: print(m, file=sys.stderr)))(message)
     return jumps
 
