@@ -43,7 +43,7 @@ def test_a_pattern_that_matches_no_view_is_named(orbit):
     with pytest.raises(ValueError, match=r"data.exclude: 'frame_0014.png' matches no view of the scene at .*orbit64 "
                                          r"\(its views are named like 'orbit_000.png'\)"):
         excluding(orbit, ["orbit_001.png", "frame_0014.png"])
-    with pytest.raises(ValueError, match="data.exclude: expected image names or globs"):
+    with pytest.raises(ValueError, match="data.exclude: expected image names, globs or FIRST..LAST"):
         excluding(orbit, [""])
 
 

@@ -38,8 +38,9 @@ class DataConfig:
     depth_prior_fill: float = 0.0  # with "estimate": fill the pixels the stereo left invalid (edge-aware, from the
     #                                valid ones) and give them this confidence in the depth terms; 0: leave them out
     preload: bool = True  # keep all training views on the device (loaded before the first step)
-    exclude: List[str] = field(default_factory=list)  # image names or globs ("0014.jpg", "001[4-9].jpg") left out
-    #                     of training and evaluation (e.g. frames SfM posed wrongly); the split is otherwise kept
+    exclude: List[str] = field(default_factory=list)  # image names, globs or ranges ("0014.jpg", "001[4-9].jpg",
+    #                     "0000.jpg..0013.jpg") left out of training and evaluation (e.g. frames SfM posed wrongly);
+    #                     the split is otherwise kept (warpgs/data/exclude.py)
 
 
 @dataclass

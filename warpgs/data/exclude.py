@@ -20,7 +20,7 @@ def excluding(scene, patterns: Sequence[str]):
     dropped = set()
     for pattern in patterns:
         if not isinstance(pattern, str) or not pattern.strip():
-            raise ValueError(f"data.exclude: expected image names or globs, got {pattern!r}")
+            raise ValueError(f"data.exclude: expected image names, globs or FIRST..LAST ranges, got {pattern!r}")
         hits = _range(names, pattern, scene.root) if _is_range(names, pattern) else {
             i for i, name in enumerate(names) if fnmatchcase(name, pattern)}
         if not hits:
