@@ -50,13 +50,32 @@ def _record(counts: list, step: int, n: int, report) -> None:
     counts.append((step, n, pruned_by) if pruned_by is not None else (step, n))
 
 
+def echo_point(system: str, step: int, seconds: float, psnr: float, primitives: int) -> None:
+    """One evaluation as a log line when it happens: a run cut short (a GPU call's time limit) still leaves its
+    marks in the log, and a detached run can be watched."""
+    print(f"{system} evaluated at step {step}: {psnr:.3f} dB held-out, {primitives} primitives, "
+          f"{seconds:.1f} s of training", flush=True)
+
+
+def echo_evaluations(system: str = "warpgs"):
+    """A Trainer callback that echoes each evaluation of its history once (the step after it ran: callbacks come
+    before the loop's periodic evaluation)."""
+    shown = [0]
+
+    def callback(tr, step, info):
+        for h in tr.history[shown[0]:]:
+            echo_point(system, h["step"], h["train_seconds"], h["psnr"], h["num_primitives"])
+        shown[0] = len(tr.history)
+    return callback
+
+
 def initial_model(cfg):
     """(the warpgs Trainer for `cfg`, a copy of its initial parameters that both loops start from, the list its
     per-step primitive counts are recorded into)."""
     counts: list = []
     trainer = Trainer(cfg, quiet=True,
                       callbacks=[lambda tr, step, info: _record(counts, step + 1, tr.model.num_primitives,
-                                                                info.get("densify"))])
+                                                                info.get("densify")), echo_evaluations()])
     counts.append((0, trainer.model.num_primitives))
     start = {k: v.detach().clone() for k, v in trainer.model.params.items()}
     return trainer, start, counts
@@ -206,6 +225,7 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "au
             p, q = evaluate(deg)
             points.append({"step": step + 1, "seconds": round(seconds, 3), "psnr": p, "ssim": q,
                            "num_primitives": len(params["means"])})
+            echo_point(system, step + 1, seconds, p, len(params["means"]))
     wall = time.perf_counter() - t_wall
     last = points[-1]
     return {"system": system, "points": points, "wall_seconds": round(wall, 2),

@@ -9,6 +9,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import distributed  # noqa: E402
 import real_capture  # noqa: E402
+import train_compare  # noqa: E402
 
 
 def _evals(points):
@@ -39,3 +40,16 @@ def test_every_mark_is_an_evaluation_step(every, marks, period):
 def test_marks_without_a_useful_common_period_are_refused(tmp_path):
     with pytest.raises(SystemExit, match="lands on every mark is 1 steps"):
         real_capture.main([str(tmp_path), "--steps", "7001", "--eval-every", "1000"])
+
+
+def test_each_evaluation_is_echoed_once_as_it_happens(capsys):
+    from types import SimpleNamespace
+
+    trainer = SimpleNamespace(history=[])
+    echo = train_compare.echo_evaluations()
+    echo(trainer, 0, {})
+    trainer.history.append({"step": 1000, "train_seconds": 12.34, "psnr": 23.4567, "num_primitives": 8674})
+    echo(trainer, 1000, {})
+    echo(trainer, 1001, {})
+    assert capsys.readouterr().out == ("warpgs evaluated at step 1000: 23.457 dB held-out, 8674 primitives, "
+                                       "12.3 s of training\n")
