@@ -38,7 +38,7 @@ def largest_drop(counts: list) -> dict:
     or (step, count, {rule: primitives it pruned}); the rule counts of that step come along as "pruned_by"."""
     worst = {"step": None, "before": None, "after": None, "fraction_removed": 0.0, "pruned_by": None}
     for before, after in zip(counts, counts[1:]):
-        (s0, n0), (s1, n1) = before[:2], after[:2]
+        (_, n0), (s1, n1) = before[:2], after[:2]
         if n0 > 0 and (n0 - n1) / n0 > worst["fraction_removed"]:
             worst = {"step": s1, "before": n0, "after": n1, "fraction_removed": round((n0 - n1) / n0, 4),
                      "pruned_by": after[2] if len(after) > 2 else None}
