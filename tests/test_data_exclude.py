@@ -64,3 +64,18 @@ def test_trainer_trains_and_scores_without_the_left_out_views(tmp_path):
     assert trainer.scene.test == []  # both test views (0 and 8) were among them: evaluation falls back to train
     with pytest.raises(ValueError, match="no training views after data.exclude"):
         Trainer(None, overrides=quick_overrides(tmp_path, steps=1) + ["data.exclude=['orbit_*']"], quiet=True)
+
+
+def test_a_range_follows_natural_order_for_unpadded_names():
+    from types import SimpleNamespace
+
+    class Frames(SimpleNamespace):
+        def with_split(self, train, test):
+            return Frames(native_cameras=self.native_cameras, root=self.root, train=list(train), test=list(test),
+                          metadata={})
+
+    names = [f"frame_{i}.png" for i in (0, 1, 2, 9, 10, 11, 20)]  # lexically frame_10 < frame_2
+    scene = Frames(native_cameras=[SimpleNamespace(name=n) for n in names], root="video", train=list(range(7)),
+                   test=[], metadata={})
+    assert excluding(scene, ["frame_2.png..frame_11.png"]).metadata["excluded"] == [
+        "frame_2.png", "frame_9.png", "frame_10.png", "frame_11.png"]

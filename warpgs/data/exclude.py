@@ -28,7 +28,7 @@ def excluding(scene, patterns: Sequence[str]):
                              f"named like {names[0]!r})")
         dropped |= hits
     out = scene.with_split([i for i in scene.train if i not in dropped], [i for i in scene.test if i not in dropped])
-    out.metadata["excluded"] = sorted(names[i] for i in dropped)
+    out.metadata["excluded"] = sorted((names[i] for i in dropped), key=natural_key)
     return out
 
 
