@@ -5,7 +5,8 @@ a pose that turns half around between two frames that look alike was put on the 
     python benchmarks/pose_continuity.py data/beer [--format colmap] [--name NAME]
 
 Frames are taken in natural name order (frame_2 before frame_10). Prints the median step and every jump: a step
-turning more than --max-turn degrees, or moving more than --max-step times the median distance. Writes
+turning more than --max-turn degrees, or moving more than --max-step times the median distance; when every jump
+is a half turn, the two halves of the folded orbit (warpgs.data.pose_checks.folded_halves). Writes
 benchmarks/results/pose_continuity_<name>.json. Meaningful for video frames only, not for photo collections."""
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from common import ROOT, print_table, write_json
 sys.path.insert(0, str(ROOT))
 
 from warpgs.data.formats.load import load_scene  # noqa: E402
-from warpgs.data.pose_checks import continuity  # noqa: E402
+from warpgs.data.pose_checks import continuity, folded_halves  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -41,6 +42,9 @@ def main(argv=None) -> dict:
         print_table(found["jumps"], ["from", "to", "turn_deg", "step_over_median"])
     else:
         print("no jumps")
+    found["folded_halves"] = folded_halves(scene.native_cameras)
+    for k, side in enumerate(found["folded_halves"]):
+        print(f"half {k + 1}: " + ", ".join(f"{a}..{b}" for a, b, _ in side) + f" ({sum(n for *_, n in side)} frames)")
     found.update(data=str(args.data), format=args.format, command=" ".join(sys.argv))
     print(f"wrote {write_json('pose_continuity_' + (args.name or Path(args.data).name), found)}")
     return found
