@@ -19,7 +19,7 @@ from common import ROOT, print_table, write_json
 sys.path.insert(0, str(ROOT))
 
 from warpgs.data.formats.load import load_scene  # noqa: E402
-from warpgs.data.pose_checks import continuity, folded_halves  # noqa: E402
+from warpgs.data.pose_checks import continuity, folded_halves, side_ranges  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -42,9 +42,10 @@ def main(argv=None) -> dict:
         print_table(found["jumps"], ["from", "to", "turn_deg", "step_over_median"])
     else:
         print("no jumps")
-    found["folded_halves"] = folded_halves(scene.native_cameras)
+    found["folded_halves"] = folded_halves(scene.native_cameras, found["jumps"])  # the jumps printed above
     for k, side in enumerate(found["folded_halves"]):
-        print(f"half {k + 1}: " + ", ".join(f"{a}..{b}" for a, b, _ in side) + f" ({sum(n for *_, n in side)} frames)")
+        ranges, frames = side_ranges(side)
+        print(f"half {k + 1}: {ranges} ({frames} frames)")
     found.update(data=str(args.data), format=args.format, command=" ".join(sys.argv))
     print(f"wrote {write_json('pose_continuity_' + (args.name or Path(args.data).name), found)}")
     return found

@@ -5,7 +5,7 @@ scores turn erratic (README, "Real captures": beer). Photo collections have no o
 from __future__ import annotations
 
 import re
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -64,14 +64,15 @@ def scene_pose_jumps(scene) -> list:
     return [j for j in video_pose_jumps(scene.native_cameras) if j["from"] in used and j["to"] in used]
 
 
-def folded_halves(cameras: Sequence[Camera]) -> list:
+def folded_halves(cameras: Sequence[Camera], jumps: Optional[list] = None) -> list:
     """When every jump of a video (video_pose_jumps) is about half a turn, SfM has likely folded an orbit around a
     symmetric subject in half (beer: the azimuth around the can runs over about the same half circle four times).
     The runs of frames between jumps then sit alternately on the two sides of the fold, each side consistent in
     itself.
-    Returns the two sides, the larger first, each as its runs [(first name, last name, frames), ...]; [] when there
-    is no jump or a jump is not a half turn."""
-    jumps = video_pose_jumps(cameras)
+    jumps: the cameras' jumps as a caller already found them (continuity's, with its own thresholds); default
+    video_pose_jumps(cameras). Returns the two sides, the larger first, each as its runs [(first name, last name,
+    frames), ...]; [] when there is no jump or a jump is not a half turn."""
+    jumps = video_pose_jumps(cameras) if jumps is None else jumps
     if not jumps or any(j["turn_deg"] < HALF_TURN_DEG for j in jumps):
         return []
     starts = {j["to"] for j in jumps}
@@ -82,3 +83,9 @@ def folded_halves(cameras: Sequence[Camera]) -> list:
         runs[-1].append(name)
     sides = sorted([runs[0::2], runs[1::2]], key=lambda side: -sum(len(r) for r in side))
     return [[(r[0], r[-1], len(r)) for r in side] for side in sides]
+
+
+def side_ranges(side: list) -> tuple[str, int]:
+    """One side of folded_halves as data.exclude ranges ("0000.jpg..0013.jpg, 0035.jpg..0052.jpg") and its
+    number of frames."""
+    return ", ".join(f"{first}..{last}" for first, last, _ in side), sum(n for *_, n in side)

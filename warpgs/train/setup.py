@@ -69,7 +69,7 @@ def warn_pose_jumps(scene, say=None) -> list:
     (warpgs.data.pose_checks): those frames contradict the rest and training fits them anyway. When every jump is a
     half turn (SfM folded the orbit in half), the warning names the two consistent halves and the data.exclude that
     keeps the larger one. Returns the jumps."""
-    from warpgs.data.pose_checks import folded_halves, scene_pose_jumps
+    from warpgs.data.pose_checks import folded_halves, scene_pose_jumps, side_ranges
 
     jumps = scene_pose_jumps(scene)
     if jumps:
@@ -80,11 +80,10 @@ def warn_pose_jumps(scene, say=None) -> list:
                    "(warpgs.data.pose_checks; benchmarks/pose_continuity.py in the source tree)")
         halves = folded_halves(scene.native_cameras)
         if halves:
-            runs = [", ".join(f"{a}..{b}" for a, b, _ in side) for side in halves]
-            sizes = [sum(n for *_, n in side) for side in halves]
+            (larger, size), (smaller, smaller_size) = map(side_ranges, halves)
             message += (f". Every jump is a half turn: the orbit is likely folded in half, each half consistent in "
-                        f"itself: {runs[0]} ({sizes[0]} frames) and {runs[1]} ({sizes[1]}). "
-                        f"Train on the larger with data.exclude=[{runs[1]}]")
+                        f"itself: {larger} ({size} frames) and {smaller} ({smaller_size}). "
+                        f"Train on the larger with data.exclude=[{smaller}]")
         else:
             message += "; data.exclude=[NAME, ...] leaves such frames out"
         (say or (lambda m: print(m, file=sys.stderr)))(message)
