@@ -58,3 +58,16 @@ def run_jobs(jobs: List[Job], at_once: int, log_dir: Path, *, env: Optional[dict
         if waiting or running:
             time.sleep(poll_seconds)
     return done
+
+
+def detach(cmd: List[str], log: Path) -> int:
+    """Start `cmd` in a new process session with its output in `log`, write its pid beside it (`<log>.pid`) and
+    return the pid at once. A remote machine's command runner ends the processes a command leaves behind, except
+    those in a session of their own, so a wave longer than one command must start this way."""
+    log = Path(log)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as out:
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                start_new_session=True)
+    Path(f"{log}.pid").write_text(f"{proc.pid}\n")
+    return proc.pid

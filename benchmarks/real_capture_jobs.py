@@ -13,6 +13,11 @@ Step times of processes that share a GPU are not a comparison: time a solo pair 
 
 Everything after `--` goes to every real_capture.py process unchanged (not --only, --seed or --tag).
 
+`--detach` starts the whole wave in a process session of its own and returns at once, its output in
+<out>/<name>_jobs.log and its pid in <out>/<name>_jobs.log.pid: a device command's leftover processes are ended
+when it returns, so a wave longer than one command must be detached, then waited for by later commands
+(`while kill -0 $(cat PIDFILE) 2>/dev/null; do sleep 10; done`).
+
 `--variant NAME KEY=VALUE ...` (repeatable) adds, for every seed, a third process on the pair's GPU: warpgs with
 those config overrides (e.g. `--variant clamp0999 train.alpha_max=0.999`), tagged NAME_VARIANT and pooled on its
 own against the same gsplat runs (real_capture_seeds_NAME_VARIANT.json)."""
@@ -25,7 +30,7 @@ from pathlib import Path
 
 import real_capture_seeds
 from common import RESULTS
-from job_pool import Job, run_jobs
+from job_pool import Job, detach, run_jobs
 
 HERE = Path(__file__).resolve().parent
 SYSTEMS = ("warpgs", "gsplat")
@@ -43,6 +48,8 @@ def parse(argv):
     ap.add_argument("--out", default=None, help="folder for every run's JSON (default: $OUT or benchmarks/results)")
     ap.add_argument("--variant", nargs="+", action="append", default=[], metavar=("NAME", "KEY=VALUE"),
                     help="also run warpgs with these config overrides for every seed (repeatable)")
+    ap.add_argument("--detach", action="store_true", help="start the wave in its own process session and return "
+                                                          "(output in <out>/<name>_jobs.log)")
     argv = list(sys.argv[1:] if argv is None else argv)
     cut = argv.index("--") if "--" in argv else len(argv)  # after `--`: real_capture.py's arguments
     args, rest = ap.parse_args(argv[:cut]), argv[cut + 1:]
@@ -89,6 +96,8 @@ def main(argv=None) -> dict:
     args, rest, seeds, gpus = parse(argv)
     out = Path(args.out or os.environ.get("OUT") or RESULTS)
     out.mkdir(parents=True, exist_ok=True)
+    if args.detach:
+        return _detach(argv, out, args.name)
     jobs = plan(args.data, seeds, gpus, rest, args.name, args.variant)
     run_jobs(jobs, args.per_gpu, out / f"{args.name}_logs", env=dict(os.environ, OUT=str(out)), summary=_summary)
     os.environ["OUT"] = str(out)  # the pooled tables go beside the runs
@@ -98,6 +107,18 @@ def main(argv=None) -> dict:
         real_capture_seeds.main([f"real_capture_seeds_{args.name}_{variant}", *gsplat_runs,
                                  *_results(out, f"{args.name}_{variant}")])
     return real_capture_seeds.main([f"real_capture_seeds_{args.name}", *files])
+
+
+def _detach(argv, out: Path, name: str) -> dict:
+    """This same command without --detach (and with --out fixed), started in a session of its own."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    cut = argv.index("--") if "--" in argv else len(argv)
+    own = [a for a in argv[:cut] if a != "--detach"]
+    cmd = [sys.executable, str(Path(__file__).resolve()), *own, "--out", str(out), *argv[cut:]]
+    log = out / f"{name}_jobs.log"
+    pid = detach(cmd, log)
+    print(f"detached: pid {pid}, output in {log}, pid in {log}.pid")
+    return {"detached": pid, "log": str(log)}
 
 
 def _results(out: Path, tag: str) -> list:

@@ -1,6 +1,8 @@
 """benchmarks/job_pool.py and real_capture_jobs.py: processes side by side per group, results pooled by seed."""
 import json
+import os
 import sys
+import time
 import textwrap
 from pathlib import Path
 
@@ -9,7 +11,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import real_capture_jobs  # noqa: E402
-from job_pool import Job, run_jobs  # noqa: E402
+from job_pool import Job, detach, run_jobs  # noqa: E402
 
 # Each job appends (start, end) to a file named after its group, so overlaps can be counted afterwards.
 SLEEPER = textwrap.dedent("""
@@ -113,3 +115,28 @@ def test_a_variant_is_pooled_against_the_same_gsplat_runs(tmp_path, monkeypatch)
     assert out["summary"][0]["delta_mean"] == pytest.approx(0.5)  # the pair alone
     variant = json.loads((tmp_path / "real_capture_seeds_t_c999.json").read_text())
     assert variant["summary"][0]["seeds"] == 2 and variant["summary"][0]["delta_mean"] == pytest.approx(0.75)
+
+
+def test_a_detached_command_runs_in_its_own_session_and_returns_at_once(tmp_path):
+    # The child reports its session id after a pause: detach must return before that, and the child must lead a
+    # session of its own (a device runner ends the processes left in the command's session).
+    script = "import os, time; time.sleep(0.5); print('sid', os.getsid(0), 'pid', os.getpid())"
+    log = tmp_path / "wave" / "jobs.log"
+    t0 = time.perf_counter()
+    pid = detach([sys.executable, "-c", script], log)
+    assert time.perf_counter() - t0 < 0.5
+    assert (tmp_path / "wave" / "jobs.log.pid").read_text().strip() == str(pid)
+    os.waitpid(pid, 0)
+    words = log.read_text().split()
+    assert words == ["sid", str(pid), "pid", str(pid)] and pid != os.getsid(0)
+
+
+def test_detach_reruns_the_same_wave_without_the_flag(tmp_path, monkeypatch):
+    started = []
+    monkeypatch.setattr(real_capture_jobs, "detach", lambda cmd, log: started.append((cmd, log)) or 4321)
+    out = real_capture_jobs.main(["data/beer", "--seeds", "1,2", "--detach", "--name", "t", "--out", str(tmp_path),
+                                  "--", "--gsplat", "--steps", "7000"])
+    ((cmd, log),) = started
+    assert out == {"detached": 4321, "log": str(tmp_path / "t_jobs.log")} and log == tmp_path / "t_jobs.log"
+    assert "--detach" not in cmd and cmd[cmd.index("--"):] == ["--", "--gsplat", "--steps", "7000"]
+    assert real_capture_jobs.parse(cmd[2:])[0].out == str(tmp_path)
