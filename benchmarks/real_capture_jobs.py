@@ -63,6 +63,9 @@ def parse(argv):
         gpus = [int(g) for g in args.gpus.split(",")] if args.gpus else []
     except ValueError as e:
         raise SystemExit(f"--seeds / --gpus: comma-separated integers expected ({e})")
+    if args.detach and not args.out and os.environ.get("OUT"):
+        raise SystemExit("--detach: give --out with a folder of your own: the wave outlives this command, and a "
+                         "device empties $OUT before its next command, results included (copy them there at the end)")
     if args.per_gpu < 1:
         raise SystemExit(f"--per-gpu: expected at least 1, got {args.per_gpu}")
     variants = {}

@@ -140,3 +140,9 @@ def test_detach_reruns_the_same_wave_without_the_flag(tmp_path, monkeypatch):
     assert out == {"detached": 4321, "log": str(tmp_path / "t_jobs.log")} and log == tmp_path / "t_jobs.log"
     assert "--detach" not in cmd and cmd[cmd.index("--"):] == ["--", "--gsplat", "--steps", "7000"]
     assert real_capture_jobs.parse(cmd[2:])[0].out == str(tmp_path)
+
+
+def test_a_detached_wave_refuses_to_write_into_out_which_the_next_command_empties(tmp_path, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path))
+    with pytest.raises(SystemExit, match="--detach: give --out"):
+        real_capture_jobs.parse(["data/beer", "--detach", "--name", "t", "--", "--gsplat"])
