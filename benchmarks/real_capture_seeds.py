@@ -3,9 +3,9 @@ paired by seed (the two systems of one seed may come from one file or from two `
 
     python benchmarks/real_capture_seeds.py OUT_NAME benchmarks/results/real_capture_beer_*_colourfix*.json
 
-Prints one row per capture, seed and mark and a summary per capture and mark (seeds, mean and sd of the paired
-difference, the worst seed); writes benchmarks/results/OUT_NAME.json. A capture's seed may appear once per system:
-pass the files of one code version, not old and new together."""
+Prints one row per capture, seed and mark and a summary per capture and mark (seeds, mean, sd and standard error
+of the paired difference, the worst seed); writes benchmarks/results/OUT_NAME.json. A capture's seed may appear once
+per system: pass the files of one code version, not old and new together."""
 from __future__ import annotations
 
 import argparse
@@ -57,9 +57,11 @@ def summary(rows: list[dict]) -> list[dict]:
         d = [r["delta"] for r in rows if r["capture"] == capture and r["step"] == step]
         mean_w = statistics.fmean(r["warpgs"] for r in rows if r["capture"] == capture and r["step"] == step)
         mean_g = statistics.fmean(r["gsplat"] for r in rows if r["capture"] == capture and r["step"] == step)
+        sd = statistics.stdev(d) if len(d) > 1 else None
+        # the mean's standard error: a target closer to the mean than about two of these is not resolved
+        se = sd / len(d) ** 0.5 if sd is not None else None
         out.append({"capture": capture, "step": step, "seeds": len(d), "warpgs_mean": mean_w, "gsplat_mean": mean_g,
-                    "delta_mean": statistics.fmean(d), "delta_sd": statistics.stdev(d) if len(d) > 1 else None,
-                    "delta_min": min(d)})
+                    "delta_mean": statistics.fmean(d), "delta_sd": sd, "delta_se": se, "delta_min": min(d)})
     return out
 
 
@@ -78,7 +80,7 @@ def main(argv=None) -> dict:
     print()
     stats = summary(rows)
     print_table(stats, ["capture", "step", "seeds", "warpgs_mean", "gsplat_mean", "delta_mean", "delta_sd",
-                        "delta_min"])
+                        "delta_se", "delta_min"])
     payload = {"files": [f for f, _ in payloads], "marks": marks, "rows": rows, "summary": stats}
     print(f"\nwrote {write_json(args.name, payload)}")
     return payload

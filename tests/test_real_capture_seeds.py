@@ -30,6 +30,7 @@ def test_systems_pair_by_seed_across_files(tmp_path, monkeypatch):
     assert by[7000]["seeds"] == 2 and by[7000]["delta_mean"] == pytest.approx(0.0)
     assert by[30000]["delta_mean"] == pytest.approx(-0.75) and by[30000]["delta_min"] == pytest.approx(-1.0)
     assert by[30000]["warpgs_mean"] == pytest.approx(20.5)
+    assert by[30000]["delta_se"] == pytest.approx(0.25)  # sd 0.354 of the deltas -0.5, -1.0 over sqrt(2)
     assert (tmp_path / "out" / "pooled.json").is_file()
 
 
