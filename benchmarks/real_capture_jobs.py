@@ -36,6 +36,13 @@ HERE = Path(__file__).resolve().parent
 SYSTEMS = ("warpgs", "gsplat")
 
 
+def split_at_dashes(argv):
+    """(this script's arguments, real_capture.py's arguments): the command line cut at `--`."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    cut = argv.index("--") if "--" in argv else len(argv)
+    return argv[:cut], argv[cut + 1:]
+
+
 def parse(argv):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  epilog="then `--` and real_capture.py's arguments for every process")
@@ -50,9 +57,8 @@ def parse(argv):
                     help="also run warpgs with these config overrides for every seed (repeatable)")
     ap.add_argument("--detach", action="store_true", help="start the wave in its own process session and return "
                                                           "(output in <out>/<name>_jobs.log)")
-    argv = list(sys.argv[1:] if argv is None else argv)
-    cut = argv.index("--") if "--" in argv else len(argv)  # after `--`: real_capture.py's arguments
-    args, rest = ap.parse_args(argv[:cut]), argv[cut + 1:]
+    own, rest = split_at_dashes(argv)
+    args = ap.parse_args(own)
     for flag in ("--only", "--seed", "--tag"):
         if flag in rest:
             raise SystemExit(f"{flag}: real_capture_jobs.py sets it for each process; leave it out after `--`")
@@ -114,10 +120,9 @@ def main(argv=None) -> dict:
 
 def _detach(argv, out: Path, name: str) -> dict:
     """This same command without --detach (and with --out fixed), started in a session of its own."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    cut = argv.index("--") if "--" in argv else len(argv)
-    own = [a for a in argv[:cut] if a != "--detach"]
-    cmd = [sys.executable, str(Path(__file__).resolve()), *own, "--out", str(out), *argv[cut:]]
+    own, rest = split_at_dashes(argv)
+    own = [a for a in own if a != "--detach"]
+    cmd = [sys.executable, str(Path(__file__).resolve()), *own, "--out", str(out), "--", *rest]
     log = out / f"{name}_jobs.log"
     pid = detach(cmd, log)
     print(f"detached: pid {pid}, output in {log}, pid in {log}.pid")
