@@ -5,8 +5,8 @@ host costs are what a small render spends its time on.
     python benchmarks/micro_overhead.py [--device cuda]
 
 Prints microseconds per operation and writes benchmarks/results/micro_overhead_<device>.json ($OUT when set).
-The last rows are whole render calls of one Gaussian and of one surfel on an 8x8 image, legacy and fast host
-paths: the fixed cost every render pays (on the CPU set WARPGS_CPU_THREADS=1, or the thread pool's hand-off
+The last rows are whole render calls of one Gaussian and of one surfel on an 8x8 image: the fixed cost every
+render pays (on the CPU set WARPGS_CPU_THREADS=1, or the thread pool's hand-off
 dominates).
 """
 from __future__ import annotations
@@ -38,9 +38,8 @@ def per_call_us(fn, device, repeats=2000):
 
 def whole_op_rows(device):
     """The fixed cost of one render call: one primitive (a 3D Gaussian, a surfel), an 8x8 image (nearly no kernel
-    work), both host paths."""
+    work)."""
     from warpgs import rasterize, rasterize_surfels
-    from warpgs.render.defaults import raster_options
 
     g = torch.Generator().manual_seed(0)
     means = torch.tensor([[0.0, 0.0, 4.0]], device=device)
@@ -63,11 +62,9 @@ def whole_op_rows(device):
                          check_inputs=False)
             (out.rgb.sum() + out.depth.sum()).backward()
 
-        for path in ("legacy", "fast"):
-            with raster_options(path=path):
-                for name, fn in (("forward", fwd), ("forward+backward", fwd_bwd)):
-                    rows.append(dict(operation=f"{render.__name__} {name}, 1 {kind}, 8x8, {path} path",
-                                     us=min(per_call_us(fn, device, 200) for _ in range(3))))
+        for name, fn in (("forward", fwd), ("forward+backward", fwd_bwd)):
+            rows.append(dict(operation=f"{render.__name__} {name}, 1 {kind}, 8x8",
+                             us=min(per_call_us(fn, device, 200) for _ in range(3))))
     return rows
 
 

@@ -2,13 +2,12 @@
 for one or several renderer variants side by side (benchmarks/variants.py).
 
     python benchmarks/profile_stages.py --device cuda --n 1000000 --resolution 1920x1080
-    python benchmarks/profile_stages.py --device cuda --variants legacy,fast,fast+sort=single64,fast+bwd=block
-    python benchmarks/profile_stages.py --device cuda --primitive surfels --variants legacy,fast,fast+sbwd=warp_sums
+    python benchmarks/profile_stages.py --device cuda --variants fast+bwd=warp_sums,fast+bwd=block
+    python benchmarks/profile_stages.py --device cuda --primitive surfels --variants fast+sbwd=block,fast+sbwd=warp_sums
 
-Fast-path variants are timed through the real op (forward and backward through autograd) with a synchronisation
-after each stage (fast_pipeline.stage_hook); the legacy variant drives the legacy 3D pipeline stage by stage
-(surfels: the legacy variant is timed as a whole op only; the scene's third scale is dropped). Stage
-times include the host work of the stage. Then the whole op, forward and forward+backward, without the hooks, and
+Variants are timed through the real op (forward and backward through autograd) with a synchronisation after each
+stage (fast_pipeline.stage_hook); surfels drop the scene's third scale. Stage times include the host work of the
+stage. Then the whole op, forward and forward+backward, without the hooks, and
 on CUDA the per-kernel GPU times of one call (Warp's activity timing; the radix sorts are CUB calls it may not see).
 Prints tables and writes benchmarks/results/profile_stages_<device>.json ($OUT when set).
 """
@@ -25,9 +24,7 @@ from common import print_table, standard_scenes_module, sync, time_call, write_j
 from variants import describe, variant
 from warpgs import rasterize, rasterize_surfels
 from warpgs.render import fast_pipeline
-from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.defaults import DEFAULT_TILE_SIZE
-from warpgs.render.gaussians import _intrinsics_vector
 
 OUTPUTS = ("rgb", "alpha", "depth")
 
@@ -68,42 +65,6 @@ def profile_fast(scene, W, H, device, tile, render=rasterize):
     return clock.table, out.num_intersections
 
 
-def profile_legacy(scene, W, H, device, tile):
-    """The legacy pipeline stage by stage (the op's own path with per-call allocation and a wp.Tape)."""
-    means, quats, scales, opacities, colors, viewmat, K = scene
-    t = {}
-    clock = StageClock(device)
-    wdev = "cpu" if device == "cpu" else "cuda:0"
-    with wp.ScopedDevice(wdev):
-        s = pipeline.Settings(width=W, height=H, tile_size=tile)
-        w = lambda x, dt: wp.from_torch(x.contiguous(), dtype=dt, requires_grad=True)  # noqa: E731
-        args = (w(means, wp.vec3), w(quats, wp.vec4), w(scales, wp.vec3), w(opacities, wp.float32),
-                w(colors.reshape(-1, 1, 3), wp.vec3), wp.from_torch(viewmat.reshape(1, 4, 4).contiguous(), dtype=wp.mat44),
-                wp.from_torch(_intrinsics_vector(K).reshape(1, 4).contiguous(), dtype=wp.vec4))
-        clock("wrap inputs")
-        tape = wp.Tape()
-        with tape:
-            proj = pipeline.project_gaussians(*args, s, requires_grad=True)
-        clock("project")
-        bins = pipeline.bin_gaussians(proj, args[3], s)
-        clock("bin+sort")
-        want = pipeline.Wanted(color=True, depth=True, inv_depth=False, num_features=0)
-        feats = wp.zeros((1, 1), dtype=float, requires_grad=True)
-        fwd = pipeline.blend_forward(proj, bins, args[3], feats, s, want)
-        clock("blend forward")
-        npix = W * H
-        gc = wp.full(npix, wp.vec3(1.0, 1.0, 1.0), dtype=wp.vec3)
-        ga, gd = wp.zeros(npix, dtype=float), wp.ones(npix, dtype=float)
-        clock("upstream gradients")
-        pipeline.blend_backward(proj, bins, args[3], feats, s, want, fwd, gc, ga, gd, wp.zeros(1, dtype=float),
-                                wp.zeros((1, 1), dtype=float))
-        clock("blend backward")
-        tape.backward()
-        clock("project adjoint")
-        t = clock.table
-    return t, bins.num_intersections
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
@@ -125,21 +86,15 @@ def main():
     specs = args.variants.split(",")
     stage_rows, op_rows, pairs = [], [], None
     for spec in specs:
-        with variant(spec) as opts:
+        with variant(spec):
             name = describe()
-            if not (surfels and opts.path == "legacy"):
-                if opts.path == "legacy":
-                    profile = profile_legacy
-                else:
-                    def profile(*a):
-                        return profile_fast(*a, render=render)
-                profile(scene, W, H, args.device, args.tile)  # compile + warm up
-                total = {}
-                for _ in range(args.runs):
-                    t, pairs = profile(scene, W, H, args.device, args.tile)
-                    for k, v in t.items():
-                        total[k] = total.get(k, 0.0) + v / args.runs
-                stage_rows += [dict(variant=name, stage=k, ms=v) for k, v in total.items()]
+            profile_fast(scene, W, H, args.device, args.tile, render)  # compile + warm up
+            total = {}
+            for _ in range(args.runs):
+                t, pairs = profile_fast(scene, W, H, args.device, args.tile, render)
+                for k, v in t.items():
+                    total[k] = total.get(k, 0.0) + v / args.runs
+            stage_rows += [dict(variant=name, stage=k, ms=v) for k, v in total.items()]
 
             means, quats, scales, opacities, colors, viewmat, K = scene
 

@@ -5,7 +5,7 @@
     python benchmarks/raster.py --device cuda --gsplat --sizes 100000,1000000 --resolutions 1920x1080
     python benchmarks/raster.py --primitive surfels ...   # 2D surfels (gsplat: rasterization_2dgs)
     python benchmarks/raster.py --tile-sizes 8,16 ...     # one row per tile size (the image does not change)
-    python benchmarks/raster.py --variants legacy,fast,fast+sort=single64,fast+bwd=block ...
+    python benchmarks/raster.py --variants fast+bwd=warp_sums,fast+bwd=block ...
                                                           # one row per renderer variant (benchmarks/variants.py),
                                                           # timed in interleaved rounds in one process
 
@@ -163,7 +163,8 @@ def main():
     ap.add_argument("--primitive", choices=["gaussians", "surfels"], default="gaussians")
     ap.add_argument("--tile-sizes", default=str(DEFAULT_TILE_SIZE), help="comma-separated tile sizes to time")
     ap.add_argument("--variants", default="default",
-                    help="comma-separated renderer variants (benchmarks/variants.py), e.g. legacy,fast")
+                    help="comma-separated renderer variants (benchmarks/variants.py), e.g. "
+                         "fast+bwd=warp_sums,fast+bwd=block")
     ap.add_argument("--rounds", type=int, default=1, help="interleaved timing rounds per variant (median reported)")
     ap.add_argument("--out-name", default=None, help="JSON name (default raster_<device>[_surfels])")
     args = ap.parse_args()

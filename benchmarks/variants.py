@@ -1,8 +1,7 @@
 """Renderer variants to time side by side in one process (benchmarks/raster.py, profile_stages.py).
 
-A variant is a path name and optional options joined by '+': `legacy`, `fast`, `fast+sort=single64`,
-`fast+bwd=block`, `fast+sort=single64+bwd=block`, `fast+sbwd=warp_sums`. `default` is whatever the WARPGS_*
-variables select. Keys: sort (two_pass, single64), bwd (the 3D GPU adjoint: warp_sums, block), sbwd (the surfel GPU
+A variant is `default` (whatever the WARPGS_* variables select) or `fast`, then optional options joined by '+':
+`fast+bwd=block`, `fast+sbwd=warp_sums`. Keys: bwd (the 3D GPU adjoint: warp_sums, block), sbwd (the surfel GPU
 adjoint: block, warp_sums); see warpgs/render/defaults.py.
 """
 from __future__ import annotations
@@ -11,7 +10,7 @@ from contextlib import contextmanager
 
 from warpgs.render.defaults import current_raster_options, raster_options
 
-KEYS = {"sort": "sort", "bwd": "backward_kernel", "sbwd": "surfel_backward_kernel"}
+KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel"}
 
 
 def parse(spec: str) -> dict:
@@ -19,8 +18,8 @@ def parse(spec: str) -> dict:
     if not parts:
         raise SystemExit("empty variant")
     options = {}
-    if parts[0] != "default":
-        options["path"] = parts[0]
+    if parts[0] not in ("default", "fast"):
+        raise SystemExit(f"variant {spec!r}: starts with 'default' or 'fast' (the legacy path is gone)")
     for part in parts[1:]:
         key, _, value = part.partition("=")
         if key not in KEYS or not value:
@@ -38,6 +37,4 @@ def variant(spec: str):
 
 def describe() -> str:
     o = current_raster_options()
-    if o.path == "legacy":
-        return "legacy"
-    return f"{o.path}+sort={o.sort}+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}"
+    return f"fast+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}"

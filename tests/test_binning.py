@@ -80,10 +80,9 @@ def _reference_pairs(rects, counts, depths, tiles_x):
     return pairs
 
 
-@pytest.mark.parametrize("mode", ["two_pass", "single64"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_lean_path_sorts_match_the_reference(mode, seed):
-    """render/fast_pipeline.sort_into_tiles (both sort modes): same pairs, same order, and every tile's range
+def test_lean_path_sorts_match_the_reference(seed):
+    """render/fast_pipeline.sort_into_tiles: same pairs, same order, and every tile's range
     written (no zero-fill beforehand: the workspace buffers start with garbage here)."""
     from warpgs.render import fast_pipeline
     from warpgs.render.workspace import Workspace
@@ -97,7 +96,7 @@ def test_lean_path_sorts_match_the_reference(mode, seed):
     pairs = _reference_pairs(rects, counts, depths, tiles_x)
     for _ in range(2):  # the second call reuses every buffer
         total, start, end, ids = fast_pipeline.sort_into_tiles(ws, cpu(rects, wp.vec4i), cpu(counts, wp.int32),
-                                                               cpu(depths, wp.float32), s, ws.array, mode)
+                                                               cpu(depths, wp.float32), s, ws.array)
         assert total == len(pairs)
         np.testing.assert_array_equal(ids.numpy()[:total], [p[2] for p in pairs])
         start, end = start.numpy(), end.numpy()
@@ -108,24 +107,3 @@ def test_lean_path_sorts_match_the_reference(mode, seed):
                 assert (start[tile], end[tile]) == expected
             else:
                 assert start[tile] == end[tile]
-
-
-def test_64_bit_key_emission_per_pair_matches_the_per_primitive_loop():
-    rects, counts, depths = random_rects(3)
-    offsets = np.cumsum(counts).astype(np.int32)
-    total = int(offsets[-1])
-    bits = depths.view(np.int32)
-    out = []
-    for kernel in (binning.emit_tile_depth_keys, binning.emit_tile_depth_keys_per_pair):
-        keys = wp.zeros(total, dtype=wp.uint64, device="cpu")
-        values = wp.zeros(total, dtype=wp.int32, device="cpu")
-        inputs = [cpu(rects, wp.vec4i), cpu(offsets, wp.int32), cpu(counts, wp.int32), cpu(bits, wp.int32), 13]
-        if kernel is binning.emit_tile_depth_keys:
-            wp.launch(kernel, dim=len(counts), inputs=inputs, outputs=[keys, values], device="cpu")
-        else:
-            wp.launch(kernel, dim=total, inputs=inputs + [len(counts)], outputs=[keys, values], device="cpu")
-        out.append((keys.numpy(), values.numpy()))
-    np.testing.assert_array_equal(out[0][0], out[1][0])
-    np.testing.assert_array_equal(out[0][1], out[1][1])
-    tiles = (out[0][0] >> np.uint64(32)).astype(np.int64)
-    assert tiles.max() < 13 * 9 and (out[0][0] & np.uint64(0xFFFFFFFF)).astype(np.uint32).view(np.float32).min() > 0

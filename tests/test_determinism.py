@@ -1,5 +1,5 @@
 """Same inputs, same bits: 20 renders of one scene give bit-identical images and gradients (3D Gaussians and
-surfels; rgb, depth and alpha; the CPU blending split over several threads, both 3D raster paths), and the
+surfels; rgb, depth and alpha; the CPU blending split over several threads), and the
 image does not depend on how many threads blended it. A CUDA variant runs where Warp sees a GPU.
 
 Why it matters: the stress suite compares against a float64 reference at 1e-4, and a flaky failure there must
@@ -15,21 +15,22 @@ import pytest
 import torch
 import warp as wp
 
+from legacy_raster import rasterize_legacy
 from random_scenes import random_scene
 from warpgs import rasterize, rasterize_surfels
-from warpgs.render.defaults import raster_options
 
 CALLS = 20
 OUTPUTS = ("rgb", "depth", "alpha")
 SCENE = random_scene(n=160, width=72, height=56, seed=11)  # 9 x 7 tiles of 8 px: several chunks per thread
 
 
-def render_once(kind: str, device: str):
-    """Outputs and the gradients of a loss that weights every pixel of every output differently."""
+def render_once(kind: str, device: str, op=None):
+    """Outputs and the gradients of a loss that weights every pixel of every output differently (op: the render op,
+    by default that of `kind`)."""
     s = SCENE
     leaves = {k: s[k].float().to(device).clone().requires_grad_(True) for k in ("means", "quats", "opacities", "colors")}
     scales = (s["scales"][:, :2] if kind == "surfels" else s["scales"]).float().to(device).clone().requires_grad_(True)
-    op = rasterize_surfels if kind == "surfels" else rasterize
+    op = op or (rasterize_surfels if kind == "surfels" else rasterize)
     out = op(leaves["means"], leaves["quats"], scales, leaves["opacities"], leaves["colors"],
              s["viewmat"].float().to(device), s["K"].float().to(device), s["width"], s["height"], outputs=OUTPUTS,
              background=torch.tensor([0.1, 0.2, 0.3], device=device))
@@ -69,16 +70,12 @@ def assert_repeatable(kind: str, device: str, exact_grads: bool = True):
     return first_images, first_grads
 
 
-@pytest.mark.parametrize("kind,path", [("gaussians", "fast"), ("gaussians", "legacy"), ("surfels", None)])
-def test_cpu_renders_are_bit_identical(kind, path, monkeypatch):
+@pytest.mark.parametrize("kind", ["gaussians", "surfels"])
+def test_cpu_renders_are_bit_identical(kind, monkeypatch):
     per_threads = {}
     for threads in (1, 2, 4):
         monkeypatch.setenv("WARPGS_CPU_THREADS", str(threads))
-        if path is None:
-            per_threads[threads] = assert_repeatable(kind, "cpu")
-        else:
-            with raster_options(path=path):
-                per_threads[threads] = assert_repeatable(kind, "cpu")
+        per_threads[threads] = assert_repeatable(kind, "cpu")
     # Pixels are blended independently, so the images do not depend on the split either. (The gradients may:
     # each thread sums its tiles' contributions privately and the sums are added in a fixed order.)
     for threads in (2, 4):
@@ -89,14 +86,12 @@ def test_cpu_renders_are_bit_identical(kind, path, monkeypatch):
 
 
 def test_fast_and_legacy_paths_agree(monkeypatch):
-    """Images bit-identical; gradients equal up to float32 rounding. With a background and depth in the loss, alpha's
-    gradient has three parts: the fast op's depth kernel adds the division's part to the sum autograd made of the
-    other two, the legacy path leaves all three to autograd, which adds them in another order."""
+    """The op and its per-call oracle (tests/legacy_raster.py): images bit-identical; gradients equal up to float32
+    rounding. With a background and depth in the loss, alpha's gradient has three parts: the fast op's depth kernel
+    adds the division's part to the sum autograd made of the other two, the oracle leaves all three to autograd,
+    which adds them in another order."""
     monkeypatch.setenv("WARPGS_CPU_THREADS", "2")
-    results = []
-    for path in ("fast", "legacy"):
-        with raster_options(path=path):
-            results.append(render_once("gaussians", "cpu"))
+    results = [render_once("gaussians", "cpu", op) for op in (rasterize, rasterize_legacy)]
     (fast_images, fast_grads), (legacy_images, legacy_grads) = results
     assert digest(fast_images) == digest(legacy_images)
     for k, ref in legacy_grads.items():

@@ -1,11 +1,12 @@
-"""The lean host path (render/fast_pipeline.py: workspace, recorded launches, one sort of 64-bit keys or two sorts,
-the per-warp GPU adjoint) renders and differentiates as the legacy per-call path does, and reusing scratch memory
-across calls never corrupts a render whose backward is still pending."""
+"""The lean host path (render/fast_pipeline.py: workspace, recorded launches, the per-warp GPU adjoint) renders and
+differentiates as the per-call op of tests/legacy_raster.py (the oracle: same kernels, simple host side) does, and
+reusing scratch memory across calls never corrupts a render whose backward is still pending."""
 import os
 
 import pytest
 import torch
 
+from legacy_raster import rasterize_legacy
 from random_scenes import look_at, random_scene
 from raster_helpers import DEVICE, assert_same_result as _assert_same
 from warpgs import rasterize
@@ -26,8 +27,11 @@ def _leaves(scene, requires_grad=True):
                 if scene.get(k) is not None else None) for k in INPUTS}
 
 
-def _render(scene, leaves, outputs, **kw):
-    return rasterize(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
+LEGACY = "legacy"  # _run's options for the oracle
+
+
+def _render(scene, leaves, outputs, op=rasterize, **kw):
+    return op(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
                      leaves["viewmat"], leaves["K"], scene["width"], scene["height"], sh_degree=scene["sh_degree"],
                      features=leaves["features"], outputs=outputs, **kw)
 
@@ -45,8 +49,9 @@ def _weights(scene, outputs, seed=0):
 
 def _run(scene, outputs, options, track_means2d=False, **kw):
     leaves = _leaves(scene)
-    with raster_options(**options):
-        out = _render(scene, leaves, outputs, track_means2d=track_means2d, **kw)
+    with raster_options(**({} if options == LEGACY else options)):
+        out = _render(scene, leaves, outputs, op=rasterize_legacy if options == LEGACY else rasterize,
+                      track_means2d=track_means2d, **kw)
     _loss(out, _weights(scene, outputs)).backward()
     grads = {k: v.grad for k, v in leaves.items() if v is not None}
     if track_means2d:
@@ -54,18 +59,16 @@ def _run(scene, outputs, options, track_means2d=False, **kw):
     return out, grads
 
 
-PATHS = [dict(path="fast", sort="two_pass", backward_kernel="warp_sums"),
-         dict(path="fast", sort="single64", backward_kernel="warp_sums"),
-         dict(path="fast", sort="two_pass", backward_kernel="block")]
+PATHS = [dict(backward_kernel="warp_sums"), dict(backward_kernel="block")]
 
 
-@pytest.mark.parametrize("options", PATHS, ids=lambda o: f"{o['sort']}-{o['backward_kernel']}")
+@pytest.mark.parametrize("options", PATHS, ids=lambda o: o["backward_kernel"])
 @pytest.mark.parametrize("sh_degree,num_features,tile", [(None, 0, 8), (2, 3, 8), (None, 2, 16), (1, 0, 4),
                                                          (None, 1, 32)])
 def test_fast_path_matches_legacy_path(options, sh_degree, num_features, tile):
     scene = random_scene(n=60, seed=3, sh_degree=sh_degree, num_features=num_features)
     outputs = ("rgb", "alpha", "depth", "inv_depth") + (("features",) if num_features else ())
-    ref, ref_grads = _run(scene, outputs, dict(path="legacy"), track_means2d=True, tile_size=tile)
+    ref, ref_grads = _run(scene, outputs, LEGACY, track_means2d=True, tile_size=tile)
     out, grads = _run(scene, outputs, options, track_means2d=True, tile_size=tile)
     for name in outputs + ("visible",):
         _assert_same(getattr(out, name), getattr(ref, name), name)
@@ -74,15 +77,12 @@ def test_fast_path_matches_legacy_path(options, sh_degree, num_features, tile):
         _assert_same(grads[name], g, f"grad {name}", _exact(options))
 
 
-@pytest.mark.parametrize("options", PATHS[:2], ids=lambda o: o["sort"])
-def test_forward_only_renders_match(options):
+def test_forward_only_renders_match():
     scene = random_scene(n=60, seed=5, num_features=2)
     outputs = ("rgb", "alpha", "depth", "features")
     with torch.no_grad():
-        with raster_options(path="legacy"):
-            ref = _render(scene, _leaves(scene, False), outputs, tile_size=8)
-        with raster_options(**options):
-            out = _render(scene, _leaves(scene, False), outputs, tile_size=8)
+        ref = _render(scene, _leaves(scene, False), outputs, op=rasterize_legacy, tile_size=8)
+        out = _render(scene, _leaves(scene, False), outputs, tile_size=8)
     for name in outputs:
         _assert_same(getattr(out, name), getattr(ref, name), name)
 
@@ -93,14 +93,14 @@ def test_interleaved_renders_keep_their_own_buffers():
     differentiated on its own."""
     scenes = [random_scene(n=50, seed=s, num_features=2) for s in (11, 12)]
     outputs = ("rgb", "alpha", "depth", "features")
-    alone = [_run(s, outputs, dict(path="fast"))[1] for s in scenes]
+    alone = [_run(s, outputs, {})[1] for s in scenes]
 
     leaves = [_leaves(s) for s in scenes]
     outs = [_render(s, lv, outputs) for s, lv in zip(scenes, leaves)]
     with torch.no_grad():  # reuses the workspace a forward-only render gets
         big = random_scene(n=120, seed=13, width=64, height=48)
         _render(big, _leaves(big, False), ("rgb", "alpha"))
-    _run(random_scene(n=200, seed=14, width=72, height=40), ("rgb",), dict(path="fast"))  # grows every buffer
+    _run(random_scene(n=200, seed=14, width=72, height=40), ("rgb",), {})  # grows every buffer
     for i in (1, 0):
         _loss(outs[i], _weights(scenes[i], outputs)).backward()
     for i in (0, 1):
@@ -109,11 +109,11 @@ def test_interleaved_renders_keep_their_own_buffers():
 
 
 def test_growing_and_shrinking_scenes_between_calls():
-    """The workspace grows and hands out smaller views again; each render equals the legacy one."""
+    """The workspace grows and hands out smaller views again; each render equals the oracle's."""
     for n, (w, h) in [(30, (40, 30)), (120, (64, 48)), (10, (16, 16)), (80, (40, 30))]:
         scene = random_scene(n=n, seed=n, width=w, height=h)
-        ref, ref_grads = _run(scene, ("rgb", "alpha"), dict(path="legacy"))
-        out, grads = _run(scene, ("rgb", "alpha"), dict(path="fast"))
+        ref, ref_grads = _run(scene, ("rgb", "alpha"), LEGACY)
+        out, grads = _run(scene, ("rgb", "alpha"), {})
         _assert_same(out.rgb.detach(), ref.rgb.detach(), f"rgb n={n}")
         for name, g in ref_grads.items():
             _assert_same(grads[name], g, f"grad {name} n={n}")
@@ -127,7 +127,7 @@ def test_empty_and_fully_culled_scenes():
         if behind:
             scene["means"] = scene["means"].clone()
             scene["means"][:, 2] = -10.0  # all behind the camera: no tile pairs
-        out, grads = _run(scene, ("rgb", "alpha"), dict(path="fast"))
+        out, grads = _run(scene, ("rgb", "alpha"), {})
         assert out.num_intersections == 0
         assert torch.all(out.alpha == 0)
         for name, g in grads.items():
@@ -139,12 +139,8 @@ def test_batch_of_cameras_on_the_fast_path():
     lv = _leaves(scene)
     views = torch.stack([lv["viewmat"], look_at((1.0, 0.0, -4.0), (0.0, 0.0, 0.0)).float().to(DEVICE)])
     Ks = torch.stack([lv["K"], lv["K"]])
-    for path in ("legacy", "fast"):
-        with raster_options(path=path):
-            out = rasterize(lv["means"], lv["quats"], lv["scales"], lv["opacities"], lv["colors"], views, Ks,
-                            scene["width"], scene["height"], outputs=("rgb", "depth"))
-        if path == "legacy":
-            ref = out
+    ref, out = (op(lv["means"], lv["quats"], lv["scales"], lv["opacities"], lv["colors"], views, Ks, scene["width"],
+                   scene["height"], outputs=("rgb", "depth")) for op in (rasterize_legacy, rasterize))
     _assert_same(out.rgb, ref.rgb, "rgb")
     _assert_same(out.depth, ref.depth, "depth")
 
@@ -156,10 +152,9 @@ def test_expanded_and_unused_upstream_gradients():
     scene = random_scene(n=200, seed=21, width=400, height=300, num_features=2)
     outputs = ("rgb", "alpha", "depth", "features")
     results = []
-    for path in ("legacy", "fast"):
+    for op in (rasterize_legacy, rasterize):
         leaves = _leaves(scene)
-        with raster_options(path=path):
-            out = _render(scene, leaves, outputs)
+        out = _render(scene, leaves, outputs, op=op)
         (out.rgb.sum() + out.depth.sum() + out.features[..., 1].sum()).backward()  # alpha unused
         results.append({k: v.grad for k, v in leaves.items() if v is not None})
     for name, g in results[0].items():
@@ -168,13 +163,12 @@ def test_expanded_and_unused_upstream_gradients():
 
 def test_outputs_the_loss_never_touches_get_no_gradient_buffers():
     """The fast op asks autograd not to materialise zero gradients: a loss on rgb alone hands its backward None
-    for alpha, depth and features, which must count as zeros (the legacy path gets real zero tensors)."""
+    for alpha, depth and features, which must count as zeros (the oracle gets real zero tensors)."""
     scene = random_scene(n=80, seed=22, num_features=2)
     results = []
-    for path in ("legacy", "fast"):
+    for op in (rasterize_legacy, rasterize):
         leaves = _leaves(scene)
-        with raster_options(path=path):
-            out = _render(scene, leaves, ("rgb", "alpha", "depth", "features"))
+        out = _render(scene, leaves, ("rgb", "alpha", "depth", "features"), op=op)
         out.rgb.sum().backward()
         results.append({k: v.grad for k, v in leaves.items() if v is not None})
     for name, g in results[0].items():
@@ -199,13 +193,12 @@ def test_intrinsics_changed_in_place_are_seen():
 @pytest.mark.parametrize("with_alpha", [False, True])
 def test_depth_division_kernel_matches_torch(with_alpha):
     """The fast op divides accumulated depth by alpha in a kernel and runs that division's adjoint itself; the
-    legacy path leaves both to torch. Same images and gradients, uncovered pixels (alpha 0) included."""
+    oracle leaves both to torch. Same images and gradients, uncovered pixels (alpha 0) included."""
     scene = random_scene(n=120, seed=24, width=48, height=40)
     results = []
-    for path in ("legacy", "fast"):
+    for op in (rasterize_legacy, rasterize):
         leaves = _leaves(scene)
-        with raster_options(path=path):
-            out = _render(scene, leaves, ("rgb", "alpha", "depth"))
+        out = _render(scene, leaves, ("rgb", "alpha", "depth"), op=op)
         assert bool((out.alpha == 0).any()), "the scene should leave some pixels uncovered"
         weights = _weights(scene, ("depth", "alpha"), seed=7)
         loss = (out.depth * weights["depth"]).sum()

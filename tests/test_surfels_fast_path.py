@@ -1,14 +1,15 @@
 """The lean surfel host path (render/fast_pipeline_surfels.py: workspace, recorded launches, no wp.Tape) renders and
-differentiates every surfel output as the per-call path does, and reusing scratch memory across calls (surfel and
-3D renders sharing one workspace) never corrupts a render whose backward is still pending."""
+differentiates every surfel output as the per-call op of tests/legacy_raster_surfels.py (the oracle) does, and
+reusing scratch memory across calls (surfel and 3D renders sharing one workspace) never corrupts a render whose
+backward is still pending."""
 import pytest
 import torch
 
+from legacy_raster_surfels import rasterize_surfels_legacy
 from random_scenes import random_scene
 from raster_helpers import DEVICE, assert_same_result
 from reference_surfels import ALL_OUTPUTS, CHANNELS, random_surfel_scene
 from warpgs import rasterize, rasterize_surfels
-from warpgs.render.defaults import raster_options
 
 INPUTS = ("means", "quats", "scales", "opacities", "colors", "features", "viewmat", "K")
 
@@ -34,10 +35,9 @@ def _loss(out, weights):
     return sum((getattr(out, name) * w).sum() for name, w in weights.items())
 
 
-def _run(scene, outputs, options, loss_outputs=None, op=rasterize_surfels, **kw):
+def _run(scene, outputs, loss_outputs=None, op=rasterize_surfels, **kw):
     leaves = _leaves(scene)
-    with raster_options(**options):
-        out = _render(scene, leaves, outputs, op=op, **kw)
+    out = _render(scene, leaves, outputs, op=op, **kw)
     _loss(out, _weights(scene, loss_outputs or outputs)).backward()
     return out, {k: v.grad for k, v in leaves.items() if v is not None and v.grad is not None}
 
@@ -52,13 +52,12 @@ def _assert_same_run(run, ref, outputs):
         assert_same_result(grads[name], g, f"grad {name}")
 
 
-@pytest.mark.parametrize("sort", ["two_pass", "single64"])
 @pytest.mark.parametrize("sh_degree,num_features,tile", [(None, 0, 8), (2, 3, 8), (None, 2, 16), (1, 0, 4)])
-def test_fast_path_matches_legacy_path(sort, sh_degree, num_features, tile):
+def test_fast_path_matches_legacy_path(sh_degree, num_features, tile):
     scene = random_surfel_scene(n=48, seed=3, sh_degree=sh_degree, num_features=num_features)
     outputs = tuple(o for o in ALL_OUTPUTS if o != "features" or num_features)
-    ref = _run(scene, outputs, dict(path="legacy"), tile_size=tile)
-    _assert_same_run(_run(scene, outputs, dict(path="fast", sort=sort), tile_size=tile), ref, outputs)
+    ref = _run(scene, outputs, op=rasterize_surfels_legacy, tile_size=tile)
+    _assert_same_run(_run(scene, outputs, tile_size=tile), ref, outputs)
 
 
 @pytest.mark.parametrize("outputs,loss_outputs", [
@@ -69,18 +68,16 @@ def test_fast_path_matches_legacy_path(sort, sh_degree, num_features, tile):
 ])
 def test_some_outputs_and_unused_ones(outputs, loss_outputs):
     scene = random_surfel_scene(n=40, seed=7)
-    ref = _run(scene, outputs, dict(path="legacy"), loss_outputs)
-    _assert_same_run(_run(scene, outputs, dict(path="fast"), loss_outputs), ref, outputs)
+    ref = _run(scene, outputs, loss_outputs, op=rasterize_surfels_legacy)
+    _assert_same_run(_run(scene, outputs, loss_outputs), ref, outputs)
 
 
 def test_forward_only_render_matches():
     scene = random_surfel_scene(n=40, seed=5, num_features=2)
     outputs = ALL_OUTPUTS
     with torch.no_grad():
-        with raster_options(path="legacy"):
-            ref = _render(scene, _leaves(scene, False), outputs)
-        with raster_options(path="fast"):
-            out = _render(scene, _leaves(scene, False), outputs)
+        ref = _render(scene, _leaves(scene, False), outputs, op=rasterize_surfels_legacy)
+        out = _render(scene, _leaves(scene, False), outputs)
     for name in outputs:
         assert_same_result(getattr(out, name), getattr(ref, name), name)
 
@@ -91,10 +88,10 @@ def test_interleaved_surfel_and_gaussian_renders_keep_their_own_buffers():
     that of a render differentiated on its own."""
     scenes = [random_surfel_scene(n=40, seed=s, num_features=2) for s in (11, 12)]
     outputs = ("rgb", "alpha", "depth", "normal", "distortion", "features")
-    alone = [_run(s, outputs, dict(path="fast"))[1] for s in scenes]
+    alone = [_run(s, outputs)[1] for s in scenes]
     gaussians = random_scene(n=50, seed=4, num_features=2)
     g_outputs = ("rgb", "alpha", "depth", "features")
-    g_alone = _run(gaussians, g_outputs, dict(path="fast"), op=rasterize)[1]
+    g_alone = _run(gaussians, g_outputs, op=rasterize)[1]
 
     leaves = [_leaves(s) for s in scenes]
     outs = [_render(s, lv, outputs) for s, lv in zip(scenes, leaves)]
@@ -103,7 +100,7 @@ def test_interleaved_surfel_and_gaussian_renders_keep_their_own_buffers():
     with torch.no_grad():
         big = random_surfel_scene(n=120, seed=13, width=64, height=48)
         _render(big, _leaves(big, False), ("rgb", "alpha", "median_depth"))
-    _run(random_surfel_scene(n=200, seed=14, width=72, height=40), ("rgb", "distortion"), dict(path="fast"))
+    _run(random_surfel_scene(n=200, seed=14, width=72, height=40), ("rgb", "distortion"))
     _loss(outs[1], _weights(scenes[1], outputs)).backward()
     _loss(g_out, _weights(gaussians, g_outputs)).backward()
     _loss(outs[0], _weights(scenes[0], outputs)).backward()
@@ -118,14 +115,14 @@ def test_growing_and_shrinking_scenes_between_calls():
     for n, (w, h) in [(30, (40, 30)), (120, (64, 48)), (10, (16, 16)), (80, (40, 30))]:
         scene = random_surfel_scene(n=n, seed=n, width=w, height=h)
         outputs = ("rgb", "alpha", "depth")
-        _assert_same_run(_run(scene, outputs, dict(path="fast")), _run(scene, outputs, dict(path="legacy")), outputs)
+        _assert_same_run(_run(scene, outputs), _run(scene, outputs, op=rasterize_surfels_legacy), outputs)
 
 
 def test_fully_culled_scene_gives_zero_images_and_gradients():
     scene = random_surfel_scene(n=12, seed=1)
     scene["means"] = scene["means"].clone()
     scene["means"][:, 2] = -10.0  # all behind the camera: no tile pairs
-    out, grads = _run(scene, ("rgb", "alpha", "normal"), dict(path="fast"))
+    out, grads = _run(scene, ("rgb", "alpha", "normal"))
     assert out.num_intersections == 0
     assert torch.all(out.alpha == 0) and torch.all(out.normal == 0)
     for name, g in grads.items():
@@ -139,10 +136,9 @@ def test_expanded_upstream_gradients():
     scene = random_surfel_scene(n=150, seed=21, width=400, height=300, num_features=2)
     outputs = ("rgb", "alpha", "normal", "features")
     results = []
-    for path in ("legacy", "fast"):
+    for op in (rasterize_surfels_legacy, rasterize_surfels):
         leaves = _leaves(scene)
-        with raster_options(path=path):
-            out = _render(scene, leaves, outputs)
+        out = _render(scene, leaves, outputs, op=op)
         (out.rgb.sum() + out.normal[..., 2].sum() + out.features[..., 1].sum()).backward()  # alpha unused
         results.append({k: v.grad for k, v in leaves.items() if v is not None})
     for name, g in results[0].items():

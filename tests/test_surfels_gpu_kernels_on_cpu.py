@@ -15,7 +15,7 @@ HERE = Path(__file__).parent
 VARIANTS = {  # name: (environment, test files)
     "block": ({"WARPGS_SURFEL_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "1"},
               ["test_surfels_forward.py", "test_surfels_gradients.py",
-               "test_surfels_fast_path.py"]),  # the legacy host path there runs the same kernels
+               "test_surfels_fast_path.py"]),  # the per-call oracle there runs the same kernels
     "block-no-reduce": ({"WARPGS_SURFEL_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "0"},  # only the backward differs
                         ["test_surfels_gradients.py::test_gradients_of_all_inputs_through_all_outputs"]),
     "warp_sums": ({"WARPGS_SURFEL_BWD_KERNEL": "warp_sums"}, ["test_surfels_gradients.py"]),

@@ -11,7 +11,6 @@ import warnings
 MOVED = {
     "warpgs.render_surfels": "warpgs.render.surfels",
     "warpgs.pipeline": "warpgs.render.pipeline_gaussians",
-    "warpgs.surfel_pipeline": "warpgs.render.pipeline_surfels",
     "warpgs.raster_defaults": "warpgs.render.defaults",
     "warpgs.validation": "warpgs.render.validation",
     "warpgs.cpu_threads": "warpgs.render.cpu_threads",

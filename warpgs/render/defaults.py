@@ -6,7 +6,7 @@ backward pass follows (fwd+bwd faster or within 2%); 16 for forward-only GPU ren
 Gaussians, 25-35% faster at 1M, where sorting 2.5x more tile keys costs)."""
 import os
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 DEFAULT_TILE_SIZE = 8  # the CPU, and GPU renders that will be differentiated (training)
 GPU_FORWARD_ONLY_TILE_SIZE = 16  # GPU renders nobody differentiates (evaluation, viewers)
@@ -40,26 +40,21 @@ def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool) -> int:
     return GPU_FORWARD_ONLY_TILE_SIZE if on_gpu and not needs_grad else DEFAULT_TILE_SIZE
 
 
-# How the 3D Gaussian op runs (speed only: every choice gives the same images and gradients, which the tests check).
-# Benchmarks switch them in one process with `raster_options(...)`; the WARPGS_* variables set the defaults.
-RASTER_PATHS = ("fast", "legacy")  # fast: workspace + recorded launches (render/fast_pipeline.py); legacy: per-call
-SORT_MODES = ("two_pass", "single64")  # depth sort then stable tile sort / one sort of 64-bit (tile | depth) keys
+# Which GPU blend adjoint the ops launch (speed only: both give the same images and gradients, which the tests
+# check). Benchmarks switch them in one process with `raster_options(...)`; the WARPGS_* variables set the defaults.
 BACKWARD_KERNELS = ("warp_sums", "block")  # GPU blend adjoint: blend_gpu.backward_kernel_warp_sums / backward_kernel
 
 
 @dataclass(frozen=True)
 class RasterOptions:
-    path: str = os.environ.get("WARPGS_RASTER_PATH", "fast")
-    sort: str = os.environ.get("WARPGS_SORT", "two_pass")
     backward_kernel: str = os.environ.get("WARPGS_BWD_KERNEL", "warp_sums")
     # Surfels: the per-warp adjoint halves fwd+bwd on an H200 (raster_cuda_h200_surfels_*.json); "block" is the old one.
     surfel_backward_kernel: str = os.environ.get("WARPGS_SURFEL_BWD_KERNEL", "warp_sums")
 
     def __post_init__(self):
-        for f, allowed in (("path", RASTER_PATHS), ("sort", SORT_MODES), ("backward_kernel", BACKWARD_KERNELS),
-                           ("surfel_backward_kernel", BACKWARD_KERNELS)):
-            if getattr(self, f) not in allowed:
-                raise ValueError(f"raster option {f}: expected one of {allowed}, got {getattr(self, f)!r}")
+        for f in ("backward_kernel", "surfel_backward_kernel"):
+            if getattr(self, f) not in BACKWARD_KERNELS:
+                raise ValueError(f"raster option {f}: expected one of {BACKWARD_KERNELS}, got {getattr(self, f)!r}")
 
 
 _options = [RasterOptions()]
@@ -71,8 +66,12 @@ def current_raster_options() -> RasterOptions:
 
 @contextmanager
 def raster_options(**changes):
-    """Within the block, renders use these options (e.g. raster_options(path="legacy", sort="single64")). One stack
-    for the process: meant for benchmarks and tests, not for threads that render concurrently."""
+    """Within the block, renders use these options (e.g. raster_options(backward_kernel="block")). One stack for
+    the process: meant for benchmarks and tests, not for threads that render concurrently."""
+    unknown = sorted(set(changes) - {f.name for f in fields(RasterOptions)})
+    if unknown:
+        raise ValueError(f"raster_options: unknown option(s) {unknown}; expected some of "
+                         f"{[f.name for f in fields(RasterOptions)]}")
     _options.append(replace(_options[-1], **changes))
     try:
         yield _options[-1]

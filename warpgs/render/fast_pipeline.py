@@ -1,6 +1,7 @@
 """The 3D Gaussian pipeline of `pipeline_gaussians`, driven with as little host work per call as possible.
 
-Same kernels, same maths, same results (tests compare both paths); what differs is the host side:
+Same kernels, same maths, same results (the tests compare it bit for bit with a per-call op over
+`pipeline_gaussians`, tests/legacy_raster.py); what differs is the host side:
 - scratch memory comes from a `Workspace` reused across calls, and nothing is zero-filled that a kernel overwrites
   (tile ranges are written for every tile, projected outputs for every Gaussian);
 - what a backward pass reads comes from `keep`: the torch op passes a buffer set lent from the workspace's pool
@@ -11,8 +12,8 @@ Same kernels, same maths, same results (tests compare both paths); what differs 
 - no wp.Tape: the backward launches the blend adjoint and then the projection's generated adjoint itself.
 
 Torch-free: arrays come in as Warp arrays or array descriptors (`wp.from_torch(..., return_ctype=True)`).
-`SORT_MODES`: "two_pass" sorts the primitives by depth, then their tile pairs by tile index (stable); "single64"
-sorts 64-bit (tile << 32 | depth) keys once. Both give the same order (tile, depth, primitive index).
+Sorting takes two passes: the primitives by depth, then their tile pairs by tile index (stable), which gives the
+order (tile, depth, primitive index).
 """
 from __future__ import annotations
 
@@ -23,7 +24,6 @@ import warp as wp
 
 from warpgs.kernels import binning, blend, blend_gpu, depth_norm, project
 from warpgs.render.cpu_threads import run_threads
-from warpgs.render.defaults import SORT_MODES
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
 from warpgs.render.workspace import Workspace
@@ -57,7 +57,7 @@ class Frame(TileFrame):
 
 
 def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, features, outputs, keep: Optional[Keep],
-            sort_mode: str = "two_pass", on_stage: Optional[Callable[[str], None]] = None) -> Frame:
+            on_stage: Optional[Callable[[str], None]] = None) -> Frame:
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth, inv_depth, features) arrays the blend writes
     (1-element dummies for outputs not asked for; features zeroed beforehand for the per-thread CPU kernel);
@@ -83,7 +83,7 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     _stage(on_stage, "project")
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "footprints", binning.tile_footprints, [means2d, cov2d, opacities, valid], depths, s, per_call,
-        sort_mode, on_stage)
+        on_stage)
 
     npix = s.width * s.height
     transmittance = per_call("transmittance", npix, float)
@@ -106,7 +106,7 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
 
 
 def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, depths, s: Settings, per_call,
-                   sort_mode: str = "two_pass", on_stage: Optional[Callable[[str], None]] = None):
+                   on_stage: Optional[Callable[[str], None]] = None):
     """Every primitive kind's binning: its footprint kernel (inputs `footprint_inputs`, then the image and blend
     settings, writing tile rectangles, tile counts and cut-offs) and `sort_into_tiles`. Returns (counts, q_cut,
     total, tile_start, tile_end, sorted_ids); counts lives in the workspace, q_cut comes from `per_call`."""
@@ -118,32 +118,27 @@ def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, 
                        list(footprint_inputs) + [s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
                                                  rects, counts, q_cut])
     _stage(on_stage, key)
-    return (counts, q_cut) + sort_into_tiles(ws, rects, counts, depths, s, per_call, sort_mode, on_stage)
+    return (counts, q_cut) + sort_into_tiles(ws, rects, counts, depths, s, per_call, on_stage)
 
 
-def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call, mode: str = "two_pass",
+def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
                     on_stage: Optional[Callable[[str], None]] = None):
     """(total, tile_start, tile_end, sorted_ids): the (tile, primitive) pairs sorted by tile, then depth, then
     primitive index, and every tile's [start, end) range. tile_start and sorted_ids come from `per_call`."""
-    if mode not in SORT_MODES:
-        raise ValueError(f"sort mode: expected one of {SORT_MODES}, got {mode!r}")
     dev = ws.device
     L = ws.launches
     n = int(counts.shape[0])
     tile_start = per_call("tile_start", s.num_tiles, wp.int32)
     tile_end = ws.array("tile_end", s.num_tiles, wp.int32)
     offsets = ws.array("offsets", n, wp.int32)
-    if mode == "two_pass":
-        depth_keys = ws.array("depth_keys", 2 * n, float)
-        order = ws.array("order", 2 * n, wp.int32)
-        L.launch("depth_init", binning.depth_sort_init, n, [depths, depth_keys, order])
-        wp.utils.radix_sort_pairs(depth_keys, order, n)
-        ordered = ws.array("ordered_counts", n, wp.int32)
-        L.launch("counts_in_order", binning.counts_in_order, n, [order, counts, ordered])
-        _stage(on_stage, "sort: depth sort")
-        wp.utils.array_scan(ordered, offsets, inclusive=True)
-    else:
-        wp.utils.array_scan(counts, offsets, inclusive=True)
+    depth_keys = ws.array("depth_keys", 2 * n, float)
+    order = ws.array("order", 2 * n, wp.int32)
+    L.launch("depth_init", binning.depth_sort_init, n, [depths, depth_keys, order])
+    wp.utils.radix_sort_pairs(depth_keys, order, n)
+    ordered = ws.array("ordered_counts", n, wp.int32)
+    L.launch("counts_in_order", binning.counts_in_order, n, [order, counts, ordered])
+    _stage(on_stage, "sort: depth sort")
+    wp.utils.array_scan(ordered, offsets, inclusive=True)
     total = ws.read_int(offsets, n - 1)  # the one host sync: sizes the pair buffers
     _stage(on_stage, "sort: prefix sum + sync")
     sorted_ids = per_call("sorted_ids", 2 * max(total, 1), wp.int32)  # radix sorts need 2x room
@@ -152,30 +147,16 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
         tile_end.zero_()
         return 0, tile_start, tile_end, sorted_ids
     tile_bits = max(1, (s.num_tiles - 1).bit_length())
-    if mode == "two_pass":
-        keys = ws.array("tile_keys", 2 * total, wp.int32)
-        if dev.is_cpu:  # a loop per primitive: few threads, no search
-            L.launch("emit", binning.emit_tile_keys, n, [rects, order, offsets, counts, s.tiles_x, keys, sorted_ids])
-        else:  # a thread per (primitive, tile) pair: balanced across the GPU
-            L.launch("emit", binning.emit_tile_keys_per_pair, total,
-                     [rects, order, offsets, counts, s.tiles_x, n, keys, sorted_ids])
-        _stage(on_stage, "sort: emit keys")
-        wp.utils.radix_sort_pairs(keys, sorted_ids, total, begin_bit=0, end_bit=tile_bits)
-        _stage(on_stage, "sort: pair sort")
-        L.launch("ranges", binning.tile_ranges_dense, total, [keys, total, s.num_tiles, tile_start, tile_end])
-    else:
-        keys = ws.array("tile_depth_keys", 2 * total, wp.uint64)
-        depth_bits = ws.view("depth_bits", depths, 0, n, wp.int32)
-        if dev.is_cpu:
-            L.launch("emit64", binning.emit_tile_depth_keys, n,
-                     [rects, offsets, counts, depth_bits, s.tiles_x, keys, sorted_ids])
-        else:
-            L.launch("emit64", binning.emit_tile_depth_keys_per_pair, total,
-                     [rects, offsets, counts, depth_bits, s.tiles_x, n, keys, sorted_ids])
-        _stage(on_stage, "sort: emit keys")
-        wp.utils.radix_sort_pairs(keys, sorted_ids, total, begin_bit=0, end_bit=32 + tile_bits)
-        _stage(on_stage, "sort: pair sort")
-        L.launch("ranges64", binning.tile_ranges_dense64, total, [keys, total, s.num_tiles, tile_start, tile_end])
+    keys = ws.array("tile_keys", 2 * total, wp.int32)
+    if dev.is_cpu:  # a loop per primitive: few threads, no search
+        L.launch("emit", binning.emit_tile_keys, n, [rects, order, offsets, counts, s.tiles_x, keys, sorted_ids])
+    else:  # a thread per (primitive, tile) pair: balanced across the GPU
+        L.launch("emit", binning.emit_tile_keys_per_pair, total,
+                 [rects, order, offsets, counts, s.tiles_x, n, keys, sorted_ids])
+    _stage(on_stage, "sort: emit keys")
+    wp.utils.radix_sort_pairs(keys, sorted_ids, total, begin_bit=0, end_bit=tile_bits)
+    _stage(on_stage, "sort: pair sort")
+    L.launch("ranges", binning.tile_ranges_dense, total, [keys, total, s.num_tiles, tile_start, tile_end])
     _stage(on_stage, "sort: tile ranges")
     return total, tile_start, tile_end, sorted_ids
 

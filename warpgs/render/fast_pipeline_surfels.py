@@ -1,7 +1,8 @@
-"""The surfel (2DGS) pipeline of `pipeline_surfels`, driven the way `fast_pipeline` drives the 3D one: scratch
-memory from a `Workspace`, what the backward reads in the buffers `keep` lends, recorded launches replayed, one
-host synchronisation per call (the sort), and no wp.Tape (the backward launches the blend adjoint, then the
-projection's generated adjoint). Same kernels and maths as the per-call path; tests compare the two.
+"""The surfel (2DGS) pipeline on Warp arrays: project -> footprint -> the shared tile sort -> blend, and the blend
+adjoint, driven the way `fast_pipeline` drives the 3D one: scratch memory from a `Workspace`, what the backward
+reads in the buffers `keep` lends, recorded launches replayed, one host synchronisation per call (the sort), and no
+wp.Tape (the backward launches the blend adjoint, then the projection's generated adjoint). The tests compare it bit
+for bit with a per-call driver of the same kernels (tests/legacy_raster_surfels.py).
 
 Torch-free: arrays come in as Warp arrays or array descriptors."""
 from __future__ import annotations
@@ -11,14 +12,45 @@ from typing import Optional
 
 import warp as wp
 
-from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
+from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project, surfel_steps
 from warpgs.kernels.blend_gpu import warp_sums_supported
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, Keep, TileFrame, _stage, bin_into_tiles,
                                          blend_settings_key, run_blend_adjoint)
-from warpgs.render.pipeline_gaussians import Settings, _block_dims, _block_reduce, _cooperative, _tile_launches
-from warpgs.render.pipeline_surfels import SurfelWanted, surfel_blend_params
+from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
+                                              _tile_launches, blend_params)
 from warpgs.render.workspace import Workspace
+
+# Blended images in the order the torch ops return them (and take their gradients): (name, channels, Warp dtype).
+IMAGES = (("color", 3, wp.vec3), ("alpha", 1, wp.float32), ("depth", 1, wp.float32), ("inv_depth", 1, wp.float32),
+          ("normal", 3, wp.vec3), ("median", 1, wp.float32), ("distortion", 1, wp.float32))
+
+
+@dataclass
+class SurfelWanted:
+    color: bool
+    depth: bool
+    inv_depth: bool
+    normal: bool
+    median: bool
+    distortion: bool
+    num_features: int
+    distortion_scale: float  # m = -distortion_scale / z in the distortion term
+
+
+def image_wanted(wanted: SurfelWanted, name: str) -> bool:
+    """Whether image `name` of IMAGES is rendered (alpha always is)."""
+    return name == "alpha" or bool(getattr(wanted, name))
+
+
+def surfel_blend_params(s: Settings, want: SurfelWanted, first_tile: int) -> surfel_steps.SurfelBlendParams:
+    """The per-launch settings of the surfel blend kernels (CPU and GPU, forward and backward)."""
+    sp = surfel_steps.SurfelBlendParams()
+    sp.base = blend_params(s, Wanted(color=want.color, depth=want.depth, inv_depth=want.inv_depth,
+                                     num_features=want.num_features), first_tile)
+    sp.near, sp.dist_scale = s.near, want.distortion_scale
+    sp.want_normal, sp.want_median, sp.want_distortion = int(want.normal), int(want.median), int(want.distortion)
+    return sp
 
 # The blend adjoint's gradient targets, in its argument order (see run_blend_adjoint).
 ADJOINT_FIELDS = [("transforms", 9, wp.mat33), ("means2d", 2, wp.vec2), ("depths", 1, float), OPACITIES,
@@ -35,7 +67,7 @@ class SurfelFrame(TileFrame):
 
 
 def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, features, outputs,
-            keep: Optional[Keep], sort_mode: str = "two_pass") -> SurfelFrame:
+            keep: Optional[Keep]) -> SurfelFrame:
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth, inv_depth, normal, median, distortion, features)
     arrays the blend writes (1-element dummies for outputs not asked for; features zeroed beforehand for the
@@ -56,7 +88,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     _stage(None, "surfel project")
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "surfel_footprints", surfel_project.surfel_footprints, [transforms, means2d, opacities, valid], depths,
-        s, per_call, sort_mode)
+        s, per_call)
 
     npix = s.width * s.height
     transmittance = per_call("transmittance", npix, float)
@@ -130,8 +162,8 @@ def _params(ws: Workspace, s: Settings, want: SurfelWanted, first: int):
 
 
 def _blend_kernel(dev, s: Settings, want: SurfelWanted, backward: bool, variant: str = "warp_sums"):
-    """(kernel, block_dim): the per-thread CPU kernels (block_dim 1, as the per-call path launches them, so both
-    share one compiled module), or the cooperative GPU ones of surfel_blend_gpu.py (variant: the adjoint)."""
+    """(kernel, block_dim): the per-thread CPU kernels (block_dim 1, as the tests' per-call driver launches them, so
+    both share one compiled module), or the cooperative GPU ones of surfel_blend_gpu.py (variant: the adjoint)."""
     if not _cooperative(dev):
         return (surfel_blend.blend_backward if backward else surfel_blend.blend_forward), 1
     fwd_block, bwd_block = _block_dims(s)

@@ -1,4 +1,5 @@
-"""The torch op: `rasterize` renders 3D Gaussians with the Warp pipeline; gradients flow through a wp.Tape.
+"""The torch op: `rasterize` renders 3D Gaussians with the Warp pipeline (gaussians_fast.py); gradients come from
+the hand-written blend adjoint and the projection's generated adjoint. Also the helpers the other ops share.
 
 Conventions follow gsplat so users can swap: OpenCV camera (x right, y down, z forward), world-to-camera
 `viewmat`, pixel centres at +0.5, wxyz quaternions (unnormalised), linear scales, opacities in [0, 1].
@@ -16,6 +17,7 @@ from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, DEPTH_EPS,
                                     LOWEST_TRANSMITTANCE_MIN, alpha_clamp_problem, choose_tile_size,
                                     current_raster_options)
+from warpgs.render.empty_scene import EmptySceneFunction
 from warpgs.render.gaussians_fast import FastRasterizeFunction
 from warpgs.render.validation import check_finite, check_same_device, check_tensor
 
@@ -121,75 +123,6 @@ def upstream_image_gradients(g_color, g_alpha, g_depth, g_inv, g_feat, settings,
     return gc, ga, gd, gi, gf
 
 
-class _RasterizeFunction(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, settings, wanted, means, quats, scales, opacities, coeffs, features, viewmat, intrinsics,
-                means2d_probe):
-        needs = ctx.needs_input_grad[2:10]
-        any_grad = any(ctx.needs_input_grad[2:])  # the means2d probe alone also needs the blend adjoint
-        grads = [_zero_grad(t) if need else None
-                 for t, need in zip((means, quats, scales, opacities, coeffs, features, viewmat, intrinsics), needs)]
-        # Arrays the hand-written blend adjoint writes into always need a grad buffer when anything is learnt.
-        if any_grad:
-            grads[3] = _zero_grad(opacities) if grads[3] is None else grads[3]
-            grads[5] = _zero_grad(features) if grads[5] is None else grads[5]
-        w_means = _to_wp(means, wp.vec3, grads[0])
-        w_quats = _to_wp(quats, wp.vec4, grads[1])
-        w_scales = _to_wp(scales, wp.vec3, grads[2])
-        w_opac = _to_wp(opacities, wp.float32, grads[3])
-        w_coeffs = _to_wp(coeffs, wp.vec3, grads[4])
-        w_feat = _to_wp(features, wp.float32, grads[5])
-        w_view = _to_wp(viewmat.reshape(1, 4, 4), wp.mat44, None if grads[6] is None else grads[6].view(1, 4, 4))
-        w_intr = _to_wp(intrinsics.reshape(1, 4), wp.vec4, None if grads[7] is None else grads[7].view(1, 4))
-
-        tape = wp.Tape()
-        # With geometry and colour frozen (e.g. training only opacities or features) the projection's
-        # adjoint has nothing to deliver: leave it off the tape.
-        project_grad = any(needs[i] for i in (0, 1, 2, 4, 6, 7))
-        with tape if project_grad else nullcontext():
-            proj = pipeline.project_gaussians(w_means, w_quats, w_scales, w_opac, w_coeffs, w_view, w_intr,
-                                              settings, requires_grad=any_grad)
-        bins = pipeline.bin_gaussians(proj, w_opac, settings)
-        fwd = pipeline.blend_forward(proj, bins, w_opac, w_feat, settings, wanted)
-
-        color, alpha, depth, inv_depth, feats = blended_images(fwd, settings, wanted)
-        visible = wp.to_torch(bins.counts) > 0
-        if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
-            means2d_probe.data.copy_(wp.to_torch(proj.means2d).view(-1, 2))
-        ctx.state = (tape, proj, bins, fwd, w_opac, w_feat, settings, wanted, grads)
-        empty = means.new_zeros(0)
-        outs = [color, alpha, depth, inv_depth, feats]
-        count = torch.tensor(bins.num_intersections)
-        ctx.mark_non_differentiable(visible, count)
-        ctx.device = means.device
-        return tuple(empty if o is None else o for o in outs) + (visible, count)
-
-    @staticmethod
-    def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count):
-        tape, proj, bins, fwd, w_opac, w_feat, settings, wanted, grads = ctx.state
-        device = ctx.device
-        if proj.means2d.shape[0] == 0:  # empty scene: nothing to differentiate (Warp has no grads for size 0)
-            ctx.state = None
-            probe_grad = torch.zeros(0, 2, device=device) if ctx.needs_input_grad[10] else None
-            return (None, None) + tuple(grads) + (probe_grad,)
-
-        with on_torch_stream(device):
-            gc, ga, gd, gi, gf = upstream_image_gradients(g_color, g_alpha, g_depth, g_inv, g_feat, settings, wanted,
-                                                          device)
-
-            g2d = []
-
-            def blend_adjoint():
-                pipeline.blend_backward(proj, bins, w_opac, w_feat, settings, wanted, fwd, gc, ga, gd, gi, gf)
-                if ctx.needs_input_grad[10]:  # read before the projection adjoint consumes it
-                    g2d.append(wp.to_torch(proj.means2d.grad).view(-1, 2).clone())
-
-            tape.record_func(blend_adjoint, [proj.means2d, proj.conics, proj.colors, proj.depths, w_opac, w_feat])
-            tape.backward()
-        ctx.state = None
-        return (None, None) + tuple(grads) + (g2d[0] if g2d else None,)
-
-
 _INTRINSICS_INDEX: dict = {}  # device -> the flat indices of (fx, fy, cx, cy) in a 3x3 K
 _INTRINSICS_SEEN: dict = {}  # id(K) -> (K, its version, its vector), for K tensors that need no gradient
 _INTRINSICS_SEEN_SIZE = 64  # cameras remembered (a training loop cycles through its views' K tensors)
@@ -284,21 +217,20 @@ def rasterize(
                                alpha_max)
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1])
-    device = means.device
-    options = current_raster_options()
-    fast = options.path == "fast" and n > 0
-    if fast:  # returns the expected depth itself (the division runs in a kernel)
+    if n > 0:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, fout, visible, count = FastRasterizeFunction.apply(
-            settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
-            probe)
+            settings, wanted, current_raster_options(), means, quats, scales, opacities, coeffs, feats, viewmat,
+            _intrinsics_vector(K), probe)
     else:
-        with on_torch_stream(device):
-            color, alpha, zacc, inv, fout, visible, count = _RasterizeFunction.apply(
-                settings, wanted, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
-                probe)
+        H, W = settings.height, settings.width
+        shapes = [(H, W, 3) if wanted.color else (0,), (H, W, 1), (H, W, 1) if wanted.depth else (0,),
+                  (H, W, 1) if wanted.inv_depth else (0,), (H, W, wanted.num_features) if feats.shape[1] else (0,)]
+        color, alpha, zacc, inv, fout = EmptySceneFunction.apply(shapes, means, quats, scales, opacities, coeffs,
+                                                                 feats, viewmat, K, probe)
+        visible, count = torch.zeros(0, dtype=torch.bool, device=means.device), 0
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible,
                        num_intersections=int(count), means2d=probe)
-    return set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background, depth_normalized=fast)
+    return set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background, depth_normalized=True)
 
 
 def _stack(per_camera: list) -> RenderOutput:

@@ -218,7 +218,7 @@ def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: st
 
 
 class FastRasterizeFunction(torch.autograd.Function):
-    """Same signature and outputs as gaussians._RasterizeFunction (plus the options), through `fast_pipeline`."""
+    """The 3D op through `fast_pipeline` (tests/legacy_raster.py holds a per-call op it must match bit for bit)."""
 
     @staticmethod
     def forward(ctx, settings, wanted, options, means, quats, scales, opacities, coeffs, features, viewmat,
@@ -255,7 +255,7 @@ class FastRasterizeFunction(torch.autograd.Function):
                    _features_arg(feats.view(npix, nf), nf, layout, state)]
 
         with state.scope():
-            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, options.sort)
+            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep)
             if wanted.depth:
                 fast.normalize_depth(ws, zacc, outputs[1], desc(depth.view(npix), wp.float32), npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0

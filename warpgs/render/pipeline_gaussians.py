@@ -1,6 +1,9 @@
-"""The rasterization pipeline on Warp arrays: project -> bin into tiles -> sort -> blend, and the blend adjoint.
+"""The rasterization pipeline on Warp arrays, per call: project -> bin into tiles -> sort -> blend, and the blend
+adjoint, each stage allocating its own arrays (a wp.Tape can record the projection). The model-parallel ops
+(`splats.py`) run it, the tests' oracles (tests/legacy_raster*.py) too; the render ops run `fast_pipeline`, which
+takes its settings, block sizes and tile chunks from here.
 
-Torch-free: ``warpgs.render.gaussians`` converts tensors and drives these stages; other frontends could too.
+Torch-free: the callers convert tensors and drive these stages.
 """
 from __future__ import annotations
 

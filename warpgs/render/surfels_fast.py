@@ -7,19 +7,19 @@ import torch
 import warp as wp
 
 from warpgs.render import fast_pipeline_surfels as fast
+from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.fast_pipeline import feature_layout, normalize_depth, normalize_depth_backward
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
                                           gradient_buffers, projection_gradients, projection_inputs,
                                           upstream_features, upstream_gradient)
-from warpgs.render.pipeline_surfels import IMAGES, image_wanted
 
 ALPHA, DEPTH = (next(i for i, (name, _, _) in enumerate(IMAGES) if name == n) for n in ("alpha", "depth"))
 
 
 class FastSurfelsFunction(torch.autograd.Function):
-    """Same signature and outputs as surfels._RasterizeSurfelsFunction (plus the options), through
-    `fast_pipeline_surfels`."""
+    """The surfel op through `fast_pipeline_surfels` (tests/legacy_raster_surfels.py holds a per-call op it must
+    match bit for bit)."""
 
     @staticmethod
     def forward(ctx, settings, wanted, options, means, quats, scales, opacities, coeffs, features, viewmat,
@@ -52,7 +52,7 @@ class FastSurfelsFunction(torch.autograd.Function):
 
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
-                                 _features_arg(features, nf, layout, state), outputs, keep, options.sort)
+                                 _features_arg(features, nf, layout, state), outputs, keep)
             if wanted.depth:
                 normalize_depth(ws, zacc, outputs[ALPHA], depth_out, npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
