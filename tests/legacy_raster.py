@@ -11,10 +11,26 @@ import torch
 import warp as wp
 
 from warpgs.render import pipeline_gaussians as pipeline
-from warpgs.render.defaults import choose_tile_size
+from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, choose_tile_size
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, _zero_grad, blended_images,
                                      on_torch_stream, raster_settings, set_image_outputs, upstream_image_gradients)
-from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
+
+
+def warp_inputs(tensors, needs, any_grad: bool, scale_dtype):
+    """(gradient buffers, Warp arrays) of an op's (means, quats, scales, opacities, coeffs, features, viewmat,
+    intrinsics): a zeroed buffer where `needs`, and for opacities and features whenever anything is learnt (the
+    hand-written blend adjoint writes into them)."""
+    grads = [_zero_grad(t) if need else None for t, need in zip(tensors, needs)]
+    if any_grad:
+        for i in (3, 5):
+            grads[i] = _zero_grad(tensors[i]) if grads[i] is None else grads[i]
+    means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = tensors
+    arrays = [_to_wp(means, wp.vec3, grads[0]), _to_wp(quats, wp.vec4, grads[1]),
+              _to_wp(scales, scale_dtype, grads[2]), _to_wp(opacities, wp.float32, grads[3]),
+              _to_wp(coeffs, wp.vec3, grads[4]), _to_wp(features, wp.float32, grads[5]),
+              _to_wp(viewmat.reshape(1, 4, 4), wp.mat44, None if grads[6] is None else grads[6].view(1, 4, 4)),
+              _to_wp(intrinsics.reshape(1, 4), wp.vec4, None if grads[7] is None else grads[7].view(1, 4))]
+    return grads, arrays
 
 
 class _RasterizeFunction(torch.autograd.Function):
@@ -23,20 +39,8 @@ class _RasterizeFunction(torch.autograd.Function):
                 means2d_probe):
         needs = ctx.needs_input_grad[2:10]
         any_grad = any(ctx.needs_input_grad[2:])  # the means2d probe alone also needs the blend adjoint
-        grads = [_zero_grad(t) if need else None
-                 for t, need in zip((means, quats, scales, opacities, coeffs, features, viewmat, intrinsics), needs)]
-        # Arrays the hand-written blend adjoint writes into always need a grad buffer when anything is learnt.
-        if any_grad:
-            grads[3] = _zero_grad(opacities) if grads[3] is None else grads[3]
-            grads[5] = _zero_grad(features) if grads[5] is None else grads[5]
-        w_means = _to_wp(means, wp.vec3, grads[0])
-        w_quats = _to_wp(quats, wp.vec4, grads[1])
-        w_scales = _to_wp(scales, wp.vec3, grads[2])
-        w_opac = _to_wp(opacities, wp.float32, grads[3])
-        w_coeffs = _to_wp(coeffs, wp.vec3, grads[4])
-        w_feat = _to_wp(features, wp.float32, grads[5])
-        w_view = _to_wp(viewmat.reshape(1, 4, 4), wp.mat44, None if grads[6] is None else grads[6].view(1, 4, 4))
-        w_intr = _to_wp(intrinsics.reshape(1, 4), wp.vec4, None if grads[7] is None else grads[7].view(1, 4))
+        grads, (w_means, w_quats, w_scales, w_opac, w_coeffs, w_feat, w_view, w_intr) = warp_inputs(
+            (means, quats, scales, opacities, coeffs, features, viewmat, intrinsics), needs, any_grad, wp.vec3)
 
         tape = wp.Tape()
         # With geometry and colour frozen (e.g. training only opacities or features) the projection's

@@ -14,11 +14,13 @@ from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, choose_tile_size
 from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted, surfel_blend_params
-from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, _zero_grad, on_torch_stream,
-                                     raster_settings, set_image_outputs)
+from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, on_torch_stream, raster_settings,
+                                     set_image_outputs)
 from warpgs.render.pipeline_gaussians import (Bins, Settings, _gradient_buffers, _merge_gradient_buffers,
                                               _tile_launches, choose_blend_kernel, sort_into_tiles)
 from warpgs.render.surfels import DISTORTION_SCALE
+
+from legacy_raster import warp_inputs
 
 
 @dataclass
@@ -147,25 +149,13 @@ class _RasterizeSurfelsFunction(torch.autograd.Function):
     def forward(ctx, settings, wanted, means, quats, scales, opacities, coeffs, features, viewmat, intrinsics):
         needs = ctx.needs_input_grad[2:]
         any_grad = any(needs)
-        grads = [_zero_grad(t) if need else None
-                 for t, need in zip((means, quats, scales, opacities, coeffs, features, viewmat, intrinsics), needs)]
-        # Arrays the hand-written blend adjoint writes into always need a grad buffer when anything is learnt.
-        if any_grad:
-            grads[3] = _zero_grad(opacities) if grads[3] is None else grads[3]
-            grads[5] = _zero_grad(features) if grads[5] is None else grads[5]
-        w_means = _to_wp(means, wp.vec3, grads[0])
-        w_quats = _to_wp(quats, wp.vec4, grads[1])
-        w_scales = _to_wp(scales, wp.vec2, grads[2])
-        w_opac = _to_wp(opacities, wp.float32, grads[3])
-        w_coeffs = _to_wp(coeffs, wp.vec3, grads[4])
-        w_feat = _to_wp(features, wp.float32, grads[5])
-        w_view = _to_wp(viewmat.reshape(1, 4, 4), wp.mat44, None if grads[6] is None else grads[6].view(1, 4, 4))
-        w_intr = _to_wp(intrinsics.reshape(1, 4), wp.vec4, None if grads[7] is None else grads[7].view(1, 4))
+        grads, (w_means, w_quats, w_scales, w_opac, w_coeffs, w_feat, w_view, w_intr) = warp_inputs(
+            (means, quats, scales, opacities, coeffs, features, viewmat, intrinsics), needs, any_grad, wp.vec2)
 
         tape = wp.Tape()
         with tape:
             proj = project_surfels(w_means, w_quats, w_scales, w_coeffs, w_view, w_intr, settings,
-                                                   requires_grad=any_grad)
+                                   requires_grad=any_grad)
         bins = bin_surfels(proj, w_opac, settings)
         fwd = blend_forward(proj, bins, w_opac, w_feat, settings, wanted)
 
