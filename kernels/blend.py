@@ -122,6 +122,17 @@ def tile_of(tid: int, p: BlendParams) -> int:
     return p.first_tile + tid / (p.tile_size * p.tile_size)
 
 
+@wp.func
+def thread_pixel(tid: int, p: BlendParams):
+    """Where blend thread tid works: (inside, pix, tile, fx, fy). inside is False for a thread past the image's
+    right or bottom edge (a partial tile; its pix is 0): the per-thread kernels return, the cooperative ones keep it
+    to help fetch and sum. pix is the row-major pixel index, tile the tile's index, (fx, fy) the pixel centre."""
+    pxy = tile_pixel(tid, p)
+    inside = pxy[0] < p.width and pxy[1] < p.height
+    pix = wp.where(inside, pxy[1] * p.width + pxy[0], 0)
+    return inside, pix, tile_of(tid, p), float(pxy[0]) + 0.5, float(pxy[1]) + 0.5
+
+
 @wp.struct
 class PixelGrads:
     """The upstream gradients at one pixel (zero for outputs not rendered)."""
@@ -166,16 +177,11 @@ def blend_forward(
     out_features: wp.array2d(dtype=float),
     out_last: wp.array(dtype=wp.int32),
 ):
-    tid = wp.tid()
-    pxy = tile_pixel(tid, p)
-    if pxy[0] >= p.width or pxy[1] >= p.height:
+    inside, pix, tile, fx, fy = thread_pixel(wp.tid(), p)
+    if not inside:
         return
-    pix = pxy[1] * p.width + pxy[0]
-    tile = tile_of(tid, p)
     start = tile_start[tile]
     end = tile_end[tile]
-    fx = float(pxy[0]) + 0.5
-    fy = float(pxy[1]) + 0.5
 
     st = new_pixel_state(start)
     for k in range(start, end):
@@ -302,14 +308,10 @@ def blend_backward(
     adj_features: wp.array2d(dtype=float),
 ):
     """The blending adjoint, one thread per pixel, adding each pixel's gradient to global memory (CPU)."""
-    tid = wp.tid()
-    pxy = tile_pixel(tid, p)
-    if pxy[0] >= p.width or pxy[1] >= p.height:
+    inside, pix, tile, fx, fy = thread_pixel(wp.tid(), p)
+    if not inside:
         return
-    pix = pxy[1] * p.width + pxy[0]
-    start = tile_start[tile_of(tid, p)]
-    fx = float(pxy[0]) + 0.5
-    fy = float(pxy[1]) + 0.5
+    start = tile_start[tile]
     up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth)
     T = transmittance[pix]
     suffix = float(0.0)

@@ -33,8 +33,7 @@ from .blend import (
     new_pixel_state,
     pixel_gradient,
     seen_alpha,
-    tile_of,
-    tile_pixel,
+    thread_pixel,
     write_pixel,
 )
 
@@ -95,15 +94,9 @@ def forward_kernel(block_dim: int, num_features: int):
         out_features: wp.array(dtype=FeatureVec),
         out_last: wp.array(dtype=wp.int32),
     ):
-        tid = wp.tid()
-        pxy = tile_pixel(tid, p)
-        inside = pxy[0] < p.width and pxy[1] < p.height  # outside threads still help fetch
-        pix = wp.where(inside, pxy[1] * p.width + pxy[0], 0)
-        tile = tile_of(tid, p)
+        inside, pix, tile, fx, fy = thread_pixel(wp.tid(), p)  # outside threads still help fetch
         start = tile_start[tile]
         end = tile_end[tile]
-        fx = float(pxy[0]) + 0.5
-        fy = float(pxy[1]) + 0.5
         st = new_pixel_state(start)
         acc = FeatureVec()
         if not inside:
@@ -168,12 +161,8 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
     ):
         tid = wp.tid()
         lane = tid % wp.static(block_dim)
-        pxy = tile_pixel(tid, p)
-        inside = pxy[0] < p.width and pxy[1] < p.height  # outside threads still help fetch and sum
-        pix = wp.where(inside, pxy[1] * p.width + pxy[0], 0)
-        start = tile_start[tile_of(tid, p)]
-        fx = float(pxy[0]) + 0.5
-        fy = float(pxy[1]) + 0.5
+        inside, pix, tile, fx, fy = thread_pixel(tid, p)  # outside threads still help fetch and sum
+        start = tile_start[tile]
         up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth)
         up_features = FeatureVec()
         if wp.static(has_features):
@@ -281,12 +270,8 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int):
     ):
         tid = wp.tid()
         lane = tid % WARP
-        pxy = tile_pixel(tid, p)
-        inside = pxy[0] < p.width and pxy[1] < p.height  # outside threads still help fetch and vote
-        pix = wp.where(inside, pxy[1] * p.width + pxy[0], 0)
-        start = tile_start[tile_of(tid, p)]
-        fx = float(pxy[0]) + 0.5
-        fy = float(pxy[1]) + 0.5
+        inside, pix, tile, fx, fy = thread_pixel(tid, p)  # outside threads still help fetch and vote
+        start = tile_start[tile]
         up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth)
         up_features = FeatureVec()
         if wp.static(has_features):

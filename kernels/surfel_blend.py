@@ -3,7 +3,7 @@ back-to-front adjoint, built from the per-pixel steps of `surfel_steps.py` (the 
 `surfel_blend_gpu.py` has the block-cooperative versions GPUs run."""
 import warp as wp
 
-from .blend import tile_of, tile_pixel
+from .blend import thread_pixel
 from .surfel_steps import (
     ROW_SUFFIX,
     ROW_T,
@@ -52,16 +52,11 @@ def blend_forward(
     out_last: wp.array(dtype=wp.int32),
 ):
     """One thread per pixel (CPU)."""
-    tid = wp.tid()
-    pxy = tile_pixel(tid, p.base)
-    if pxy[0] >= p.base.width or pxy[1] >= p.base.height:
+    inside, pix, tile, fx, fy = thread_pixel(wp.tid(), p.base)
+    if not inside:
         return
-    pix = pxy[1] * p.base.width + pxy[0]
-    tile = tile_of(tid, p.base)
     start = tile_start[tile]
     end = tile_end[tile]
-    fx = float(pxy[0]) + 0.5
-    fy = float(pxy[1]) + 0.5
 
     st = new_surfel_state(start)
     for k in range(start, end):
@@ -115,14 +110,10 @@ def blend_backward(
     adj_features: wp.array2d(dtype=float),
 ):
     """The blending adjoint, one thread per pixel, adding each pixel's gradient to global memory (CPU)."""
-    tid = wp.tid()
-    pxy = tile_pixel(tid, p.base)
-    if pxy[0] >= p.base.width or pxy[1] >= p.base.height:
+    inside, pix, tile, fx, fy = thread_pixel(wp.tid(), p.base)
+    if not inside:
         return
-    pix = pxy[1] * p.base.width + pxy[0]
-    start = tile_start[tile_of(tid, p.base)]
-    fx = float(pxy[0]) + 0.5
-    fy = float(pxy[1]) + 0.5
+    start = tile_start[tile]
     pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, grad_color, grad_alpha, grad_depth,
                           grad_inv_depth, grad_normal, grad_median, grad_distortion)
     T = transmittance[pix]  # transmittance behind the current surfel, walking back to front

@@ -14,7 +14,7 @@ import functools
 
 import warp as wp
 
-from .blend import tile_of, tile_pixel
+from .blend import thread_pixel
 from .blend_gpu import WARP, feature_vector_type
 from .warp_ops import lane_any, lane_max, lane_sum
 from .surfel_steps import (
@@ -92,15 +92,9 @@ def forward_kernel(block_dim: int, num_features: int):
         out_features: wp.array(dtype=FeatureVec),
         out_last: wp.array(dtype=wp.int32),
     ):
-        tid = wp.tid()
-        pxy = tile_pixel(tid, p.base)
-        inside = pxy[0] < p.base.width and pxy[1] < p.base.height  # outside threads still help fetch
-        pix = wp.where(inside, pxy[1] * p.base.width + pxy[0], 0)
-        tile = tile_of(tid, p.base)
+        inside, pix, tile, fx, fy = thread_pixel(wp.tid(), p.base)  # outside threads still help fetch
         start = tile_start[tile]
         end = tile_end[tile]
-        fx = float(pxy[0]) + 0.5
-        fy = float(pxy[1]) + 0.5
         st = new_surfel_state(start)
         acc = FeatureVec()
         done = wp.where(inside, 0, 1)  # 1 once the pixel is saturated
@@ -181,12 +175,8 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
     ):
         tid = wp.tid()
         lane = tid % wp.static(block_dim)
-        pxy = tile_pixel(tid, p.base)
-        inside = pxy[0] < p.base.width and pxy[1] < p.base.height  # outside threads still help fetch and sum
-        pix = wp.where(inside, pxy[1] * p.base.width + pxy[0], 0)
-        start = tile_start[tile_of(tid, p.base)]
-        fx = float(pxy[0]) + 0.5
-        fy = float(pxy[1]) + 0.5
+        inside, pix, tile, fx, fy = thread_pixel(tid, p.base)  # outside threads still help fetch and sum
+        start = tile_start[tile]
         pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, grad_color, grad_alpha,
                               grad_depth, grad_inv_depth, grad_normal, grad_median, grad_distortion)
         up_features = FeatureVec()
@@ -299,12 +289,8 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int):
     ):
         tid = wp.tid()
         lane = tid % WARP
-        pxy = tile_pixel(tid, p.base)
-        inside = pxy[0] < p.base.width and pxy[1] < p.base.height  # outside threads still help fetch and vote
-        pix = wp.where(inside, pxy[1] * p.base.width + pxy[0], 0)
-        start = tile_start[tile_of(tid, p.base)]
-        fx = float(pxy[0]) + 0.5
-        fy = float(pxy[1]) + 0.5
+        inside, pix, tile, fx, fy = thread_pixel(tid, p.base)  # outside threads still help fetch and vote
+        start = tile_start[tile]
         pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, grad_color, grad_alpha,
                               grad_depth, grad_inv_depth, grad_normal, grad_median, grad_distortion)
         up_features = FeatureVec()
