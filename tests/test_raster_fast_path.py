@@ -209,3 +209,14 @@ def test_depth_division_kernel_matches_torch(with_alpha):
     _assert_same(results[1][0], results[0][0], "depth")
     for name, g in results[0][1].items():
         _assert_same(results[1][1][name], g, f"grad {name}")
+
+
+def test_removed_and_unknown_raster_options_are_named():
+    """`path` (the legacy host path) and `sort` (the single 64-bit sort) are gone: asking for them names them."""
+    for name in ("path", "sort"):
+        with pytest.raises(ValueError, match=f"unknown option.*'{name}'"):
+            with raster_options(**{name: "legacy"}):
+                pass
+    with pytest.raises(ValueError, match="backward_kernel"):
+        with raster_options(backward_kernel="fastest"):
+            pass
