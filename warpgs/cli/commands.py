@@ -1,7 +1,7 @@
 """Command-line tools: `warpgs-train`, `warpgs-render`, `warpgs-eval` (also `python -m warpgs.cli train|render|eval`).
 
     warpgs-train [CONFIG] [--data PATH] [--out DIR] [--resume] [--nproc N] [key=value ...]
-    warpgs-render --model OUT [--orbit N [--video [--fps F]]] [--split test|train]
+    warpgs-render --model OUT [--orbit N [--video [--fps F]]] [--split test|train] [--outputs rgb,depth,normal,alpha]
     warpgs-eval --model OUT [--split test|train] [--no-lpips] [--save-images]
 
 CONFIG is a YAML file or the name of a preset in configs/ (default, gaussians, surfels, ...). With no CONFIG,
@@ -263,17 +263,34 @@ def load_run(model_dir, device: Optional[str] = None, overrides: Sequence[str] =
 
 # ----- warpgs-render ------------------------------------------------------------------------------------------
 def render_main(argv: Optional[List[str]] = None) -> int:
+    from warpgs.cli.outputs import DEFAULT_DEPTH_SCALE
+
     ap = argparse.ArgumentParser(prog="warpgs-render", description="Render a trained model to PNG files.")
     ap.add_argument("--model", required=True, help="a warpgs-train output folder")
     ap.add_argument("--orbit", type=int, metavar="N", help="render N views on an orbit instead of the test cameras")
     ap.add_argument("--split", default="test", choices=("test", "train"), help="cameras to render (default test)")
     ap.add_argument("--out", help="where the PNGs go (default: MODEL/renders/<split> or MODEL/renders/orbit)")
     ap.add_argument("--device", help="cpu, cuda, ... (default: the run's)")
-    ap.add_argument("--depth", action="store_true", help="also write normalised inverse-depth images")
+    ap.add_argument("--outputs", default="rgb", metavar="LIST",
+                    help="comma-separated maps to write per view: rgb, depth (EXR, 16-bit PNG x --depth-scale and a "
+                         "coloured preview; surfels: median depth, 3D Gaussians: expected depth), normal (EXR and "
+                         "an RGB preview; surfels only), alpha (default rgb)")
+    ap.add_argument("--depth", action="store_true", help="the same as adding depth to --outputs")
+    ap.add_argument("--depth-scale", type=float, default=DEFAULT_DEPTH_SCALE, metavar="S",
+                    help=f"the 16-bit depth PNGs hold depth x S (default {DEFAULT_DEPTH_SCALE:g}: millimetres for a "
+                         f"scene in metres); depth beyond 65535 / S is 0 there (the EXR keeps it)")
     ap.add_argument("--video", action="store_true",
                     help="with --orbit: also write the views as OUT/orbit.mp4 (pip install 'warpgs[video]')")
     ap.add_argument("--fps", type=float, default=30.0, help="frames per second of --video (default 30)")
     args = ap.parse_args(argv)
+    from warpgs.model.maps import parse_maps
+
+    try:
+        maps = parse_maps(args.outputs + (",depth" if args.depth else ""))
+        if not args.depth_scale > 0:
+            raise ValueError(f"--depth-scale: expected a positive number, got {args.depth_scale}")
+    except ValueError as e:
+        return report_error("warpgs-render", str(e), EXIT_CONFIG)
     if args.video:  # before loading anything: a missing extra should not cost a scene load and half the renders
         from warpgs.cli.video import VideoUnavailable, check_video_support
 
@@ -293,8 +310,14 @@ def render_main(argv: Optional[List[str]] = None) -> int:
 
     import torch
 
-    from warpgs.data.formats.image_io import write_png
+    from warpgs.cli.outputs import MapStats, write_maps
+    from warpgs.model.maps import render_outputs
 
+    kind = trainer.model.kind
+    try:
+        outputs = render_outputs(kind, maps + (("rgb",) if args.video else ()))
+    except ValueError as e:
+        return report_error("warpgs-render", str(e), EXIT_CONFIG)
     if args.orbit is not None:
         from warpgs.cli.orbit import orbit_cameras
 
@@ -311,7 +334,6 @@ def render_main(argv: Optional[List[str]] = None) -> int:
         split, views = trainer.eval_views(args.split)
         label = split
     out_dir = Path(args.out) if args.out else Path(args.model) / "renders" / label
-    outputs = ("rgb", "inv_depth") if args.depth else ("rgb",)
     t0 = time.perf_counter()
     if args.video:
         from warpgs.cli.video import Mp4Writer
@@ -319,20 +341,20 @@ def render_main(argv: Optional[List[str]] = None) -> int:
         video = Mp4Writer(out_dir / f"{label}.mp4", args.fps)
     else:
         video = contextlib.nullcontext()
+    stats = MapStats()
     with torch.no_grad(), video:
         for v in views:
             r = trainer.render(v, outputs)
-            rgb = r.rgb.clamp(0, 1).cpu().numpy()
-            write_png(out_dir / f"{Path(v.name).stem}.png", rgb)
+            write_maps(out_dir, Path(v.name).stem, maps, r, kind, stats, args.depth_scale)
             if args.video:
-                video.append(rgb)
-            if args.depth:
-                inv = r.inv_depth
-                inv = inv / inv.max().clamp_min(1e-12)
-                write_png(out_dir / f"{Path(v.name).stem}_invdepth.png", inv[..., 0].cpu().numpy())
+                video.append(r.rgb.clamp(0, 1).cpu().numpy())
     dt = time.perf_counter() - t0
-    print(f"rendered {len(views)} views of {trainer.model.num_primitives} {trainer.model.kind} in {dt:.2f} s "
-          f"({len(views) / max(dt, 1e-9):.1f} views/s) to {out_dir.resolve()}")
+    print(f"rendered {len(views)} views ({', '.join(maps)}: {stats.files} files) of "
+          f"{trainer.model.num_primitives} {kind} in {dt:.2f} s ({len(views) / max(dt, 1e-9):.1f} views/s) "
+          f"to {out_dir.resolve()}")
+    if stats.depth_beyond_png:
+        print(f"note: {stats.depth_beyond_png} depth pixels lie beyond 65535 / {args.depth_scale:g} and are 0 in "
+              f"the 16-bit PNGs (the EXRs hold them); a smaller --depth-scale keeps them")
     if args.video:
         print(f"video: {video.path.resolve()} ({video.frames} frames at {args.fps:g} fps)")
     return 0
