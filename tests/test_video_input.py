@@ -15,6 +15,7 @@ from warpgs.cli.process import main as process_main  # noqa: E402
 from warpgs.data.errors import MissingSceneFile, SceneError  # noqa: E402
 from warpgs.data.video import (TooFewSharpFrames, is_video, select_frames, sharpness, video_scene_dir,  # noqa: E402
                                video_to_scene)
+from warpgs.data.video.scene import finished_scene  # noqa: E402
 from warpgs.data.video.decode import iter_frames  # noqa: E402
 
 
@@ -124,6 +125,7 @@ def test_video_to_scene_writes_frames_runs_sfm_once_and_reuses(tmp_path):
     record = json.loads((out / "video.json").read_text())
     assert record["extracted"]["indices"] == indices and record["extracted"]["total"] == 40
     assert len(sfm.calls) == 1 and sfm.calls[0][0] == out / "images" and sfm.calls[0][2]["mapper"] == "global"
+    assert finished_scene(video)  # what warpgs-train --data clip.mp4 checks: trains on it, whatever --frames made it
     stamps = {p.name: p.stat().st_mtime_ns for p in (out / "images").iterdir()}
     # Same video, same settings: nothing is redone.
     assert video_to_scene(video, frames=10, min_frames=5, progress=False, sfm=sfm) == out
@@ -131,6 +133,7 @@ def test_video_to_scene_writes_frames_runs_sfm_once_and_reuses(tmp_path):
     assert {p.name: p.stat().st_mtime_ns for p in (out / "images").iterdir()} == stamps
     # An interrupted SfM (no model yet) is resumed without extracting again.
     (out / "sparse" / "0").rmdir()
+    assert not finished_scene(video)
     video_to_scene(video, frames=10, min_frames=5, progress=False, sfm=sfm)
     assert len(sfm.calls) == 2
     assert {p.name: p.stat().st_mtime_ns for p in (out / "images").iterdir()} == stamps

@@ -200,11 +200,13 @@ def _scene_from_video_once(video, quiet: bool) -> Path:
     """The scene folder of `--data VIDEO`, made on the first call. The ranks of a distributed run started
     without --nproc (torchrun itself) would each write it at once, so they only reuse a finished one."""
     from warpgs.cli.process import scene_from_video
-    from warpgs.data.video.scene import video_scene_dir
+    from warpgs.data.video.scene import finished_scene, video_scene_dir
     from warpgs.train.distributed import env_world_size
 
     out = video_scene_dir(video)
-    if env_world_size() > 1 and not (out / "sparse" / "0").is_dir():
+    if finished_scene(video, out):  # made earlier, by this command or by warpgs-process with any --frames
+        return out
+    if env_world_size() > 1:
         raise ValueError(f"--data {video}: in a distributed run, make the scene first: warpgs-process {video}")
     return scene_from_video(video, out, progress=not quiet)
 

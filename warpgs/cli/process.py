@@ -55,3 +55,9 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 
 __all__ = ["main", "scene_from_video", "video_scene_dir"]
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())

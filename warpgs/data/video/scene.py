@@ -39,6 +39,23 @@ def _settings(video: Path, frames: int, max_size: int, blur_ratio: float) -> dic
             "max_size": int(max_size), "blur_ratio": float(blur_ratio)}
 
 
+def finished_scene(video: PathLike, out: Optional[PathLike] = None) -> bool:
+    """Whether `out` (default video_scene_dir(video)) holds a finished scene made from this very video (same
+    file, size and time stamp), whatever frame settings it was made with: `warpgs-train --data VIDEO` trains on
+    what an earlier `warpgs-process VIDEO --frames N` made."""
+    video = Path(video)
+    out = Path(out) if out is not None else video_scene_dir(video)
+    try:
+        record = read_json(out / RECORD)
+        mine = _settings(video, 1, 0, 0.0)
+        made = record["settings"]
+        same = all(made[k] == mine[k] for k in ("video", "bytes", "mtime_ns"))
+        frames = all((out / "images" / _frame_name(i)).is_file() for i in record["extracted"]["indices"])
+        return bool(same and frames and record.get("sfm") and (out / "sparse" / "0").is_dir())
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
 def _write_record(out: Path, record: dict) -> None:
     atomic_write_bytes(out / RECORD, (json.dumps(record, indent=1) + "\n").encode())
 
