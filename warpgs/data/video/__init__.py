@@ -5,8 +5,9 @@
     scene.py      video_to_scene: the stages (score, extract, SfM), reusing what an earlier call left
 """
 from warpgs.data.video.decode import VIDEO_EXTENSIONS, VideoUnavailable, is_video, require_video_support
-from warpgs.data.video.scene import DEFAULT_FRAMES, video_scene_dir, video_to_scene
+from warpgs.data.video.scene import DEFAULT_FRAMES, finished_scene, video_scene_dir, video_to_scene
 from warpgs.data.video.sharpness import FrameSelection, TooFewSharpFrames, select_frames, sharpness
 
 __all__ = ["VIDEO_EXTENSIONS", "VideoUnavailable", "is_video", "require_video_support", "DEFAULT_FRAMES",
-           "video_scene_dir", "video_to_scene", "FrameSelection", "TooFewSharpFrames", "select_frames", "sharpness"]
+           "finished_scene", "video_scene_dir", "video_to_scene", "FrameSelection", "TooFewSharpFrames",
+           "select_frames", "sharpness"]
