@@ -46,6 +46,7 @@ def test_data_without_a_preset_trains_with_the_gaussians_recipe(capsys, tmp_path
     assert cfg["data"]["path"] == str(tmp_path)
     assert (cfg["train"]["steps"], cfg["strategy"]["reset_every"]) == (30000, 3000)
     assert resolved(capsys, [f"data.path={tmp_path}"])["train"]["steps"] == 30000
+    assert resolved(capsys, ["data.path=null"])["train"]["steps"] == 1000  # the built-in scene after all
     demo = resolved(capsys, [])
     assert (demo["data"]["path"], demo["train"]["steps"], demo["strategy"]["reset_every"]) == (None, 1000, 0)
     assert resolved(capsys, ["default", "--data", str(tmp_path)])["train"]["steps"] == 1000  # named: as asked

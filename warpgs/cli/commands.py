@@ -190,10 +190,11 @@ def train_main(argv: Optional[List[str]] = None) -> int:
 def _implied_preset(args, overrides: Sequence[str]) -> Optional[str]:
     """The preset when no CONFIG is given: a scene of the user's (--data, or a data.path override) trains with
     the real-capture recipe `gaussians`; only the built-in demo scene gets `default` (None)."""
-    data_keys = {"data", "data.path"}
-    if args.data or any(item.split("=", 1)[0].strip() in data_keys for item in overrides):
-        return "gaussians"
-    return None
+    def names_a_scene(item: str) -> bool:
+        key, _, value = item.partition("=")
+        return key.strip() in ("data", "data.path") and value.strip().lower() not in ("", "null", "none", "~")
+
+    return "gaussians" if args.data or any(names_a_scene(item) for item in overrides) else None
 
 
 def _scene_from_video_once(video, quiet: bool) -> Path:
