@@ -2,7 +2,8 @@
 
 A source turns (viewmat, K, width, height) into an [H, W, 3] float image in [0, 1] through warpgs's own render
 path, under torch.no_grad and its lock: the colour, or with `mode` the depth, normals or alpha as colours
-(model/maps.py, the same previews as warpgs-render --outputs), and says where a browser should start (its training cameras and points).
+(model/maps.py, the same previews as warpgs-render --outputs). It also says where a browser should start (its
+training cameras and points).
 `version()` changes when the model does, so the viewer knows when to render again.
 """
 from __future__ import annotations
