@@ -52,7 +52,7 @@ def time_render_only(trainer: Trainer, steps: int, device: str) -> float:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", help="scene folder")
     ap.add_argument("--config", default="gaussians")
     ap.add_argument("--device", default="cuda")
