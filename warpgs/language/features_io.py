@@ -86,14 +86,6 @@ def load_view_features(folder, image_name: str, level: int = 0) -> Tuple[np.ndar
     return seg, feat
 
 
-def dense_feature_map(segments: np.ndarray, features: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """([H, W, C] features with zeros where there is no segment, [H, W] bool valid)."""
-    valid = segments >= 0
-    out = np.zeros(segments.shape + (features.shape[1],), np.float32)
-    out[valid] = features[segments[valid]]
-    return out, valid
-
-
 def resize_segments(segments: np.ndarray, width: int, height: int) -> np.ndarray:
     """Nearest-neighbour resize of a segment map to [height, width] (pixel centres)."""
     h, w = segments.shape
