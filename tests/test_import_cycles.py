@@ -115,10 +115,11 @@ def test_the_graph_sees_every_kind_of_import(tmp_path):
                      "pkg.sub.c": {"pkg.sub.b"}, "pkg.d": {"pkg.sub.c", "pkg"}}
     assert cycles(graph) == [["pkg.a", "pkg.sub.b"]]
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
-    assert "warpgs.kernels.blend" in import_graph()["warpgs.render.fast_pipeline"]  # kernels/ is warpgs.kernels
 
 
 def test_no_import_cycles():
-    found = cycles(import_graph())
+    graph = import_graph()
+    assert "warpgs.kernels.blend" in graph["warpgs.render.fast_pipeline"]  # kernels/ is read as warpgs.kernels
+    found = cycles(graph)
     assert not found, "import cycles (modules that import each other, directly or in a ring): " + "; ".join(
         " <-> ".join(c) for c in found)
