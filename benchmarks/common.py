@@ -42,8 +42,9 @@ def capture_config(data, *, device: str, steps: int, seed=None, eval_every: int 
     return load_config(resolve_config_source(config), items)
 
 
-def sync(device: str) -> None:
-    if device.startswith("cuda"):
+def sync(device) -> None:
+    """Wait for the GPU (device: a name or a torch.device); nothing on the CPU."""
+    if torch.device(device).type == "cuda":
         torch.cuda.synchronize()
 
 

@@ -16,11 +16,10 @@ from pathlib import Path
 
 import torch
 
-from common import ROOT, write_json
+from common import ROOT, sync, write_json
 
 sys.path.insert(0, str(ROOT))
 
-from train_compare import sync  # noqa: E402
 from warpgs.cli.commands import resolve_config_source  # noqa: E402
 from warpgs.config.loader import load_config  # noqa: E402
 from warpgs.train.trainer import Trainer  # noqa: E402

@@ -21,17 +21,13 @@ import time
 
 import torch
 
+from common import sync
 from warpgs.metrics.image import psnr, ssim
 from warpgs.render.gaussians import rasterize
 from warpgs.train import setup as train_setup
 from warpgs.train.checkpoint import seed_everything
 from warpgs.train.optim import means_lr_at
 from warpgs.train.trainer import Trainer
-
-
-def sync(device) -> None:
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
 
 
 def largest_drop(counts: list) -> dict:
