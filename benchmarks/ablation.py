@@ -256,7 +256,7 @@ def print_table(payload: dict, rows: list[dict]) -> None:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=None,
                     help="an LLFF scene folder (e.g. data/fern): the real few-view protocol instead of the synthetic "
                          "light field")

@@ -25,7 +25,7 @@ HERE = Path(__file__).resolve().parent
 
 
 def parse(argv):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--jobs", type=int, default=2, help="processes at once (default 2)")
     ap.add_argument("--name", required=True, help="result file name of the merged table")
     ap.add_argument("--only", default=None, help="comma-separated settings (default: all of ablation.py's)")

@@ -51,7 +51,7 @@ def merge(payloads: list[tuple[str, dict]]) -> dict:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("name", help="result file name (written to benchmarks/results/, or $OUT)")
     ap.add_argument("files", nargs="+", help="ablation JSON files written by benchmarks/ablation.py")
     args = ap.parse_args(argv)

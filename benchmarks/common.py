@@ -1,7 +1,6 @@
 """Shared helpers for the benchmark scripts: timing, the standard scenes, result files, real-capture configs."""
 from __future__ import annotations
 
-import importlib
 import json
 import os
 import statistics
@@ -43,19 +42,9 @@ def capture_config(data, *, device: str, steps: int, seed=None, eval_every: int 
     return load_config(resolve_config_source(config), items)
 
 
-def import_gsplat_python(src, module: str, what: str):
-    """Import `module` of gsplat's Python sources (src: a folder holding gsplat/, first on sys.path; None: the
-    installed gsplat), or exit naming --gsplat-src and what was wanted."""
-    if src:
-        sys.path.insert(0, str(Path(src).resolve()))
-    try:
-        return importlib.import_module(module)
-    except ImportError as e:
-        raise SystemExit(f"--gsplat-src: gsplat's {what} is not importable ({e})")
-
-
-def sync(device: str) -> None:
-    if device.startswith("cuda"):
+def sync(device) -> None:
+    """Wait for the GPU (device: a name or a torch.device); nothing on the CPU."""
+    if torch.device(device).type == "cuda":
         torch.cuda.synchronize()
 
 

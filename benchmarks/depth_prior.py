@@ -78,7 +78,7 @@ def run(width: int, height: int, planes, workdir: str, threads: int) -> dict:
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", default="128x96", help="comma-separated WxH list")
     parser.add_argument("--planes", default="auto", help="comma-separated plane counts, or auto")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads for the sweep (estimator default 1)")

@@ -86,7 +86,7 @@ def run_variant(name: str, spec: dict, args, scene_path: Path, seed: int, work: 
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--width", type=int, default=64)
     ap.add_argument("--height", type=int, default=48)

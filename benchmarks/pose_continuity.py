@@ -23,7 +23,7 @@ from warpgs.data.pose_checks import continuity, folded_halves, side_ranges  # no
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", help="scene folder with poses (COLMAP, LLFF, transforms.json)")
     ap.add_argument("--format", default=None, help="the loader to use where a folder has several (e.g. colmap)")
     ap.add_argument("--max-turn", type=float, default=60.0, help="a jump turns more than this many degrees")

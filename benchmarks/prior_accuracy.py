@@ -79,7 +79,7 @@ def mean_of(rows: list[dict], key: str):
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", help="LLFF scene folder with sparse/0/points3D.bin (e.g. data/fern)")
     ap.add_argument("--n-train", type=int, default=3, help="training views (LLFF protocol), default 3")
     ap.add_argument("--downscale", type=int, default=8, help="image downscale (default 8: images_8)")

@@ -16,11 +16,10 @@ from pathlib import Path
 
 import torch
 
-from common import ROOT, write_json
+from common import ROOT, sync, write_json
 
 sys.path.insert(0, str(ROOT))
 
-from train_compare import sync  # noqa: E402
 from warpgs.cli.commands import resolve_config_source  # noqa: E402
 from warpgs.config.loader import load_config  # noqa: E402
 from warpgs.train.trainer import Trainer  # noqa: E402
@@ -52,7 +51,7 @@ def time_render_only(trainer: Trainer, steps: int, device: str) -> float:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", help="scene folder")
     ap.add_argument("--config", default="gaussians")
     ap.add_argument("--device", default="cuda")

@@ -72,7 +72,7 @@ def renderers(params: dict, view, sh_degree: int, background: torch.Tensor):
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", help="scene folder (COLMAP, transforms.json or LLFF)")
     ap.add_argument("--downscale", type=int, default=None)
     ap.add_argument("--device", default="cuda")

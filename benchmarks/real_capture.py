@@ -24,7 +24,7 @@ from common import ROOT, print_table, write_json
 
 sys.path.insert(0, str(ROOT))
 
-from train_compare import initial_model, run_gsplat, run_warpgs  # noqa: E402
+from train_compare import initial_model, run_gsplat, run_warpgs, warpgs_as_gsplat  # noqa: E402
 from warpgs.cli.commands import resolve_config_source  # noqa: E402
 from warpgs.config.loader import load_config  # noqa: E402
 from warpgs.data.pose_checks import scene_pose_jumps  # noqa: E402
@@ -56,7 +56,7 @@ def evaluation_period(eval_every: int, marks: list) -> int:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", help="scene folder (COLMAP, transforms.json or LLFF)")
     ap.add_argument("--config", default="gaussians", help="preset or YAML (default: gaussians, the 3DGS recipe)")
     ap.add_argument("--device", default="cpu")
@@ -70,11 +70,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--gsplat-reset", choices=("auto", "off"), default="auto",
                     help="auto: the gsplat loop applies the opacity resets gsplat 1.5.3's DefaultStrategy skips "
                          "(see benchmarks/train_compare.py); off: the release as it is")
-    ap.add_argument("--loop-raster", choices=("gsplat", "warpgs", "warpgs+gsplat-visibility"), default="gsplat",
-                    help="the gsplat loop's rasterizer: gsplat's, or warpgs's through benchmarks/strategy_compare.py's "
-                         "shim (then the loop and strategy are gsplat's and the renderer is ours: tells a renderer "
-                         "difference from a loop one on the GPU); warpgs+gsplat-visibility: the same, with the "
-                         "strategy counting a primitive as seen by gsplat's rule (benchmarks/visibility_compare.py)")
+    ap.add_argument("--loop-raster", choices=("gsplat", "warpgs"), default="gsplat",
+                    help="the gsplat loop's rasterizer: gsplat's, or warpgs's (train_compare.warpgs_as_gsplat: then "
+                         "the loop and strategy are gsplat's and the renderer is ours, which tells a renderer "
+                         "difference from a loop one)")
     ap.add_argument("--tag", default="", help="suffix of the result file name")
     ap.add_argument("--lpips", action="store_true", help="score LPIPS at the end (needs its weights locally)")
     ap.add_argument("--out", default=None, help="output folder for the warpgs run (default: a temp folder)")
@@ -110,17 +109,11 @@ def main(argv=None) -> dict:
     scene = trainer.scene
     print(f"{data.name}: {scene.summary()}; init {trainer.model.num_primitives} primitives "
           f"from {trainer.init_source}", flush=True)
-    rule = "gsplat" if args.loop_raster == "warpgs+gsplat-visibility" else "warpgs"  # with --loop-raster warpgs*
     runs = [] if args.only == "gsplat" else [run_warpgs(trainer, counts, eval_every)]
     if args.gsplat and args.only != "warpgs":
-        if args.loop_raster != "gsplat":
-            from functools import partial
-
-            from strategy_compare import warpgs_as_gsplat
-
-            runs.append(run_gsplat(cfg, eval_every, scene, start, args.gsplat_reset,
-                                   rasterization=partial(warpgs_as_gsplat, visibility=rule),
-                                   system=f"gsplat loop, warpgs raster, {rule} visibility"))
+        if args.loop_raster == "warpgs":
+            runs.append(run_gsplat(cfg, eval_every, scene, start, args.gsplat_reset, rasterization=warpgs_as_gsplat,
+                                   system="gsplat loop, warpgs raster, warpgs visibility"))
         else:
             runs.append(run_gsplat(cfg, eval_every, scene, start, args.gsplat_reset))
 
@@ -151,7 +144,7 @@ def main(argv=None) -> dict:
     name = f"real_capture_{data.resolve().name}_{torch.device(args.device).type}" + ("_gsplat" if args.gsplat else "")
     name += f"_{args.only}_only" if args.only else ""
     if args.loop_raster != "gsplat" and args.only != "warpgs":
-        name += "_warpgs_raster" + ("_gsplat_visibility" if rule == "gsplat" else "")
+        name += "_warpgs_raster"
     name += f"_{marks[-1]}" if marks[-1] != 7000 else ""
     name += f"_seed{args.seed}" if args.seed else ""
     name += f"_{args.tag}" if args.tag else ""

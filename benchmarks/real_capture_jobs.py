@@ -44,7 +44,7 @@ def split_at_dashes(argv):
 
 
 def parse(argv):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog="then `--` and real_capture.py's arguments for every process")
     ap.add_argument("data", help="scene folder (as real_capture.py takes it)")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")

@@ -66,7 +66,7 @@ def summary(rows: list[dict]) -> list[dict]:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("name", help="output name (benchmarks/results/NAME.json)")
     ap.add_argument("files", nargs="+", help="real_capture.py result JSON files")
     ap.add_argument("--marks", default="7000,30000", help="comma-separated steps to compare")

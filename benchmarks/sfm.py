@@ -86,7 +86,7 @@ def reconstruct(folder: Path, out: Path, matcher: str, threads: int, peak_thresh
 
 
 def main(argv=None) -> list:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("folders", nargs="+", help="image folders, one capture each")
     ap.add_argument("--matcher", default="auto", help="auto | exhaustive | sequential | retrieval")
     ap.add_argument("--mapper", default="incremental", help="incremental | global (GLOMAP)")

@@ -34,7 +34,7 @@ from warpgs.train.distributed import Ranks, shutdown_process_group  # noqa: E402
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", help="cpu (gloo) or cuda (NCCL, one GPU a rank)")
     ap.add_argument("--primitives", type=int, default=20_000, help="primitives in the whole model")
     ap.add_argument("--size", default="320x180", help="image WxH")

@@ -167,7 +167,7 @@ def plot(rows, fronts, path):
 
 
 def main():
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--n", type=int, default=20_000)
     ap.add_argument("--resolution", default="320x240")

@@ -1,7 +1,7 @@
 """The two training loops the training benchmarks compare, on the same data, initial points, view order, steps,
 learning rates and losses: the warpgs Trainer, and a plain loop over gsplat's `rasterization` and
-`DefaultStrategy` (used by benchmarks/train.py on the synthetic scene and benchmarks/real_capture.py on real
-captures).
+`DefaultStrategy` (benchmarks/real_capture.py runs them on real captures). `warpgs_as_gsplat` puts warpgs's
+rasterizer inside the gsplat loop, so that the loop and strategy can be told from the renderer.
 
 Differences left in the gsplat loop, on purpose or by necessity: gsplat's DefaultStrategy has no primitive
 budget (ours stops densifying at strategy.max_primitives), samples split children with the global RNG, and
@@ -21,16 +21,13 @@ import time
 
 import torch
 
+from common import sync
 from warpgs.metrics.image import psnr, ssim
+from warpgs.render.gaussians import rasterize
 from warpgs.train import setup as train_setup
 from warpgs.train.checkpoint import seed_everything
 from warpgs.train.optim import means_lr_at
 from warpgs.train.trainer import Trainer
-
-
-def sync(device) -> None:
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
 
 
 def largest_drop(counts: list) -> dict:
@@ -116,8 +113,8 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "au
     """The plain loop: gsplat rasterization + DefaultStrategy on `scene`, from the initial parameters `start`
     (the warpgs model's), with our losses, learning rates and view order. gsplat_reset: "auto" applies the opacity
     resets a DefaultStrategy skips (see the module doc), "off" leaves the installed release as it is.
-    rasterization: a stand-in with gsplat's signature (benchmarks/strategy_compare.py passes warpgs's renderer,
-    so that the loop and strategy can be compared on the CPU); system: the run's name in the result."""
+    rasterization: a stand-in with gsplat's signature (`warpgs_as_gsplat`: warpgs's renderer in gsplat's loop);
+    system: the run's name in the result."""
     try:
         if rasterization is None:
             from gsplat import rasterization
@@ -245,14 +242,29 @@ def gsplat_prune_rules(params, step: int, s, extent: float) -> dict:
     return {"opacity": int(low.sum()), "world_size": int(big.sum())}
 
 
-def time_to(points: list, level: float):
-    """Training seconds until the held-out PSNR first reaches `level` (linear between evaluation points)."""
-    prev = None
-    for p in points:
-        if p["psnr"] >= level:
-            if prev is None or p["psnr"] == prev["psnr"]:
-                return p["seconds"]
-            f = (level - prev["psnr"]) / (p["psnr"] - prev["psnr"])
-            return prev["seconds"] + f * (p["seconds"] - prev["seconds"])
-        prev = p
-    return None
+class _ScreenMeans:
+    """What gsplat's strategy reads as info["means2d"]: .grad as [1, N, 2]; retain_grad() is a no-op because
+    warpgs's means2d is a leaf that keeps its gradient anyway."""
+
+    def __init__(self, leaf: torch.Tensor):
+        self.leaf = leaf
+
+    def retain_grad(self) -> None:
+        pass
+
+    @property
+    def grad(self) -> torch.Tensor:
+        return self.leaf.grad[None]
+
+
+def warpgs_as_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
+                     packed=False, backgrounds=None, near_plane=0.01, far_plane=1e10):
+    """gsplat's `rasterization` signature (one camera, packed=False) over warpgs.rasterize; the strategy counts a
+    primitive as seen (its radii > 0) when it reaches a tile (`out.visible`)."""
+    out = rasterize(means, quats, scales, opacities, colors, viewmats[0], Ks[0], width, height,
+                    sh_degree=sh_degree, background=None if backgrounds is None else backgrounds[0],
+                    outputs=("rgb", "alpha"), near=near_plane, far=far_plane, track_means2d=True)
+    visible = out.visible.to(means.dtype)[None, :, None].expand(1, -1, 2)  # gsplat selects radii > 0
+    info = {"means2d": _ScreenMeans(out.means2d), "radii": visible, "width": width, "height": height,
+            "n_cameras": 1, "gaussian_ids": None}
+    return out.rgb[None], out.alpha[None], info

@@ -38,3 +38,73 @@ def test_unknown_option_is_still_an_error(capsys):
     with pytest.raises(SystemExit) as e:
         train_main(["gaussians", "--dta", "x", "--print-config"])
     assert e.value.code == 2 and "--dta" in capsys.readouterr().err
+
+
+def test_data_without_a_preset_trains_with_the_gaussians_recipe(capsys, tmp_path):
+    # Issue 34: the demo preset is for the built-in scene; a user's scene gets the real-capture recipe.
+    cfg = resolved(capsys, ["--data", str(tmp_path)])
+    assert cfg["data"]["path"] == str(tmp_path)
+    assert (cfg["train"]["steps"], cfg["strategy"]["reset_every"]) == (30000, 3000)
+    assert resolved(capsys, [f"data.path={tmp_path}"])["train"]["steps"] == 30000
+    assert resolved(capsys, ["data.path=null"])["train"]["steps"] == 1000  # the built-in scene after all
+    demo = resolved(capsys, [])
+    assert (demo["data"]["path"], demo["train"]["steps"], demo["strategy"]["reset_every"]) == (None, 1000, 0)
+    assert resolved(capsys, ["default", "--data", str(tmp_path)])["train"]["steps"] == 1000  # named: as asked
+
+
+def test_help_says_which_preset_data_gets(capsys):
+    with pytest.raises(SystemExit):
+        train_main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "With --data and no CONFIG the preset is 'gaussians'" in text
+
+
+def test_a_video_as_data_trains_on_the_scene_folder_beside_it(capsys, tmp_path):
+    cfg = resolved(capsys, ["--data", str(tmp_path / "clip.mp4")])
+    assert cfg["data"]["path"] == str(tmp_path / "clip") and cfg["train"]["steps"] == 30000
+    bad = tmp_path / "bad.mov"
+    bad.write_bytes(b"no video")
+    pytest.importorskip("imageio_ffmpeg")
+    assert train_main(["--data", str(bad), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "warpgs-train: error:" in err and "bad.mov: not a readable video" in err
+
+
+def test_nproc_is_checked_and_one_process_needs_no_launcher(capsys):
+    from warpgs.cli.launch import check_nproc
+
+    with pytest.raises(ValueError, match="--nproc: expected a positive number"):
+        check_nproc(0)
+    check_nproc(1)
+    assert train_main(["--nproc", "0", "steps=1"]) == 2
+    assert "--nproc: expected a positive number of processes, got 0" in capsys.readouterr().err
+
+
+def test_cli_modules_import_no_cycle():
+    """Issue 34: cli/commands and cli/launch imported each other; no module of warpgs/cli may reach itself again
+    through the imports of warpgs.cli modules (function-level imports included)."""
+    import ast
+    from pathlib import Path
+
+    import warpgs.cli
+
+    folder = Path(warpgs.cli.__file__).parent
+    graph = {}
+    for path in folder.glob("*.py"):
+        names = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names.add(node.module)
+                names.update(f"{node.module}.{a.name}" for a in node.names)
+            elif isinstance(node, ast.Import):
+                names.update(a.name for a in node.names)
+        graph[path.stem] = {n.split(".")[2] for n in names if n.startswith("warpgs.cli.")} - {path.stem}
+
+    def reaches(start, node, seen):
+        for nxt in graph.get(node, ()):
+            if nxt == start or (nxt not in seen and reaches(start, nxt, seen | {nxt})):
+                return True
+        return False
+
+    cyclic = sorted(m for m in graph if reaches(m, m, {m}))
+    assert not cyclic, f"import cycle through {cyclic}: {({m: sorted(graph[m]) for m in cyclic})}"

@@ -66,7 +66,6 @@ def test_sfm_recovers_the_orbit_poses(tmp_path, matcher, mapper, monkeypatch, ca
 
 
 def test_pair_sets():
-    assert pairs.exhaustive_pairs(4) == {(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)}
     assert pairs.sequential_pairs(5, overlap=2) == {(0, 1), (0, 2), (1, 2), (1, 3), (2, 3), (2, 4), (3, 4)}
     sim = -np.abs(np.subtract.outer(np.arange(8), np.arange(8))).astype(float)  # a line: neighbours are similar
     assert pairs.nearest_pairs(sim, 1) == {(i, i + 1) for i in range(7)}

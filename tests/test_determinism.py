@@ -153,7 +153,7 @@ def test_thread_pool_loads_modules_before_its_workers_launch(tmp_path):
 def test_same_seed_training_is_repeatable_and_evaluating_does_not_perturb_it(tmp_path):
     """Two trainers with one config, through refines (clones, splits with their random draws, pruning): one that
     evaluates the held-out views every 10 steps and one that never does end bit-identical. On the CPU, same-seed runs
-    are comparable run for run (benchmarks/strategy_compare.py leans on this)."""
+    are comparable run for run (the CPU training comparisons in docs/real_captures.md lean on this)."""
     from train_fixtures import quick_overrides
     from warpgs.config.loader import load_config
     from warpgs.train.trainer import Trainer

@@ -1,12 +1,7 @@
-"""The package layout: the public API, old flat import paths (aliases with a DeprecationWarning naming the new
-module), console entry points, and that light subpackages do not load Warp."""
-import importlib
+"""The package layout: the public API, the subpackages' exports, console entry points, and that light subpackages
+do not load Warp."""
 import subprocess
 import sys
-
-import pytest
-
-from warpgs._moved import MOVED
 
 
 def test_public_api_names():
@@ -22,23 +17,6 @@ def test_old_package_paths_still_export_what_users_import():
     from warpgs.config import Config, ConfigError, TrainConfig, load_config  # noqa: F401
     from warpgs.metrics import LPIPSMetric, psnr, ssim  # noqa: F401
     from warpgs.cli import eval_main, render_main, train_main  # noqa: F401
-
-
-@pytest.mark.parametrize("old", sorted(MOVED))
-def test_every_moved_module_is_an_alias_of_its_new_home(old):
-    new_module = importlib.import_module(MOVED[old])
-    sys.modules.pop(old, None)
-    with pytest.warns(DeprecationWarning, match=MOVED[old].replace(".", r"\.")):
-        old_module = importlib.import_module(old)
-    assert old_module is new_module
-
-
-def test_every_new_home_exists_and_no_old_file_is_left():
-    import pathlib
-    root = pathlib.Path(__file__).resolve().parents[1]
-    for old, new in MOVED.items():
-        assert (root / (new.replace(".", "/") + ".py")).is_file(), new
-        assert not (root / (old.replace(".", "/") + ".py")).exists(), f"{old} left beside its new home {new}"
 
 
 def test_config_losses_and_data_import_without_warp():

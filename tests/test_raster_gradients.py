@@ -131,7 +131,7 @@ BLACK_SH0 = float(rgb_to_sh0(torch.zeros(1))[0])  # what a black initial point g
 def test_colours_at_exactly_zero_get_gradients():
     """A black initial point (sh0 = -0.5 / C0: colour exactly 0 in float32) gets the colour gradient of
     torch.clamp_min at its boundary (the reference's and gsplat's): with wp.max's derivative it got none, and it and
-    its split children stayed black for good (found on the beer capture, benchmarks/grad_vs_reference.py)."""
+    its split children stayed black for good (found on the beer capture against the float64 reference)."""
     scene = random_scene(n=40, seed=5, sh_degree=1)
     black = torch.arange(0, 40, 2)
     scene["colors"][black] = 0.0

@@ -27,7 +27,7 @@ def _trainer(out, resume=False, **extra):
 def _single_view_step(tr) -> dict:
     """The trainer's step before batches existed, line for line (commit 32bfb15), on the trainer's own parts."""
     cfg, model, step = tr.config, tr.model, tr.step
-    view = tr.next_view()
+    view = tr.views.next()
     batch = tr.make_batch(view, step)
     model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
     update_learning_rates(tr.optimizer, step, cfg.optim, tr.extent, tr.max_steps)

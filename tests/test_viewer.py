@@ -105,6 +105,45 @@ def test_frame_is_render_model_on_the_same_camera_exactly(viewer, model):
 
 
 @needs_viser
+def test_display_modes_show_the_maps_of_the_same_render(viewer, model):
+    from warpgs.model.maps import depth_colours
+
+    cam = _camera()
+    out = render_model(model, cam.viewmat_tensor(), cam.K_tensor(), cam.width, cam.height,
+                       outputs=("depth", "alpha"), background=torch.tensor([0.1, 0.2, 0.3]))
+    viewer.set_display("depth")
+    depth = viewer.frame(_as_viewer(cam))
+    assert torch.equal(depth, depth_colours(out.depth[..., 0], out.alpha[..., 0] >= 0.5))
+    assert depth.std() > 0.01
+    viewer.set_display("alpha")
+    assert torch.equal(viewer.frame(_as_viewer(cam)), out.alpha.expand(-1, -1, 3))
+    with pytest.raises(ValueError, match=r"a gaussians model shows one of \['rgb', 'depth', 'alpha'\], not 'normal'"):
+        viewer.set_display("normal")
+    assert viewer.display == "alpha"
+
+
+@needs_viser
+def test_surfels_display_their_normals(model):
+    from warpgs.model.gaussians import SurfelModel
+    from warpgs.model.maps import normal_colours
+    from warpgs.viewer.server import Viewer
+    from warpgs.viewer.sources import ModelSource
+
+    surfels = SurfelModel.from_points(model.means.detach(), torch.rand(model.num_primitives, 3), sh_degree=1)
+    v = Viewer(ModelSource(surfels), port=0, resolution=Resolution(64, 128))
+    try:
+        v.set_display("normal")
+        cam = _camera()
+        image = v.frame(_as_viewer(cam))
+        out = render_model(surfels, cam.viewmat_tensor(), cam.K_tensor(), cam.width, cam.height,
+                           outputs=("normal", "alpha"))
+        valid = out.alpha[..., 0] >= 0.5
+        assert valid.any() and torch.equal(image, normal_colours(out.normal, valid))
+    finally:
+        v.close()
+
+
+@needs_viser
 def test_run_folder_starts_at_its_first_training_camera(run_dir):
     from warpgs.viewer.load import load_source
     from warpgs.viewer.server import Viewer
@@ -178,7 +217,8 @@ from warpgs.viewer.server import Viewer
 
 class Slow:  # a source whose frame takes a while, as a large one does on the CPU
     device, cameras = torch.device("cpu"), []
-    def render(self, viewmat, K, width, height):
+    kind = "gaussians"
+    def render(self, viewmat, K, width, height, mode="rgb"):
         print("frame started", flush=True)
         time.sleep(1.0)
         print("frame finished", flush=True)

@@ -4,10 +4,6 @@ Names are imported on first use, so `import warpgs.losses` (or warpgs.data) does
 """
 import importlib
 
-from warpgs import _moved
-
-_moved.install()  # old flat module paths (warpgs.pipeline, warpgs.train_loop, ...) alias their new homes
-
 _LAZY = {
     "rasterize": "warpgs.render.gaussians", "RenderOutput": "warpgs.render.gaussians", "rasterize_surfels": "warpgs.render.surfels",
     "register_loss": "warpgs.losses", "Trainer": "warpgs.train.trainer",

@@ -1,11 +1,12 @@
 """Command-line tools: `warpgs-train`, `warpgs-render`, `warpgs-eval` (also `python -m warpgs.cli train|render|eval`).
 
     warpgs-train [CONFIG] [--data PATH] [--out DIR] [--resume] [--nproc N] [key=value ...]
-    warpgs-render --model OUT [--orbit N [--video [--fps F]]] [--split test|train]
+    warpgs-render --model OUT [--orbit N [--video [--fps F]]] [--split test|train] [--outputs rgb,depth,normal,alpha]
     warpgs-eval --model OUT [--split test|train] [--no-lpips] [--save-images]
 
 CONFIG is a YAML file or the name of a preset in configs/ (default, gaussians, surfels, ...). With no CONFIG,
-configs/default.yaml: the built-in synthetic scene, about two minutes on a 2-core CPU.
+configs/default.yaml: the built-in synthetic scene, about two minutes on a 2-core CPU; with --data and no CONFIG,
+configs/gaussians.yaml (the real-capture recipe). --data may name a video: see warpgs-process (cli/process.py).
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import time
 from pathlib import Path
 from typing import List, Optional, Sequence
 
-EXIT_CONFIG, EXIT_NONFINITE, EXIT_DISTRIBUTED, EXIT_INTERRUPTED = 2, 3, 4, 130
+from warpgs.cli.common import EXIT_CONFIG, EXIT_DISTRIBUTED, EXIT_INTERRUPTED, EXIT_NONFINITE, report_error
 
 # The no-argument run, used when configs/default.yaml is not on disk (an installed wheel without the configs
 # folder); tests check that the file and this copy agree.
@@ -71,11 +72,6 @@ def _split_args(items: Sequence[str]) -> tuple:
     return config, overrides
 
 
-def _error(prog: str, message: str, code: int) -> int:
-    print(f"{prog}: error: {message}", file=sys.stderr)
-    return code
-
-
 def _exit_with_broken_group(code: int) -> int:
     """End the process now when a collective failed. A normal interpreter exit races the process group's worker
     thread, which still holds the failed work: it is killed while taking the GIL and the process aborts with
@@ -98,7 +94,10 @@ def train_main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("args", nargs="*", metavar="[CONFIG] [key=value]",
                     help="a YAML file or preset name, then overrides")
     ap.add_argument("--data", help="scene folder: COLMAP (images/ + sparse/0/, optional split.json), "
-                                   "transforms.json, or a light-field folder")
+                                   "transforms.json, or a light-field folder; or a video (.mp4, .mov, ...), first "
+                                   "turned into a scene folder beside it as warpgs-process does (reused next time). "
+                                   "With --data and no CONFIG the preset is 'gaussians' (the real-capture recipe); "
+                                   "without --data, 'default' (the built-in demo scene)")
     ap.add_argument("--out", help="output folder (default: outputs/<scene name>)")
     ap.add_argument("--resume", action="store_true", help="continue from the checkpoint in the output folder")
     ap.add_argument("--quiet", action="store_true", help="no progress line")
@@ -114,7 +113,7 @@ def train_main(argv: Optional[List[str]] = None) -> int:
     from warpgs.config.loader import ConfigError, load_config
 
     try:
-        source = resolve_config_source(config_name)
+        source = resolve_config_source(config_name or _implied_preset(args, overrides))
         config = load_config(source, overrides)
         _apply_paths(config, args)
         if args.resume and config_name is None:
@@ -124,26 +123,33 @@ def train_main(argv: Optional[List[str]] = None) -> int:
                 config = load_config(saved, overrides)
                 _apply_paths(config, args)
     except (ConfigError, FileNotFoundError) as e:
-        return _error("warpgs-train", str(e), EXIT_CONFIG)
+        return report_error("warpgs-train", str(e), EXIT_CONFIG)
     if args.print_config:
         print(config.to_yaml(), end="")
         return 0
+    if args.data and _is_video(args.data):  # before --nproc: the workers then find the scene ready
+        try:
+            _scene_from_video_once(args.data, quiet=args.quiet)
+        except (ValueError, FileNotFoundError) as e:
+            return report_error("warpgs-train", str(e), EXIT_CONFIG)
     if args.nproc is not None:
-        from warpgs.cli.launch import launch_train
+        from warpgs.cli.launch import check_nproc, launch_train
 
         try:
-            return launch_train(args.nproc, list(sys.argv[1:] if argv is None else argv))
+            check_nproc(args.nproc)
+            if args.nproc > 1:  # else the plain single-process run below
+                return launch_train(args.nproc, list(sys.argv[1:] if argv is None else argv))
         except ValueError as e:
-            return _error("warpgs-train", str(e), EXIT_CONFIG)
+            return report_error("warpgs-train", str(e), EXIT_CONFIG)
 
     from warpgs.train.trainer import DistributedError, NonFiniteError, Trainer
 
     try:
         trainer = Trainer(config, resume=args.resume, quiet=args.quiet)
     except (ValueError, FileNotFoundError) as e:  # bad config, scene or checkpoint: the message names it
-        return _error("warpgs-train", str(e), EXIT_CONFIG)
+        return report_error("warpgs-train", str(e), EXIT_CONFIG)
     except DistributedError as e:
-        _error("warpgs-train", str(e), EXIT_DISTRIBUTED)
+        report_error("warpgs-train", str(e), EXIT_DISTRIBUTED)
         return _exit_with_broken_group(EXIT_DISTRIBUTED)
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
@@ -157,11 +163,11 @@ def train_main(argv: Optional[List[str]] = None) -> int:
         return EXIT_NONFINITE
     except ImportError as e:  # an optional extra the config asks for (train.viewer, train.log=tensorboard)
         trainer.close()
-        return _error("warpgs-train", str(e), EXIT_CONFIG)
+        return report_error("warpgs-train", str(e), EXIT_CONFIG)
     except DistributedError as e:  # the group is broken: leave it to the process's exit, not a collective teardown
         # Rank 0's loop has said it already; the other ranks are quiet, so their error is printed here.
         if trainer.quiet:
-            _error("warpgs-train", str(e), EXIT_DISTRIBUTED)
+            report_error("warpgs-train", str(e), EXIT_DISTRIBUTED)
         return _exit_with_broken_group(EXIT_DISTRIBUTED)
     trainer.close()
     if not trainer.ranks.is_main:  # rank 0 prints the summary
@@ -181,10 +187,47 @@ def train_main(argv: Optional[List[str]] = None) -> int:
     return 0
 
 
+def _implied_preset(args, overrides: Sequence[str]) -> Optional[str]:
+    """The preset when no CONFIG is given: a scene of the user's (--data, or a data.path override) trains with
+    the real-capture recipe `gaussians`; only the built-in demo scene gets `default` (None)."""
+    def names_a_scene(item: str) -> bool:
+        key, _, value = item.partition("=")
+        return key.strip() in ("data", "data.path") and value.strip().lower() not in ("", "null", "none", "~")
+
+    return "gaussians" if args.data or any(names_a_scene(item) for item in overrides) else None
+
+
+def _scene_from_video_once(video, quiet: bool) -> Path:
+    """The scene folder of `--data VIDEO`, made on the first call. The ranks of a distributed run started
+    without --nproc (torchrun itself) would each write it at once, so they only reuse a finished one."""
+    from warpgs.cli.process import scene_from_video
+    from warpgs.data.video.scene import finished_scene, video_scene_dir
+    from warpgs.train.distributed import env_world_size
+
+    out = video_scene_dir(video)
+    if finished_scene(video, out):  # made earlier, by this command or by warpgs-process with any --frames
+        return out
+    if env_world_size() > 1:
+        raise ValueError(f"--data {video}: in a distributed run, make the scene first: warpgs-process {video}")
+    return scene_from_video(video, out, progress=not quiet)
+
+
+def _is_video(path) -> bool:
+    from warpgs.data.video.decode import is_video  # here: importing warpgs.data loads torch, slow for --help
+
+    return is_video(path)
+
+
 def _apply_paths(config, args) -> None:
-    """--data / --out as given (not through YAML parsing, which would mangle some paths)."""
+    """--data / --out as given (not through YAML parsing, which would mangle some paths); a video's scene is
+    the folder warpgs-process makes beside it."""
     if args.data:
-        config.data.path = str(args.data)
+        if _is_video(args.data):
+            from warpgs.data.video.scene import video_scene_dir
+
+            config.data.path = str(video_scene_dir(args.data))
+        else:
+            config.data.path = str(args.data)
     if args.out:
         config.output.dir = str(args.out)
 
@@ -223,38 +266,61 @@ def load_run(model_dir, device: Optional[str] = None, overrides: Sequence[str] =
 
 # ----- warpgs-render ------------------------------------------------------------------------------------------
 def render_main(argv: Optional[List[str]] = None) -> int:
+    from warpgs.cli.outputs import DEFAULT_DEPTH_SCALE
+
     ap = argparse.ArgumentParser(prog="warpgs-render", description="Render a trained model to PNG files.")
     ap.add_argument("--model", required=True, help="a warpgs-train output folder")
     ap.add_argument("--orbit", type=int, metavar="N", help="render N views on an orbit instead of the test cameras")
     ap.add_argument("--split", default="test", choices=("test", "train"), help="cameras to render (default test)")
     ap.add_argument("--out", help="where the PNGs go (default: MODEL/renders/<split> or MODEL/renders/orbit)")
     ap.add_argument("--device", help="cpu, cuda, ... (default: the run's)")
-    ap.add_argument("--depth", action="store_true", help="also write normalised inverse-depth images")
+    ap.add_argument("--outputs", default="rgb", metavar="LIST",
+                    help="comma-separated maps to write per view: rgb, depth (EXR, 16-bit PNG x --depth-scale and a "
+                         "coloured preview; surfels: median depth, 3D Gaussians: expected depth), normal (EXR and "
+                         "an RGB preview; surfels only), alpha (default rgb)")
+    ap.add_argument("--depth", action="store_true", help="the same as adding depth to --outputs")
+    ap.add_argument("--depth-scale", type=float, default=DEFAULT_DEPTH_SCALE, metavar="S",
+                    help=f"the 16-bit depth PNGs hold depth x S (default {DEFAULT_DEPTH_SCALE:g}: millimetres for a "
+                         f"scene in metres); depth beyond 65535 / S is 0 there (the EXR keeps it)")
     ap.add_argument("--video", action="store_true",
                     help="with --orbit: also write the views as OUT/orbit.mp4 (pip install 'warpgs[video]')")
     ap.add_argument("--fps", type=float, default=30.0, help="frames per second of --video (default 30)")
     args = ap.parse_args(argv)
+    from warpgs.model.maps import parse_maps
+
+    try:
+        maps = parse_maps(args.outputs + (",depth" if args.depth else ""))
+        if not args.depth_scale > 0:
+            raise ValueError(f"--depth-scale: expected a positive number, got {args.depth_scale}")
+    except ValueError as e:
+        return report_error("warpgs-render", str(e), EXIT_CONFIG)
     if args.video:  # before loading anything: a missing extra should not cost a scene load and half the renders
         from warpgs.cli.video import VideoUnavailable, check_video_support
 
         if args.orbit is None:
-            return _error("warpgs-render", "--video needs --orbit N (the frames of the video)", EXIT_CONFIG)
+            return report_error("warpgs-render", "--video needs --orbit N (the frames of the video)", EXIT_CONFIG)
         if not args.fps > 0:
-            return _error("warpgs-render", f"--fps: expected a positive number, got {args.fps}", EXIT_CONFIG)
+            return report_error("warpgs-render", f"--fps: expected a positive number, got {args.fps}", EXIT_CONFIG)
         try:
             check_video_support()
         except VideoUnavailable as e:
-            return _error("warpgs-render", str(e), EXIT_CONFIG)
+            return report_error("warpgs-render", str(e), EXIT_CONFIG)
     try:
         trainer = load_run(args.model, args.device)
     except (ValueError, FileNotFoundError) as e:
-        return _error("warpgs-render", str(e), EXIT_CONFIG)
+        return report_error("warpgs-render", str(e), EXIT_CONFIG)
     import contextlib
 
     import torch
 
-    from warpgs.data.formats.image_io import write_png
+    from warpgs.cli.outputs import MapStats, write_maps
+    from warpgs.model.maps import render_outputs
 
+    kind = trainer.model.kind
+    try:
+        outputs = render_outputs(kind, maps + (("rgb",) if args.video else ()))
+    except ValueError as e:
+        return report_error("warpgs-render", str(e), EXIT_CONFIG)
     if args.orbit is not None:
         from warpgs.cli.orbit import orbit_cameras
 
@@ -264,14 +330,13 @@ def render_main(argv: Optional[List[str]] = None) -> int:
         try:
             cameras = orbit_cameras(cams, args.orbit, points)
         except ValueError as e:
-            return _error("warpgs-render", str(e), EXIT_CONFIG)
+            return report_error("warpgs-render", str(e), EXIT_CONFIG)
         views = [_CameraView(c, trainer.device) for c in cameras]
         label = "orbit"
     else:
         split, views = trainer.eval_views(args.split)
         label = split
     out_dir = Path(args.out) if args.out else Path(args.model) / "renders" / label
-    outputs = ("rgb", "inv_depth") if args.depth else ("rgb",)
     t0 = time.perf_counter()
     if args.video:
         from warpgs.cli.video import Mp4Writer
@@ -279,20 +344,20 @@ def render_main(argv: Optional[List[str]] = None) -> int:
         video = Mp4Writer(out_dir / f"{label}.mp4", args.fps)
     else:
         video = contextlib.nullcontext()
+    stats = MapStats()
     with torch.no_grad(), video:
         for v in views:
             r = trainer.render(v, outputs)
-            rgb = r.rgb.clamp(0, 1).cpu().numpy()
-            write_png(out_dir / f"{Path(v.name).stem}.png", rgb)
+            write_maps(out_dir, Path(v.name).stem, maps, r, kind, stats, args.depth_scale)
             if args.video:
-                video.append(rgb)
-            if args.depth:
-                inv = r.inv_depth
-                inv = inv / inv.max().clamp_min(1e-12)
-                write_png(out_dir / f"{Path(v.name).stem}_invdepth.png", inv[..., 0].cpu().numpy())
+                video.append(r.rgb.clamp(0, 1).cpu().numpy())
     dt = time.perf_counter() - t0
-    print(f"rendered {len(views)} views of {trainer.model.num_primitives} {trainer.model.kind} in {dt:.2f} s "
-          f"({len(views) / max(dt, 1e-9):.1f} views/s) to {out_dir.resolve()}")
+    print(f"rendered {len(views)} views ({', '.join(maps)}: {stats.files} files) of "
+          f"{trainer.model.num_primitives} {kind} in {dt:.2f} s ({len(views) / max(dt, 1e-9):.1f} views/s) "
+          f"to {out_dir.resolve()}")
+    if stats.depth_beyond_png:
+        print(f"note: {stats.depth_beyond_png} depth pixels lie beyond 65535 / {args.depth_scale:g} and are 0 in "
+              f"the 16-bit PNGs (the EXRs hold them); a smaller --depth-scale keeps them")
     if args.video:
         print(f"video: {video.path.resolve()} ({video.frames} frames at {args.fps:g} fps)")
     return 0
@@ -320,7 +385,7 @@ def eval_main(argv: Optional[List[str]] = None) -> int:
     try:
         trainer = load_run(args.model, args.device, overrides)
     except (ValueError, FileNotFoundError) as e:
-        return _error("warpgs-eval", str(e), EXIT_CONFIG)
+        return report_error("warpgs-eval", str(e), EXIT_CONFIG)
     from warpgs.metrics.views import write_json
 
     m = trainer.evaluate(save_images=args.save_images)

@@ -31,17 +31,22 @@ def torchrun_args(nproc: int, argv: Sequence[str]) -> List[str]:
     return ["--standalone", f"--nproc_per_node={int(nproc)}", "-m", "warpgs.cli", "train", *strip_nproc(argv)]
 
 
-def launch_train(nproc: int, argv: Sequence[str]) -> int:
-    """Run warpgs-train with `argv` on `nproc` local processes; returns an exit code (0: every rank finished)."""
+def check_nproc(nproc: int) -> None:
+    """ValueError unless `--nproc N` can be honoured here. N = 1 is the plain single-process run, which the caller
+    goes on with itself (nothing to launch)."""
     if nproc < 1:
         raise ValueError(f"--nproc: expected a positive number of processes, got {nproc}")
     if env_world_size() > 1:
         raise ValueError("--nproc: this process is already one of a distributed run (WORLD_SIZE is set, e.g. by "
                          "torchrun); drop --nproc")
-    if nproc == 1:  # nothing to spread: the plain single-process run
-        from warpgs.cli.commands import train_main
 
-        return train_main(strip_nproc(argv))
+
+def launch_train(nproc: int, argv: Sequence[str]) -> int:
+    """Run warpgs-train with `argv` on `nproc` (at least 2) local processes; returns an exit code (0: every rank
+    finished)."""
+    check_nproc(nproc)
+    if nproc == 1:
+        raise ValueError("--nproc 1 runs in this process: the caller trains without launching workers")
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.run import main as torchrun_main
 

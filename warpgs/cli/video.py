@@ -13,22 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-INSTALL_HINT = "pip install 'warpgs[video]'"
-
-
-class VideoUnavailable(RuntimeError):
-    """imageio or its ffmpeg binary (imageio-ffmpeg) is not installed."""
+from warpgs.data.video.decode import VideoUnavailable, require_video_support
 
 
 def check_video_support() -> None:
     """Raise VideoUnavailable, naming the extra to install, unless MP4s can be written."""
-    try:
-        import imageio.v2  # noqa: F401
-        import imageio_ffmpeg
-
-        imageio_ffmpeg.get_ffmpeg_exe()
-    except (ImportError, RuntimeError) as exc:
-        raise VideoUnavailable(f"writing MP4 needs imageio and imageio-ffmpeg ({exc}); {INSTALL_HINT}") from exc
+    require_video_support("writing MP4")
 
 
 class Mp4Writer:

@@ -83,10 +83,6 @@ def _build_section(section: str, factory, value):
     return obj
 
 
-def _type_name(tp) -> str:
-    return getattr(tp, "__name__", str(tp).replace("typing.", ""))
-
-
 def _check_value(key: str, value, tp):
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)

@@ -30,7 +30,3 @@ class PointCloud:
 
     def tensors(self, device=None) -> tuple[torch.Tensor, torch.Tensor]:
         return torch.as_tensor(self.xyz, device=device), torch.as_tensor(self.rgb, device=device)
-
-    def subset_views(self, keep: list[int]) -> "PointCloud":
-        obs = None if self.observed_by is None else [self.observed_by[i] for i in keep]
-        return PointCloud(self.xyz, self.rgb, obs)

@@ -17,15 +17,13 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
-import json
 from pathlib import Path
 from typing import Iterable, Optional, Sequence, Union
 
 import numpy as np
 import torch
 
-from warpgs.language.features_io import FOLDER, save_view_features
-from warpgs.language.standin import META_FILE
+from warpgs.language.features_io import FOLDER, save_view_features, write_feature_meta
 
 INSTALL_HINT = "pip install 'warpgs[clip]' (open-clip-torch, segment-anything)"
 
@@ -157,5 +155,5 @@ def extract_scene_features(scene, *, clip_checkpoint, sam_checkpoint, clip_model
         save_view_features(folder, scene.cameras[i].name, seg_map, feats)
     meta = {"source": "clip", "text_encoder": "clip", "clip_model": clip_model, "clip_checkpoint": str(clip_checkpoint),
             "sam_model_type": sam_model_type, "dim": dim, "min_area": min_area}
-    (folder / META_FILE).write_text(json.dumps(meta, indent=1))
+    write_feature_meta(folder, meta)
     return folder

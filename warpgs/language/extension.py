@@ -22,8 +22,10 @@ import torch
 from warpgs.train.extensions import Extension, register_extension
 from warpgs.language.autoencoder import FeatureAutoencoder
 from warpgs.language.bridge import BridgeMLP
+from warpgs.language.evaluate import evaluate_language
 from warpgs.language.losses import BRIDGE_MODULE, SIGMA_MODULE, HomoscedasticWeights, LanguageContext
-from warpgs.language.settings import LanguageConfig
+from warpgs.language.query import LanguageField
+from warpgs.language.settings import EXTENSION_NAME, LanguageConfig
 from warpgs.language.targets import TargetMaps, fit_scene_autoencoder, prepare_features, read_meta, write_meta
 
 WORK_DIR = "language"
@@ -36,7 +38,7 @@ def work_dir(out_dir) -> Path:
     return Path(out_dir) / WORK_DIR
 
 
-@register_extension("language")
+@register_extension(EXTENSION_NAME)
 class LanguageFieldExtension(Extension):
     def __init__(self, **options):
         try:
@@ -119,9 +121,6 @@ class LanguageFieldExtension(Extension):
 
     # ----- evaluation -----------------------------------------------------------------------------------------
     def write_metrics(self, trainer) -> dict:
-        from warpgs.language.evaluate import evaluate_language
-        from warpgs.language.query import LanguageField
-
         field = LanguageField.from_trainer(trainer, self)
         split, views = trainer.eval_views()
         views = [v for v in views if getattr(v, "labels", None) is not None]

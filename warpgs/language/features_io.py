@@ -4,19 +4,25 @@
                             each value indexes a row of _f.npy, -1 = no segment
     <folder>/<stem>_f.npy   features, float [M, C] (C = 512 for CLIP ViT-B/16), one per segment
 
+    <folder>/features.json  what made the folder (source, text_encoder, dim, ...), written by the extractors
+
 The folder is `<scene>/language_features` by default. Only one level is used (PPGS uses the "whole object"
 level); `level` picks it (0 for single-level maps and for LangSplat's "default" plane).
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Iterable, Optional, Tuple
 
 import numpy as np
 
+from warpgs.utils.atomic_file import atomic_write_bytes
+
 FOLDER = "language_features"
 SEG_SUFFIX = "_s.npy"
 FEAT_SUFFIX = "_f.npy"
+META_FILE = "features.json"
 
 
 class FeatureFileError(ValueError):
@@ -27,6 +33,22 @@ def feature_paths(folder, image_name: str) -> Tuple[Path, Path]:
     stem = Path(image_name).stem
     folder = Path(folder)
     return folder / f"{stem}{SEG_SUFFIX}", folder / f"{stem}{FEAT_SUFFIX}"
+
+
+def write_feature_meta(folder, meta: dict) -> None:
+    """Record what made the folder's features (its features.json)."""
+    atomic_write_bytes(Path(folder) / META_FILE, json.dumps(meta, indent=1).encode())
+
+
+def read_feature_meta(folder) -> dict:
+    """The folder's features.json ({} when absent or unreadable): source, text_encoder, dim, ..."""
+    path = Path(folder) / META_FILE
+    if not path.is_file():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError:
+        return {}
 
 
 def has_view_features(folder, image_name: str) -> bool:
@@ -84,14 +106,6 @@ def load_view_features(folder, image_name: str, level: int = 0) -> Tuple[np.ndar
     if seg.size and seg.max() >= len(feat):
         raise FeatureFileError(f"{seg_path}: segment id {int(seg.max())} but {feat_path.name} has {len(feat)} rows")
     return seg, feat
-
-
-def dense_feature_map(segments: np.ndarray, features: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """([H, W, C] features with zeros where there is no segment, [H, W] bool valid)."""
-    valid = segments >= 0
-    out = np.zeros(segments.shape + (features.shape[1],), np.float32)
-    out[valid] = features[segments[valid]]
-    return out, valid
 
 
 def resize_segments(segments: np.ndarray, width: int, height: int) -> np.ndarray:

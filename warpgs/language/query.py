@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from warpgs.language.autoencoder import FeatureAutoencoder
+from warpgs.language.settings import EXTENSION_NAME
 from warpgs.language.text import CANONICAL_NEGATIVES, build_text_encoder
 
 Query = Union[str, torch.Tensor, np.ndarray]
@@ -86,9 +87,8 @@ class LanguageField:
     # ----- construction -----------------------------------------------------------------------------------------
     @classmethod
     def from_trainer(cls, trainer, extension=None, **kwargs) -> "LanguageField":
-        from warpgs.language.extension import LanguageFieldExtension
-
-        ext = extension or next((e for e in trainer.extensions if isinstance(e, LanguageFieldExtension)), None)
+        """The field of a trainer with the `language` extension (or of `extension`, that extension itself)."""
+        ext = extension or next((e for e in trainer.extensions if getattr(e, "name", None) == EXTENSION_NAME), None)
         if ext is None:
             raise ValueError("trainer: no `language` extension (add extensions: {language: {...}} and "
                              "imports: [warpgs.language] to the config)")
@@ -173,10 +173,7 @@ class LanguageField:
         return out
 
     def _after_render(self, view, out):
-        from warpgs.language.extension import LanguageFieldExtension
-
-        others = [e for e in self.trainer.extensions
-                  if not isinstance(e, LanguageFieldExtension) and hasattr(e, "after_render")]
+        others = [e for e in self.trainer.extensions if getattr(e, "name", None) != EXTENSION_NAME]
         if not others:
             return out
         batch = {"width": view.width, "height": view.height, "viewmat": view.viewmat, "K": view.K,

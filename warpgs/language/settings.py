@@ -5,6 +5,7 @@ import math
 from dataclasses import asdict, dataclass, field, fields
 from typing import List, Optional
 
+EXTENSION_NAME = "language"  # the trainer extension's registered name: `extensions: {language: {...}}`
 REDUCTIONS = ("sum", "mean")
 TEXT_ENCODERS = ("hash", "clip")
 

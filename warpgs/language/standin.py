@@ -11,16 +11,13 @@ crops match across views.
 from __future__ import annotations
 
 import hashlib
-import json
 from pathlib import Path
 from typing import Mapping, Optional, Tuple
 
 import numpy as np
 
-from warpgs.language.features_io import FOLDER, save_view_features
+from warpgs.language.features_io import FOLDER, save_view_features, write_feature_meta
 from warpgs.language.text import CLIP_DIM, hash_embedding
-
-META_FILE = "features.json"
 
 
 def standin_view_features(labels: np.ndarray, names: Mapping[int, str], *, noise: float = 0.3,
@@ -73,16 +70,5 @@ def write_standin_features(scene, out_folder=None, *, noise: float = 0.3, dim: i
         raise ValueError(f"{scene.root}: no view has a label map (labels/<stem>.png)")
     meta = {"source": "standin", "text_encoder": "hash", "dim": dim, "noise": noise, "seed": seed,
             "labels": {str(k): v for k, v in scene.label_names.items()}, "views": written}
-    (folder / META_FILE).write_text(json.dumps(meta, indent=1))
+    write_feature_meta(folder, meta)
     return folder
-
-
-def read_feature_meta(folder) -> dict:
-    """The folder's features.json ({} when absent): source, text_encoder, dim, ..."""
-    path = Path(folder) / META_FILE
-    if not path.is_file():
-        return {}
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError:
-        return {}

@@ -14,9 +14,9 @@ import torch
 
 from warpgs.language.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
 from warpgs.language.features_io import (collect_features, find_feature_folder, has_view_features,
-                                         load_view_features, resize_segments)
+                                         load_view_features, read_feature_meta, resize_segments)
 from warpgs.language.settings import LanguageConfig
-from warpgs.language.standin import read_feature_meta, write_standin_features
+from warpgs.language.standin import write_standin_features
 
 
 def prepare_features(scene, cfg: LanguageConfig, work_dir) -> Tuple[Path, dict]:

@@ -226,11 +226,6 @@ class GaussianModel(nn.Module):
             raise ValueError(f"active_sh_degree: expected 0..{self.max_sh_degree}, got {degree}")
         self._active_sh_degree = int(degree)
 
-    def raise_sh_degree(self) -> int:
-        """One more SH band, up to max_sh_degree (3DGS does this every 1000 steps); returns the new degree."""
-        self._active_sh_degree = min(self._active_sh_degree + 1, self.max_sh_degree)
-        return self._active_sh_degree
-
     def sh_coeffs(self) -> torch.Tensor:
         """[N, (active+1)^2, 3]: only the active bands, so the renderer does not evaluate unused ones."""
         k = num_sh_coeffs(self._active_sh_degree)

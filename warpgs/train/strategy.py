@@ -47,7 +47,7 @@ removed; every refine's report carries the same counts under "pruned_by".
 
 A refine grows before it prunes (3DGS and gsplat): a high-gradient primitive the world-size rule flags is split and
 only children still over the limit go. Deleting it outright instead cost 1.9 dB of held-out PSNR after the first
-opacity reset on a real phone capture (benchmarks/strategy_compare.py), when every primitive's gradient is high.
+opacity reset on a real phone capture (docs/real_captures.md), when every primitive's gradient is high.
 """
 from __future__ import annotations
 

@@ -313,9 +313,6 @@ class Trainer:
     def view(self, index: int):
         return self.views.view(index)
 
-    def next_view(self):
-        return self.views.next()
-
     def make_batch(self, view, step: int) -> dict:
         """What losses read: image, camera, the view's optional maps (mask, inv_depth_prior + inv_depth_valid,
         depth, labels, features) when the scene has them, and the trainer's modules and feature slices."""

@@ -2,7 +2,8 @@
 
 viser serves a three.js page and streams the browser's camera back; every frame we render is sent as the scene's
 background image (JPEG), so what the browser shows is exactly warpgs's render of that camera. The panel: the
-model's status, the two resolutions, and a list of training views to jump to.
+model's status, what to display (colour, or depth / normals / alpha as colours), the two resolutions, and a list
+of training views to jump to.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import torch
 from warpgs.viewer.camera import ViewerCamera, fit_size, pose_around, pose_of_camera, scene_up, to_warpgs
 from warpgs.viewer.deps import require_viser
 from warpgs.viewer.frames import FrameInfo, FrameLoop, Resolution
+from warpgs.viewer.sources import display_modes
 
 # Longest image side (pixels) while the camera moves and once it stops. Measured on the 2-core CPU (busy with other
 # jobs): 200k random Gaussians 0.4 s at 64x40, 1.0 s at 256x160, 2.7 s at 640x400; 50k: 0.3, 0.7, 2.7 s. A frame
@@ -46,6 +48,7 @@ class Viewer:
             if side < 16:
                 raise ValueError(f"resolution.{name}: expected at least 16 pixels, got {side}")
         self.settle, self.refresh = settle, refresh
+        self.display = "rgb"  # what every browser is shown: a mode of display_modes(source.kind)
         self.host = host
         self._loops: Dict[int, FrameLoop] = {}
         self._closed = False
@@ -78,7 +81,15 @@ class Viewer:
         """The [H, W, 3] float image of a browser camera, its canvas scaled down to max_side (None: full size)."""
         width, height = fit_size(camera.width, camera.height, max_side)
         viewmat, K = to_warpgs(camera, width, height)
-        return self.source.render(viewmat, K, width, height)
+        return self.source.render(viewmat, K, width, height, mode=self.display)
+
+    def set_display(self, mode: str) -> None:
+        """Show `mode` (rgb, depth, normal, alpha; what the source's kind renders) in every browser."""
+        modes = display_modes(self.source.kind)
+        if mode not in modes:
+            raise ValueError(f"display: a {self.source.kind} model shows one of {modes}, not {mode!r}")
+        self.display = mode
+        self._redraw()
 
     def wait_for_frames(self, n: int, timeout: float) -> bool:
         """Block until at least n frames went out to browsers (tests; False on timeout)."""
@@ -111,6 +122,14 @@ class Viewer:
     def _setup_panel(self) -> None:
         gui = self.server.gui
         self._status = gui.add_markdown(self.source.status())
+        modes = display_modes(self.source.kind)
+        display = gui.add_dropdown("Display", options=modes, initial_value=self.display,
+                                   hint="colour, or depth / normals / alpha as colours (invalid pixels black)")
+
+        @display.on_update
+        def _(_):
+            self.set_display(display.value)
+
         moving = gui.add_slider("Moving res", min=64, max=2048, step=32, initial_value=self.resolution.moving,
                                 hint="longest image side while the camera moves")
         still = gui.add_slider("Still res", min=64, max=4096, step=32, initial_value=self.resolution.still,

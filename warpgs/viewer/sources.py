@@ -1,7 +1,9 @@
 """What the viewer renders: a model alone, or a Trainer's model (live training or a loaded run).
 
 A source turns (viewmat, K, width, height) into an [H, W, 3] float image in [0, 1] through warpgs's own render
-path, under torch.no_grad and its lock, and says where a browser should start (its training cameras and points).
+path, under torch.no_grad and its lock: the colour, or with `mode` the depth, normals or alpha as colours
+(model/maps.py, the same previews as warpgs-render --outputs). It also says where a browser should start (its
+training cameras and points).
 `version()` changes when the model does, so the viewer knows when to render again.
 """
 from __future__ import annotations
@@ -13,7 +15,20 @@ from typing import List, Optional, Sequence
 import numpy as np
 import torch
 
+from warpgs.model.maps import MAPS, display_image, render_outputs
 from warpgs.model.rendering import render_model
+
+
+def display_modes(kind: str) -> List[str]:
+    """The display modes a model kind can render (normals: surfels only)."""
+    modes = []
+    for mode in MAPS:
+        try:
+            render_outputs(kind, (mode,))
+        except ValueError:
+            continue
+        modes.append(mode)
+    return modes
 
 
 @dataclass
@@ -44,12 +59,18 @@ class ModelSource:
         self.label = label or f"{model.num_primitives} {model.kind}"
         self.lock = threading.Lock()  # one render at a time across browsers: each would take every core
 
-    def render(self, viewmat: np.ndarray, K: np.ndarray, width: int, height: int) -> torch.Tensor:
+    @property
+    def kind(self) -> str:
+        return self.model.kind
+
+    def render(self, viewmat: np.ndarray, K: np.ndarray, width: int, height: int, mode: str = "rgb") -> torch.Tensor:
         vm = torch.as_tensor(viewmat, dtype=torch.float32, device=self.device)
         k = torch.as_tensor(K, dtype=torch.float32, device=self.device)
+        kind = self.model.kind
         with self.lock, torch.no_grad():
-            return render_model(self.model, vm, k, width, height, outputs=("rgb",), background=self.background,
-                                **self.render_options).rgb
+            out = render_model(self.model, vm, k, width, height, outputs=render_outputs(kind, (mode,), "display"),
+                               background=self.background, **self.render_options)
+            return display_image(out, kind, mode)
 
     def means(self) -> np.ndarray:
         return self.model.means.detach().cpu().numpy()
@@ -72,12 +93,17 @@ class TrainerSource:
         scene = trainer.scene
         self.cameras: List = [scene.camera(i) for i in scene.train] if scene is not None else []
 
-    def render(self, viewmat: np.ndarray, K: np.ndarray, width: int, height: int) -> torch.Tensor:
+    @property
+    def kind(self) -> str:
+        return self.trainer.model.kind
+
+    def render(self, viewmat: np.ndarray, K: np.ndarray, width: int, height: int, mode: str = "rgb") -> torch.Tensor:
         tr = self.trainer
         view = ViewerView(torch.as_tensor(viewmat, dtype=torch.float32, device=self.device),
                           torch.as_tensor(K, dtype=torch.float32, device=self.device), int(width), int(height))
         with tr.lock, torch.no_grad():
-            return tr.render(view, ("rgb",)).rgb
+            kind = tr.model.kind
+            return display_image(tr.render(view, render_outputs(kind, (mode,), "display")), kind, mode)
 
     def means(self) -> np.ndarray:
         with self.trainer.lock:

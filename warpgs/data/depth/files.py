@@ -1,4 +1,4 @@
-"""Depth and inverse-depth maps on disk: OpenEXR, .npy and 16-bit PNG in; OpenEXR out.
+"""Depth and inverse-depth maps on disk: OpenEXR, .npy and 16-bit PNG in; OpenEXR and 16-bit PNG out.
 
 Value conventions when reading (whatever the format):
 - NaN or a negative value is an error (naming the file): it means a broken export, not "no data".
@@ -8,6 +8,7 @@ Our own EXRs carry an explicit validity channel, so they can also store valid ze
 """
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 from typing import Optional
@@ -171,6 +172,27 @@ def write_exr(path: PathLike, values: np.ndarray, kind: str, valid: Optional[np.
     if valid is not None:
         channels[_VALID_CHANNEL] = np.asarray(valid, dtype=np.float32)
     return write_exr_channels(path, channels, {_KIND_ATTRIBUTE: kind})
+
+
+def write_depth_png16(path: PathLike, depth: np.ndarray, scale: float, valid: Optional[np.ndarray] = None) -> int:
+    """Write depth [H, W] as a 16-bit PNG of round(depth * scale), atomically; 0 marks pixels without depth (not
+    `valid`, not finite, or beyond 65535 / scale). Read back with read_depth(path, "depth", scale=1 / scale).
+    Returns how many valid pixels were beyond the range (and written as 0)."""
+    from warpgs.utils.atomic_file import atomic_write_bytes
+
+    if not scale > 0:
+        raise ValueError(f"{path}: depth scale must be positive, got {scale}")
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ValueError(f"{path}: depth map must be 2-D, got shape {depth.shape}")
+    ok = np.isfinite(depth) & (depth > 0) if valid is None else np.asarray(valid, bool) & np.isfinite(depth)
+    levels = np.round(np.where(ok, depth, 0.0) * scale)
+    beyond = ok & (levels > 65535)
+    levels = np.where(ok & ~beyond & (levels >= 0), levels, 0).astype(np.uint16)
+    buf = io.BytesIO()
+    Image.fromarray(levels).save(buf, format="PNG")  # uint16 arrays become mode I;16
+    atomic_write_bytes(path, buf.getvalue())
+    return int(beyond.sum())
 
 
 def write_exr_channels(path: PathLike, channels: dict, attributes: Optional[dict] = None) -> Path:

@@ -24,10 +24,6 @@ VOCABULARY_WORDS = 1024
 DESCRIPTORS_PER_IMAGE = 2000
 
 
-def exhaustive_pairs(n: int) -> set[tuple[int, int]]:
-    return {(i, j) for i in range(n) for j in range(i + 1, n)}
-
-
 def sequential_pairs(n: int, overlap: int = SEQUENTIAL_OVERLAP) -> set[tuple[int, int]]:
     return {(i, j) for i in range(n) for j in range(i + 1, min(n, i + overlap + 1))}
 
