@@ -22,6 +22,7 @@ import warp as wp
 
 from warpgs.render import fast_pipeline as fast
 from warpgs.render.defaults import DEPTH_EPS
+from warpgs.render.validation import raise_flagged
 from warpgs.render.workspace import Workspace
 
 class _DeviceState:
@@ -217,12 +218,31 @@ def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: st
     return _features_arg(None, 0, layout, state)
 
 
+def input_check(state: "_DeviceState", primitives, viewmat: torch.Tensor, extra, alive: list) -> fast.InputCheck:
+    """The finite-value check of a render (fast_pipeline.InputCheck). primitives: the contiguous (means, quats,
+    scales, opacities, coeffs); viewmat [1, 4, 4]; extra: the caller's (features or None, K [3, 3], background or
+    None), checked as given (features even when not rendered, all nine entries of K). Copies made here go to
+    `alive`, which must outlive the render's sync."""
+    features, K, background = extra
+    flat = [t.view(-1) for t in primitives] + [None, viewmat.view(-1), K.reshape(-1).contiguous(),
+                                               None if background is None else background.reshape(-1).contiguous()]
+    if features is not None:
+        flat[5] = features.reshape(-1).contiguous()
+    alive.extend(flat)
+    dummy = state.ws.dummy(float)
+    arrays = [dummy if t is None else state.desc(t, wp.float32) for t in flat]
+    widths = (primitives[2].shape[1], 3 * primitives[4].shape[1], 0 if features is None else features.shape[1])
+    return fast.InputCheck(arrays, widths, 0 if background is None else 3, raise_flagged)
+
+
 class FastRasterizeFunction(torch.autograd.Function):
-    """Same signature and outputs as gaussians._RasterizeFunction (plus the options), through `fast_pipeline`."""
+    """Same signature and outputs as gaussians._RasterizeFunction (plus the options, and `check`: None, or the
+    caller's (features, K, background) when the finite-value checks run in the pipeline), through
+    `fast_pipeline`."""
 
     @staticmethod
     def forward(ctx, settings, wanted, options, means, quats, scales, opacities, coeffs, features, viewmat,
-                intrinsics, means2d_probe):
+                intrinsics, means2d_probe, check=None):
         needs = ctx.needs_input_grad[3:11]
         any_grad = any(ctx.needs_input_grad[3:])
         device = means.device
@@ -254,8 +274,12 @@ class FastRasterizeFunction(torch.autograd.Function):
                    desc(inv_depth.view(npix), wp.float32) if wanted.inv_depth else ws.dummy(float),
                    _features_arg(feats.view(npix, nf), nf, layout, state)]
 
+        alive = []
+        checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), viewmat,
+                                                        check, alive)
         with state.scope():
-            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, options.sort)
+            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, options.sort,
+                                 check=checks)
             if wanted.depth:
                 fast.normalize_depth(ws, zacc, outputs[1], desc(depth.view(npix), wp.float32), npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
@@ -315,4 +339,4 @@ class FastRasterizeFunction(torch.autograd.Function):
         ctx.state = None
         grads[3] = g_opac if needs[3] else None
         grads[5] = g_features if needs[5] else None
-        return (None, None, None) + tuple(grads) + (probe_grad,)
+        return (None, None, None) + tuple(grads) + (probe_grad, None)
