@@ -33,7 +33,9 @@ def flag_bad_inputs(
     viewmat: wp.array(dtype=float),
     K: wp.array(dtype=float),
     background: wp.array(dtype=float),
-    widths: wp.vec3i,  # scales, colours, features (per primitive)
+    scale_width: int,  # 3 (2 for surfels)
+    color_width: int,  # 3 * coefficients per primitive
+    feature_width: int,  # 0 for none
     background_width: int,  # 3, or 0 for none
     flags: wp.array(dtype=wp.int32),  # [FLAG_SLOTS], zeroed by the caller
 ):
@@ -42,16 +44,16 @@ def flag_bad_inputs(
         flags[0] = 1
     if row_has_nonfinite(quats, i, 4) != 0:
         flags[1] = 1
-    if row_has_nonfinite(scales, i, widths[0]) != 0:
+    if row_has_nonfinite(scales, i, scale_width) != 0:
         flags[2] = 1
     o = opacities[i]
     if not wp.isfinite(o):
         flags[3] = 1
     elif o < 0.0 or o > 1.0:
         flags[OPACITY_RANGE_SLOT] = 1
-    if row_has_nonfinite(colors, i, widths[1]) != 0:
+    if row_has_nonfinite(colors, i, color_width) != 0:
         flags[4] = 1
-    if row_has_nonfinite(features, i, widths[2]) != 0:
+    if row_has_nonfinite(features, i, feature_width) != 0:
         flags[5] = 1
     if i == 0:
         if row_has_nonfinite(viewmat, 0, 16) != 0:

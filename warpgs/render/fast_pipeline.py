@@ -74,7 +74,7 @@ def add_input_check(ws: Workspace, seq: LaunchSequence, n: int, check: InputChec
     flags = ws.array("input_flags", input_checks.FLAG_SLOTS, wp.int32)
     seq.zero(flags)
     seq.launch("input_checks", input_checks.flag_bad_inputs, n,
-               list(check.arrays) + [wp.vec3i(*check.widths), check.background_width, flags])
+               list(check.arrays) + list(check.widths) + [check.background_width, flags])
     first = seq.read_ints(flags, 0, input_checks.FLAG_SLOTS)
     seq.on_values(lambda values: check.report(values[first: first + input_checks.FLAG_SLOTS]))
 

@@ -224,13 +224,11 @@ def input_check(state: "_DeviceState", primitives, viewmat: torch.Tensor, extra,
     None), checked as given (features even when not rendered, all nine entries of K). Copies made here go to
     `alive`, which must outlive the render's sync."""
     features, K, background = extra
-    flat = [t.view(-1) for t in primitives] + [None, viewmat.view(-1), K.reshape(-1).contiguous(),
-                                               None if background is None else background.reshape(-1).contiguous()]
-    if features is not None:
-        flat[5] = features.reshape(-1).contiguous()
-    alive.extend(flat)
+    tensors = list(primitives) + [features, viewmat, K, background]
+    tensors = [t if t is None or t.is_contiguous() else t.contiguous() for t in tensors]
+    alive.extend(tensors)
     dummy = state.ws.dummy(float)
-    arrays = [dummy if t is None else state.desc(t, wp.float32) for t in flat]
+    arrays = [dummy if t is None else state.array(t, t.numel(), wp.float32) for t in tensors]  # flat, memoised
     widths = (primitives[2].shape[1], 3 * primitives[4].shape[1], 0 if features is None else features.shape[1])
     return fast.InputCheck(arrays, widths, 0 if background is None else 3, raise_flagged)
 

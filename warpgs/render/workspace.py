@@ -16,7 +16,6 @@ against 5 us for a replay, `set_param_at_index` 0.7 us, `wp.from_torch` 4.5 us (
 """
 from __future__ import annotations
 
-import ctypes
 import os
 import threading
 import warnings
@@ -239,8 +238,8 @@ class GraphCache:
 
     def __init__(self, device):
         self.device = device
-        self._graphs: "OrderedDict[tuple, object]" = OrderedDict()
-        self._seen: "OrderedDict[tuple, bool]" = OrderedDict()
+        self._graphs: "OrderedDict[tuple, tuple]" = OrderedDict()  # key -> (graph, referents)
+        self._seen: "OrderedDict[tuple, list]" = OrderedDict()  # key -> referents
         self._stream = None
         self.broken = False  # set when a capture failed: this workspace launches eagerly from then on
         self.captures = 0  # counters, for tests and benchmarks
@@ -249,18 +248,19 @@ class GraphCache:
     def enabled(self) -> bool:
         return GRAPHS_ENABLED and self.device.is_cuda and not self.broken
 
-    def run(self, key: tuple, issue) -> None:
+    def run(self, key: tuple, referents: list, issue) -> None:
         """Runs `issue()` (launches only: no allocation, no host sync) as a graph when `key` came before, else
-        eagerly. Must be called with the caller's stream current on the device."""
+        eagerly. `referents`: the objects whose ids the key holds, kept alive with it. Must be called with the
+        caller's stream current on the device."""
         stream = self.device.stream
-        graph = self._graphs.get(key)
-        if graph is not None:
+        hit = self._graphs.get(key)
+        if hit is not None:
             self._graphs.move_to_end(key)
-            wp.capture_launch(graph, stream=stream)
+            wp.capture_launch(hit[0], stream=stream)
             self.replays += 1
             return
         if key not in self._seen:
-            self._seen[key] = True
+            self._seen[key] = referents
             if len(self._seen) > _KEYS_SEEN:
                 self._seen.popitem(last=False)
             issue()
@@ -270,7 +270,7 @@ class GraphCache:
             issue()
             return
         self._seen.pop(key, None)
-        self._graphs[key] = graph
+        self._graphs[key] = (graph, referents)
         if len(self._graphs) > _GRAPHS_KEPT:
             self._graphs.popitem(last=False)
         wp.capture_launch(graph, stream=stream)
@@ -349,7 +349,7 @@ class LaunchSequence:
         else:
             self._host, host_np = ws.pinned_ints(self._read_size)
             if not self.immediate and ws.graphs.enabled():
-                ws.graphs.run(self._key(), self._issue)
+                ws.graphs.run(*self._key(), self._issue)
             else:
                 self._issue()
             if self.reads:
@@ -377,31 +377,28 @@ class LaunchSequence:
         else:
             self.ws.launches.launch(op[0], op[1], op[2], op[3], op[4])
 
-    def _key(self) -> tuple:
-        """Everything the issued work depends on except memory contents."""
-        parts = []
+    def _key(self):
+        """(key, referents): the key is everything the issued work depends on except memory contents, with arrays
+        and descriptors by identity (a view or descriptor object stands for one address, shape and strides: the
+        workspace and the descriptor memo hand out the same object for the same memory) and scalars by value. The
+        referents keep those objects alive as long as the key is stored, so no other object can take their ids."""
+        parts, referents = [], [self._host]
         for op in self.ops:
             kind = op[0]
-            if kind is _SORT:
-                parts.append((id(_SORT), _array_key(op[1]), _array_key(op[2]), op[3], op[4], op[5]))
-            elif kind is _SCAN or kind is _ZERO:
-                parts.append((id(kind),) + tuple(_array_key(a) for a in op[1:]))
+            if kind is _SORT or kind is _SCAN or kind is _ZERO:
+                arrays = [a for a in op[1:] if isinstance(a, wp.array)]
+                referents.extend(arrays)
+                parts.append((id(kind), tuple(map(id, arrays))) + tuple(a for a in op[3:] if not isinstance(a, wp.array)))
             else:
-                parts.append((op[0], id(op[1]), op[2], op[4], tuple(_arg_key(a) for a in op[3])))
-        parts.append((self._host.ptr,) + tuple((_array_key(a), i, c, slot) for a, i, c, slot in self.reads))
-        return tuple(parts)
+                args = op[3]
+                referents.extend(args)
+                parts.append((op[0], id(op[1]), op[2], op[4],
+                              tuple([a if type(a) in _BY_VALUE else id(a) for a in args])))
+        for a, index, count, slot in self.reads:
+            referents.append(a)
+            parts.append((id(a), index, count, slot))
+        parts.append(id(self._host))
+        return tuple(parts), referents
 
 
-def _array_key(a: wp.array) -> tuple:
-    return (a.ptr, a.shape, a.dtype)
-
-
-def _arg_key(a):
-    t = type(a)
-    if t is int or t is float or t is bool:
-        return a
-    if isinstance(a, ctypes.Structure) and hasattr(a, "strides"):  # an array descriptor: address, shape and strides are what a kernel sees
-        return (a.data, a.ndim, tuple(a.shape), tuple(a.strides))
-    if isinstance(a, (tuple, list)):
-        return tuple(a)
-    return (t, tuple(a)) if hasattr(a, "__len__") else (t, id(a))  # vectors by value; structs by identity
+_BY_VALUE = (int, float, bool)  # launch arguments keyed by value; the rest (arrays, descriptors, structs) by identity
