@@ -58,14 +58,15 @@ def test_changed_inputs_are_not_served_a_stale_graph():
     assert not torch.equal(a[0], b[0]) and torch.equal(b[0], c[0])
 
 
-def test_bad_input_named_while_graphs_replay():
+@pytest.mark.parametrize("surfels", [False, True])
+def test_bad_input_named_while_graphs_replay(surfels):
     s = _scene()
     for _ in range(3):
-        _render(s)
+        _render(s, surfels)
     s["scales"][17, 1] = float("nan")  # same tensors, so the replayed graph's check kernel must catch it
     with pytest.raises(ValueError, match="^scales contains NaN or Inf"):
-        _render(s)
+        _render(s, surfels)
     s["scales"][17, 1] = 0.01
     s["opacities"][5] = 2.0
     with pytest.raises(ValueError, match="opacities must lie in"):
-        _render(s)
+        _render(s, surfels)

@@ -264,13 +264,8 @@ def rasterize(
                                       max_sigmas, alpha_min, transmittance_min, scale_dims=3,
                                       track_means2d=track_means2d, alpha_max=alpha_max)
     options = current_raster_options()
-    # The finite-value checks: in the pipeline where it runs them (flagged by a kernel, raised at the sync it makes
-    # anyway), else here (one host sync).
-    in_pipeline = value_checks_in_pipeline(means, options)
-    if check_inputs and not in_pipeline:
-        check_finite(named_inputs(means, quats, scales, opacities, colors, features, viewmat, K, background),
-                     opacities)
-    pipeline_checks = (check_inputs or _pipeline_checks) and in_pipeline
+    pipeline_checks = checks_before_render(check_inputs, _pipeline_checks, means, quats, scales, opacities, colors,
+                                           features, viewmat, K, background, options)
     if viewmat.dim() == 3:
         probe = means.new_zeros(viewmat.shape[0], means.shape[0], 2, requires_grad=True) if track_means2d else None
         per_camera = [rasterize(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
@@ -402,9 +397,21 @@ def named_inputs(means, quats, scales, opacities, colors, features, viewmat, K, 
             "features": features, "viewmat": viewmat, "K": K, "background": background}
 
 
-# Device types whose 3D renders run the finite-value checks inside the pipeline (GPUs: no host sync of their own).
+# Device types whose renders run the finite-value checks inside the pipeline (GPUs: no host sync of their own).
 # The CPU keeps the torch checks (a sync costs nothing there); tests add "cpu" to run the kernel's checks.
 PIPELINE_CHECK_DEVICES = {"cuda"}
+
+
+def checks_before_render(check_inputs: bool, pipeline_checks: bool, means, quats, scales, opacities, colors, features,
+                         viewmat, K, background, options) -> bool:
+    """Both ops' finite-value checks: run here (one host sync) when the render's pipeline cannot run them, else
+    left to it (a kernel's flags, raised at the sync it makes anyway). Returns whether the pipeline must check
+    (check_inputs, or `pipeline_checks`: a batched call asking each camera's render to)."""
+    in_pipeline = value_checks_in_pipeline(means, options)
+    if check_inputs and not in_pipeline:
+        check_finite(named_inputs(means, quats, scales, opacities, colors, features, viewmat, K, background),
+                     opacities)
+    return (check_inputs or pipeline_checks) and in_pipeline
 
 
 def value_checks_in_pipeline(means: torch.Tensor, options) -> bool:
