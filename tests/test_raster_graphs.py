@@ -70,3 +70,34 @@ def test_bad_input_named_while_graphs_replay(surfels):
     s["opacities"][5] = 2.0
     with pytest.raises(ValueError, match="opacities must lie in"):
         _render(s, surfels)
+
+
+def test_captures_leave_other_threads_default_stream_work_alone():
+    """Graphs are captured on a non-blocking stream: torch work on the legacy default stream in another thread
+    (a viewer beside the trainer, say) must not fail while this thread captures."""
+    import threading
+
+    from warpgs.render.gaussians_fast import release_workspaces
+
+    s = _scene()
+    reference = _render(s)[0]
+    failures, stop = [], threading.Event()
+
+    def other_thread():
+        try:
+            while not stop.is_set():
+                (torch.randn(4096, device="cuda") * 2.0).sum().item()
+        except Exception as exc:  # noqa: BLE001 - reported below
+            failures.append(exc)
+
+    worker = threading.Thread(target=other_thread)
+    worker.start()
+    try:
+        for _ in range(10):
+            release_workspaces()  # fresh graph caches: the second render of each pair captures
+            _render(s)
+            assert torch.equal(_render(s)[0], reference)
+    finally:
+        stop.set()
+        worker.join()
+    assert not failures, failures

@@ -35,6 +35,8 @@ class _DeviceState:
             self.stream = wp.Stream(self.wdev, cuda_stream=torch_stream.cuda_stream)
             self.stream._torch_stream = torch_stream  # keeps torch's stream (and so its handle) alive
         self.ws = Workspace(self.wdev)
+        if torch_stream is not None:
+            self.ws.graphs.stream_factory = lambda: _nonblocking_stream(device, self.wdev)
         self._descs: Dict = {}
         self._arrays: Dict = {}
 
@@ -75,6 +77,15 @@ class _DeviceState:
         if self.stream is None:
             return _NULL_SCOPE
         return wp.ScopedStream(self.stream, sync_enter=False)
+
+
+def _nonblocking_stream(device: torch.device, wdev) -> wp.Stream:
+    """A Warp view of a new non-blocking CUDA stream (torch makes its streams non-blocking), where graphs are
+    captured: a blocking one would make other threads' work on the legacy default stream fail during a capture."""
+    side = torch.cuda.Stream(device)
+    stream = wp.Stream(wdev, cuda_stream=side.cuda_stream)
+    stream._torch_stream = side  # keeps torch's stream (and so its handle) alive
+    return stream
 
 
 class _NullScope:

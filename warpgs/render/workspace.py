@@ -234,10 +234,15 @@ class GraphCache:
     """CUDA graphs of launch sequences, keyed by everything a graph bakes in (array addresses and shapes, launch
     sizes, scalar arguments). A sequence is captured the second time its key comes (a key seen once costs
     nothing), and replayed while its key repeats. Capture runs on a private stream (CUDA cannot capture the legacy
-    default stream, which is torch's default); the graph is launched on the caller's stream."""
+    default stream, which is torch's default); the graph is launched on the caller's stream.
+
+    The private stream must not block with the legacy stream: while a blocking stream captures, any other thread's
+    work on the legacy stream (torch's default) fails. `stream_factory` makes it; the torch bridge sets one that
+    makes a non-blocking stream (Warp's own streams are blocking)."""
 
     def __init__(self, device):
         self.device = device
+        self.stream_factory = lambda: wp.Stream(self.device)
         self._graphs: "OrderedDict[tuple, tuple]" = OrderedDict()  # key -> (graph, referents)
         self._seen: "OrderedDict[tuple, list]" = OrderedDict()  # key -> referents
         self._stream = None
@@ -278,7 +283,7 @@ class GraphCache:
 
     def _capture(self, issue):
         if self._stream is None:
-            self._stream = wp.Stream(self.device)
+            self._stream = self.stream_factory()
         try:
             with wp.ScopedStream(self._stream, sync_enter=False):
                 with wp.ScopedCapture(device=self.device, stream=self._stream) as capture:
