@@ -417,4 +417,5 @@ def checks_before_render(check_inputs: bool, pipeline_checks: bool, means, quats
 def value_checks_in_pipeline(means: torch.Tensor, options) -> bool:
     """Whether a render of `means` runs its finite-value checks in the fast pipeline (a kernel's flags, read with
     the tile-pair count) rather than in torch before it."""
-    return means.device.type in PIPELINE_CHECK_DEVICES and options.path == "fast" and means.shape[0] > 0
+    fast = getattr(options, "path", "fast") == "fast"  # (the legacy host path checks in torch)
+    return means.device.type in PIPELINE_CHECK_DEVICES and fast and means.shape[0] > 0
