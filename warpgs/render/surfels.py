@@ -20,7 +20,8 @@ from warpgs.render.pipeline_gaussians import Settings
 from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN,
                                     current_raster_options)
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, _wp_device, _zero_grad,
-                                     checked_call, on_torch_stream, raster_settings, set_image_outputs)
+                                     checked_call, checks_before_render, on_torch_stream, raster_settings,
+                                     set_image_outputs)
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "normal", "median_depth", "distortion", "features")
 # 2DGS measures distortion on NDC depth m = f/(f-n) (1 - n/z) with these fixed planes; the constant part
@@ -124,6 +125,7 @@ def rasterize_surfels(
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
     alpha_max: float = DEFAULT_ALPHA_MAX,
     check_inputs: bool = True,
+    _pipeline_checks: bool = False,
 ) -> RenderOutput:
     """Render N 2D Gaussian surfels from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
 
@@ -135,15 +137,18 @@ def rasterize_surfels(
     as in `rasterize`.
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
-                                      height, sh_degree, features, background, near, far, tile_size, check_inputs,
+                                      height, sh_degree, features, background, near, far, tile_size, False,
                                       max_sigmas, alpha_min, transmittance_min, scale_dims=2, alpha_max=alpha_max)
+    options = current_raster_options()
+    pipeline_checks = checks_before_render(check_inputs, _pipeline_checks, means, quats, scales, opacities, colors,
+                                           features, viewmat, K, background, options)
     if viewmat.dim() == 3:
         per_camera = [rasterize_surfels(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
                                         sh_degree=sh_degree, features=features, background=background,
                                         outputs=outputs, near=near, far=far, tile_size=tile_size,
                                         max_sigmas=max_sigmas, alpha_min=alpha_min,
                                         transmittance_min=transmittance_min, alpha_max=alpha_max,
-                                        check_inputs=False)
+                                        check_inputs=False, _pipeline_checks=pipeline_checks)
                       for b in range(viewmat.shape[0])]
         return _stack(per_camera)
 
@@ -157,11 +162,11 @@ def rasterize_surfels(
         normal="normal" in outputs, median="median_depth" in outputs, distortion="distortion" in outputs,
         num_features=feats.shape[1], distortion_scale=DISTORTION_SCALE)
     device = means.device
-    options = current_raster_options()
     fast = options.path == "fast" and n > 0
     if fast:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = FastSurfelsFunction.apply(
-            settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K))
+            settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
+            (features, K, background) if pipeline_checks else None)
     else:
         with on_torch_stream(device):
             color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = \

@@ -10,7 +10,7 @@ from warpgs.render import fast_pipeline_surfels as fast
 from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.fast_pipeline import feature_layout, normalize_depth, normalize_depth_backward
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
-                                          gradient_buffers, projection_gradients, projection_inputs,
+                                          gradient_buffers, input_check, projection_gradients, projection_inputs,
                                           upstream_features, upstream_gradient)
 from warpgs.render.pipeline_surfels import IMAGES, image_wanted
 
@@ -18,12 +18,12 @@ ALPHA, DEPTH = (next(i for i, (name, _, _) in enumerate(IMAGES) if name == n) fo
 
 
 class FastSurfelsFunction(torch.autograd.Function):
-    """Same signature and outputs as surfels._RasterizeSurfelsFunction (plus the options), through
-    `fast_pipeline_surfels`."""
+    """Same signature and outputs as surfels._RasterizeSurfelsFunction (plus the options, and `check` as in
+    gaussians_fast.FastRasterizeFunction), through `fast_pipeline_surfels`."""
 
     @staticmethod
     def forward(ctx, settings, wanted, options, means, quats, scales, opacities, coeffs, features, viewmat,
-                intrinsics):
+                intrinsics, check=None):
         needs = ctx.needs_input_grad[3:11]
         any_grad = any(needs)
         state = device_state(means.device)
@@ -50,9 +50,12 @@ class FastSurfelsFunction(torch.autograd.Function):
         if wanted.depth:
             zacc = outputs[DEPTH] = (keep if keep is not None else ws)("zacc", npix, float)
 
+        alive = []
+        checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), viewmat,
+                                                        check, alive)
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
-                                 _features_arg(features, nf, layout, state), outputs, keep, options.sort)
+                                 _features_arg(features, nf, layout, state), outputs, keep, options.sort, checks)
             if wanted.depth:
                 normalize_depth(ws, zacc, outputs[ALPHA], depth_out, npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
@@ -98,4 +101,4 @@ class FastSurfelsFunction(torch.autograd.Function):
         ctx.state = None
         grads[3] = g_opac if needs[3] else None
         grads[5] = g_features if needs[5] else None
-        return (None, None, None) + tuple(grads)
+        return (None, None, None) + tuple(grads) + (None,)
