@@ -1,13 +1,19 @@
 """Rasterizer speed and accuracy: forward and forward+backward time, max error against the float64 reference
 (on sampled pixels), Gaussian–pixel evaluation rate, and (with --gsplat, on CUDA) gsplat side by side.
 
+What is timed is the call as a user makes it: `rasterize(...)` with its defaults (input checks on, the op's own
+tile size: 16 for a GPU forward that autograd will not differentiate, else 8), outputs RGB + alpha + depth.
+
     python benchmarks/raster.py                       # CPU table: N in {1k,10k,100k} at 256x256 and 800x600
-    python benchmarks/raster.py --device cuda --gsplat --sizes 100000,1000000 --resolutions 1920x1080
+    python benchmarks/raster.py --device cuda --gsplat --sizes 100000,1000000 --resolutions 1920x1080 --rounds 3
     python benchmarks/raster.py --primitive surfels ...   # 2D surfels (gsplat: rasterization_2dgs)
     python benchmarks/raster.py --tile-sizes 8,16 ...     # one row per tile size (the image does not change)
     python benchmarks/raster.py --variants fast+bwd=warp_sums,fast+bwd=block ...
                                                           # one row per renderer variant (benchmarks/variants.py),
                                                           # timed in interleaved rounds in one process
+    python benchmarks/raster.py --checks on,off --graphs on,off ...
+                                                          # input checks (check_inputs) and CUDA graphs
+                                                          # (warpgs.render.workspace) each way, one row each
 
 Prints a table and writes benchmarks/results/raster_<device>.json (or $OUT/raster_<device>.json).
 """
@@ -33,8 +39,11 @@ from warpgs import rasterize, rasterize_surfels  # noqa: E402
 
 from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.surfels import surfel_work  # noqa: E402
-from warpgs.render.defaults import DEFAULT_TILE_SIZE  # noqa: E402
+from warpgs.render.defaults import choose_tile_size  # noqa: E402
 from warpgs.render.gaussians import _intrinsics_vector  # noqa: E402
+from warpgs.render import workspace  # noqa: E402
+
+HAS_GRAPHS = hasattr(workspace, "GRAPHS_ENABLED")  # older code (before/after runs) has no CUDA graphs
 
 OUTPUTS = ("rgb", "alpha", "depth")
 FLOPS_PER_EVALUATION = 20  # q (8), exp (~8 with range reduction), clamp/compare (2), blend 3 colours + depth (8) ~ 20-26
@@ -129,25 +138,27 @@ def gsplat_times(scene, width, height, device, surfels):
     return time_call(fwd, device, warmup=3, repeats=20), time_call(fwd_bwd, device, warmup=3, repeats=20)
 
 
-def warpgs_calls(scene, width, height, surfels, tile_size):
-    """(forward, forward+backward) of warpgs's op on the scene (rgb, alpha, depth; loss sum of rgb and depth)."""
+def warpgs_calls(scene, width, height, surfels, tile_size, check_inputs=True):
+    """(forward, forward+backward) of warpgs's op on the scene (rgb, alpha, depth; loss sum of rgb and depth).
+    tile_size None: the op's choice; check_inputs: the op's default."""
     render = rasterize_surfels if surfels else rasterize
     means, quats, scales, opacities, colors, viewmat, K = scene
 
     def fwd():
         return render(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs=OUTPUTS,
-                      tile_size=tile_size, check_inputs=False)
+                      tile_size=tile_size, check_inputs=check_inputs)
 
     def fwd_bwd():
         leaves = [t.detach().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
-        out = render(*leaves, viewmat, K, width, height, outputs=OUTPUTS, tile_size=tile_size, check_inputs=False)
+        out = render(*leaves, viewmat, K, width, height, outputs=OUTPUTS, tile_size=tile_size,
+                     check_inputs=check_inputs)
         (out.rgb.sum() + out.depth.sum()).backward()
 
     return fwd, fwd_bwd
 
 
-def warpgs_times(scene, width, height, device, repeats, surfels, tile_size):
-    fwd, fwd_bwd = warpgs_calls(scene, width, height, surfels, tile_size)
+def warpgs_times(scene, width, height, device, repeats, surfels, tile_size, check_inputs=True):
+    fwd, fwd_bwd = warpgs_calls(scene, width, height, surfels, tile_size, check_inputs)
     warm = 3 if device.startswith("cuda") else 1
     return time_call(fwd, device, warmup=warm, repeats=repeats), time_call(fwd_bwd, device, warmup=warm, repeats=repeats)
 
@@ -161,7 +172,12 @@ def main():
     ap.add_argument("--repeats", type=int, default=None)
     ap.add_argument("--error-pixels", type=int, default=128)
     ap.add_argument("--primitive", choices=["gaussians", "surfels"], default="gaussians")
-    ap.add_argument("--tile-sizes", default=str(DEFAULT_TILE_SIZE), help="comma-separated tile sizes to time")
+    ap.add_argument("--tile-sizes", default="auto",
+                    help="comma-separated tile sizes to time; auto: the op's choice (the default call)")
+    ap.add_argument("--checks", default="on", help="check_inputs to time: on (the default call), off, or on,off")
+    ap.add_argument("--graphs", default="on",
+                    help="CUDA graphs of the launches up to the sync: on (the default), off, or on,off")
+    ap.add_argument("--label", default=None, help="a tag written into every row (e.g. the commit timed)")
     ap.add_argument("--variants", default="default",
                     help="comma-separated renderer variants (benchmarks/variants.py), e.g. "
                          "fast+bwd=warp_sums,fast+bwd=block")
@@ -184,31 +200,39 @@ def main():
                 scales = scales[:, :2].contiguous()
             scene = (means, quats, scales, opacities, colors, viewmat, K)
             max_err = max_error_vs_reference(scene, W, H, surfels, args.error_pixels)
-            for tile in (int(v) for v in args.tile_sizes.split(",")):
-                specs = args.variants.split(",")
+            for tile in (None if v == "auto" else int(v) for v in args.tile_sizes.split(",")):
+                specs = [(v, c == "on", g == "on") for v in args.variants.split(",")
+                         for c in args.checks.split(",") for g in args.graphs.split(",")]
                 times = {spec: ([], []) for spec in specs + (["gsplat"] if args.gsplat else [])}
                 for _ in range(args.rounds):  # interleaved, so that a busy moment hits every variant alike
                     for spec in times:
                         if spec == "gsplat":
                             f, fb = gsplat_times(scene, W, H, device, surfels)
                         else:
-                            with variant(spec):
-                                f, fb = warpgs_times(scene, W, H, device, repeats, surfels, tile)
+                            name, checks, graphs = spec
+                            workspace.GRAPHS_ENABLED = graphs  # no such switch before graphs: then a no-op
+                            with variant(name):
+                                f, fb = warpgs_times(scene, W, H, device, repeats, surfels, tile, checks)
                         times[spec][0].append(f)
                         times[spec][1].append(fb)
+                workspace.GRAPHS_ENABLED = HAS_GRAPHS
                 g_times = tuple(statistics.median(v) for v in times["gsplat"]) if args.gsplat else None
+                fwd_tile = choose_tile_size(tile, False, on_gpu=device.startswith("cuda"))  # the forward's
                 if surfels:
-                    work = surfel_work(means, quats, scales, opacities, viewmat, K, W, H, tile_size=tile)
+                    work = surfel_work(means, quats, scales, opacities, viewmat, K, W, H, tile_size=fwd_tile)
                     evals, pairs = work["evaluations"], work["tile_pairs"]
                 else:
-                    evals, pairs = evaluations(scene, W, H, tile)
+                    evals, pairs = evaluations(scene, W, H, fwd_tile)
                 for spec in specs:
                     fwd_ms, fb_ms = (statistics.median(v) for v in times[spec])
-                    with variant(spec):
+                    with variant(spec[0]):
                         name = describe()
-                    row = dict(primitive=args.primitive, device=device, n=n, resolution=f"{W}x{H}", tile_size=tile,
-                               variant=name, fwd_ms=fwd_ms, fwd_bwd_ms=fb_ms, max_err=max_err, tile_pairs=pairs,
-                               evals_per_s=evals / (fwd_ms / 1e3))
+                    row = dict(primitive=args.primitive, device=device, n=n, resolution=f"{W}x{H}",
+                               tile_size="auto" if tile is None else tile, variant=name, checks=spec[1],
+                               graphs=spec[2] and HAS_GRAPHS and device.startswith("cuda"), fwd_ms=fwd_ms,
+                               fwd_bwd_ms=fb_ms, max_err=max_err, tile_pairs=pairs, evals_per_s=evals / (fwd_ms / 1e3))
+                    if args.label:
+                        row["label"] = args.label
                     if args.rounds > 1:
                         row.update(fwd_ms_rounds=times[spec][0], fwd_bwd_ms_rounds=times[spec][1])
                     if peak:
@@ -221,14 +245,16 @@ def main():
                     print_table([row], [c for c in row if not c.endswith("_rounds")])  # progress, one row at a time
                 sync(device)
     print()
-    columns = ["n", "resolution", "tile_size", "variant", "fwd_ms", "fwd_bwd_ms", "max_err", "evals_per_s"]
+    columns = ["n", "resolution", "tile_size", "variant", "checks", "graphs", "fwd_ms", "fwd_bwd_ms", "max_err",
+               "evals_per_s"]
     columns += ["frac_of_core_peak"] if peak else []
     columns += ["gsplat_fwd_ms", "gsplat_fwd_bwd_ms", "ratio_fwd", "ratio_fwd_bwd"] if args.gsplat else []
     print_table(rows, columns)
     meta = dict(device=device, gpu=torch.cuda.get_device_name() if device.startswith("cuda") else None,
                 cpu=platform.processor() or platform.machine(), torch=torch.__version__, warp=wp.__version__,
                 single_core_gflops=peak, flops_per_evaluation=FLOPS_PER_EVALUATION, outputs=OUTPUTS,
-                repeats=repeats, scenes="shared/bench/scenes.py random_scene")
+                repeats=repeats, rounds=args.rounds, scenes="shared/bench/scenes.py random_scene",
+                call="rasterize(...) defaults unless the row says otherwise (checks, tile_size)", label=args.label)
     suffix = "" if args.primitive == "gaussians" else "_surfels"
     path = write_json(args.out_name or f"raster_{device.split(':')[0]}{suffix}", dict(meta=meta, rows=rows))
     print(f"wrote {path}")

@@ -106,3 +106,51 @@ def test_transposed_inputs_that_need_gradients_work():
         out.features.sum().backward()
         outs.append(leaf.grad.t() if leaf is feats_t else leaf.grad)
     assert torch.allclose(outs[0], outs[1]) and outs[0].abs().sum() > 0
+
+
+@pytest.fixture
+def checks_in_pipeline(monkeypatch):
+    """Runs the finite-value checks as GPU renders do (kernels/input_checks.py's flags, read at the pipeline's
+    tile-pair sync), here on the CPU."""
+    from warpgs.render import gaussians
+    monkeypatch.setattr(gaussians, "PIPELINE_CHECK_DEVICES", {"cpu", "cuda"})
+
+
+@pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmat", "K", "background",
+                                  "features"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_pipeline_checks_name_the_argument(checks_in_pipeline, name, bad):
+    s = {k: (v.float() if isinstance(v, torch.Tensor) else v) for k, v in random_scene(n=8, seed=0).items()}
+    over = {"background": torch.zeros(3), "features": torch.ones(8, 2)}
+    value = over[name].clone() if name in over else s[name].clone()
+    value.view(-1)[-1] = bad  # the last entry: the kernel must look at every row and every entry
+    kw = dict(over, outputs=("rgb",))  # features given but not rendered are still checked, as before
+    kw[name] = value
+    with pytest.raises(ValueError, match=f"^{name} contains NaN or Inf"):
+        call(**kw)
+
+
+def test_pipeline_checks_unused_entries_of_K_and_range(checks_in_pipeline):
+    a, _ = args()
+    K = a["K"].clone()
+    K[2, 0] = float("nan")  # not one of (fx, fy, cx, cy): still named, as the torch checks did
+    with pytest.raises(ValueError, match="^K contains NaN or Inf"):
+        call(K=K)
+    with pytest.raises(ValueError, match="opacities must lie in"):
+        call(opacities=torch.full((8,), 1.5))
+    with pytest.raises(ValueError, match="opacities must lie in"):
+        call(opacities=torch.full((8,), -0.5))
+
+
+def test_pipeline_checks_batch_and_good_input(checks_in_pipeline):
+    """A batch names a bad camera of any index; good input renders the same images with the checks on or off."""
+    a, _ = args()
+    views = torch.stack([a["viewmat"], a["viewmat"]])
+    Ks = torch.stack([a["K"], a["K"]])
+    Ks[1, 0, 2] = float("inf")
+    with pytest.raises(ValueError, match="^K contains NaN or Inf"):
+        call(viewmat=views, K=Ks)
+    Ks[1, 0, 2] = a["K"][0, 2]
+    checked = call(viewmat=views, K=Ks)
+    unchecked = call(viewmat=views, K=Ks, check_inputs=False)
+    assert torch.equal(checked.rgb, unchecked.rgb) and checked.rgb.abs().sum() > 0

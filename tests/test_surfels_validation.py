@@ -55,3 +55,19 @@ def test_wrong_dtypes_and_non_finite_values(name):
 def test_bad_arguments(over, match):
     with pytest.raises(ValueError, match=match):
         call(**over)
+
+
+@pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmat", "K", "background"])
+def test_pipeline_checks_name_the_argument(monkeypatch, name):
+    """As GPU renders check (kernels/input_checks.py's flags, read at the pipeline's sync), here on the CPU."""
+    from warpgs.render import gaussians
+    monkeypatch.setattr(gaussians, "PIPELINE_CHECK_DEVICES", {"cpu", "cuda"})
+    s = {k: (v.float() if isinstance(v, torch.Tensor) else v) for k, v in random_surfel_scene(n=8, seed=0).items()}
+    bad = torch.zeros(3) if name == "background" else s[name].clone()
+    bad.view(-1)[-1] = float("inf")
+    with pytest.raises(ValueError, match=f"^{name} contains NaN or Inf"):
+        call(**{name: bad})
+    with pytest.raises(ValueError, match="opacities must lie in"):
+        call(opacities=torch.full((8,), 1.5))
+    views, Ks = torch.stack([s["viewmat"], s["viewmat"]]), torch.stack([s["K"], s["K"]])
+    assert torch.equal(call(viewmat=views, K=Ks).rgb, call(viewmat=views, K=Ks, check_inputs=False).rgb)

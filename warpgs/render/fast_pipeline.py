@@ -8,7 +8,10 @@ Same kernels, same maths, same results (the tests compare it bit for bit with a 
   until its autograd context lets go of it (`FrameLease`), so a later call never overwrites a buffer that a
   pending backward needs, and steady training reuses one set;
 - every launch is a recorded `wp.Launch` replayed with only its changed parameters (`LaunchCache`);
-- one host synchronisation per call (the number of tile pairs sizes the sort), through a pinned buffer;
+- one host synchronisation per call (the number of tile pairs sizes the sort), through a pinned buffer; the
+  input checks' flags (`InputCheck`) are read at that same sync, so checking costs no sync of its own;
+- on GPUs, the launches up to that sync (projection, checks, footprints, depth sort, prefix sum, the reads) are
+  one CUDA graph, replayed while the arrays and sizes stay the same (workspace.LaunchSequence);
 - no wp.Tape: the backward launches the blend adjoint and then the projection's generated adjoint itself.
 
 Torch-free: arrays come in as Warp arrays or array descriptors (`wp.from_torch(..., return_ctype=True)`).
@@ -22,11 +25,11 @@ from typing import Callable, Optional
 
 import warp as wp
 
-from warpgs.kernels import binning, blend, blend_gpu, depth_norm, project
+from warpgs.kernels import binning, blend, blend_gpu, depth_norm, input_checks, project
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
-from warpgs.render.workspace import Workspace
+from warpgs.render.workspace import LaunchSequence, Workspace
 
 Keep = Callable[[str, int, object], wp.array]  # (name, length, dtype) -> a per-call array
 # Called with a stage name after each stage when set (benchmarks/profile_stages.py synchronises and times there).
@@ -56,13 +59,35 @@ class Frame(TileFrame):
     conics: wp.array
 
 
+@dataclass
+class InputCheck:
+    """A render's finite-value checks (kernels/input_checks.flag_bad_inputs), read with the tile-pair count.
+    arrays: the kernel's nine flat float arrays (1-element dummies for absent ones, with width 0); report(flags)
+    raises the error for the FLAG_SLOTS flags when any is set."""
+    arrays: list
+    widths: tuple  # floats per primitive of (scales, colours, features)
+    background_width: int
+    report: Callable[[list], None]
+
+
+def add_input_check(ws: Workspace, seq: LaunchSequence, n: int, check: InputCheck) -> None:
+    flags = ws.array("input_flags", input_checks.FLAG_SLOTS, wp.int32)
+    seq.zero(flags)
+    seq.launch("input_checks", input_checks.flag_bad_inputs, n,
+               list(check.arrays) + list(check.widths) + [check.background_width, flags])
+    first = seq.read_ints(flags, 0, input_checks.FLAG_SLOTS)
+    seq.on_values(lambda values: check.report(values[first: first + input_checks.FLAG_SLOTS]))
+
+
 def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, features, outputs, keep: Optional[Keep],
-            on_stage: Optional[Callable[[str], None]] = None) -> Frame:
+            on_stage: Optional[Callable[[str], None]] = None, check: Optional[InputCheck] = None) -> Frame:
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth, inv_depth, features) arrays the blend writes
     (1-element dummies for outputs not asked for; features zeroed beforehand for the per-thread CPU kernel);
     features in the layout of `feature_layout`. keep=None: everything in the workspace (no backward follows).
-    on_stage(name), if given, is called after each stage (benchmarks/profile_stages.py times them)."""
+    on_stage(name), if given, is called after each stage (benchmarks/profile_stages.py times them).
+    check: the input checks to run, whose error is raised at the tile-pair count's sync (before anything is sized
+    from the count)."""
     _stage(on_stage, "op prologue")  # the render call's host work up to here (checks, wrapping, allocation)
     dev = ws.device
     n = int(inputs[0].shape[0])
@@ -77,13 +102,16 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     cov2d = ws.array("cov2d", n, wp.vec3)
     valid = ws.array("valid", n, wp.int32)
     color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
-    L.launch("project", project.project_gaussians, n,
-             list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0),
-                             means2d, conics, cov2d, depths, colors, valid])
+    seq = ws.sequence(immediate=(on_stage or stage_hook) is not None)
+    seq.launch("project", project.project_gaussians, n,
+               list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0),
+                               means2d, conics, cov2d, depths, colors, valid])
+    if check is not None:
+        add_input_check(ws, seq, n, check)
     _stage(on_stage, "project")
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "footprints", binning.tile_footprints, [means2d, cov2d, opacities, valid], depths, s, per_call,
-        on_stage)
+        on_stage, sequence=seq)
 
     npix = s.width * s.height
     transmittance = per_call("transmittance", npix, float)
@@ -106,40 +134,45 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
 
 
 def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, depths, s: Settings, per_call,
-                   on_stage: Optional[Callable[[str], None]] = None):
+                   on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None):
     """Every primitive kind's binning: its footprint kernel (inputs `footprint_inputs`, then the image and blend
     settings, writing tile rectangles, tile counts and cut-offs) and `sort_into_tiles`. Returns (counts, q_cut,
-    total, tile_start, tile_end, sorted_ids); counts lives in the workspace, q_cut comes from `per_call`."""
+    total, tile_start, tile_end, sorted_ids); counts lives in the workspace, q_cut comes from `per_call`.
+    sequence: launches already queued ahead of the binning (run with it, up to the sync)."""
     n = int(depths.shape[0])
     rects = ws.array("rects", n, wp.vec4i)
     counts = ws.array("counts", n, wp.int32)
     q_cut = per_call("q_cut", n, float)
-    ws.launches.launch(key, footprint_kernel, n,
-                       list(footprint_inputs) + [s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
-                                                 rects, counts, q_cut])
+    seq = sequence if sequence is not None else ws.sequence(immediate=(on_stage or stage_hook) is not None)
+    seq.launch(key, footprint_kernel, n,
+               list(footprint_inputs) + [s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
+                                         rects, counts, q_cut])
     _stage(on_stage, key)
-    return (counts, q_cut) + sort_into_tiles(ws, rects, counts, depths, s, per_call, on_stage)
+    return (counts, q_cut) + sort_into_tiles(ws, rects, counts, depths, s, per_call, on_stage, seq)
 
 
 def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
-                    on_stage: Optional[Callable[[str], None]] = None):
+                    on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None):
     """(total, tile_start, tile_end, sorted_ids): the (tile, primitive) pairs sorted by tile, then depth, then
-    primitive index, and every tile's [start, end) range. tile_start and sorted_ids come from `per_call`."""
+    primitive index, and every tile's [start, end) range. tile_start and sorted_ids come from `per_call`.
+    sequence: launches queued ahead; everything up to the tile-pair count's read runs with them."""
     dev = ws.device
     L = ws.launches
     n = int(counts.shape[0])
     tile_start = per_call("tile_start", s.num_tiles, wp.int32)
     tile_end = ws.array("tile_end", s.num_tiles, wp.int32)
     offsets = ws.array("offsets", n, wp.int32)
+    seq = sequence if sequence is not None else ws.sequence(immediate=(on_stage or stage_hook) is not None)
     depth_keys = ws.array("depth_keys", 2 * n, float)
     order = ws.array("order", 2 * n, wp.int32)
-    L.launch("depth_init", binning.depth_sort_init, n, [depths, depth_keys, order])
-    wp.utils.radix_sort_pairs(depth_keys, order, n)
     ordered = ws.array("ordered_counts", n, wp.int32)
-    L.launch("counts_in_order", binning.counts_in_order, n, [order, counts, ordered])
+    seq.launch("depth_init", binning.depth_sort_init, n, [depths, depth_keys, order])
+    seq.sort_pairs(depth_keys, order, n)
+    seq.launch("counts_in_order", binning.counts_in_order, n, [order, counts, ordered])
     _stage(on_stage, "sort: depth sort")
-    wp.utils.array_scan(ordered, offsets, inclusive=True)
-    total = ws.read_int(offsets, n - 1)  # the one host sync: sizes the pair buffers
+    seq.scan(ordered, offsets)
+    at = seq.read_ints(offsets, n - 1)
+    total = seq.run()[at]  # the one host sync: sizes the pair buffers (and raises for flagged input)
     _stage(on_stage, "sort: prefix sum + sync")
     sorted_ids = per_call("sorted_ids", 2 * max(total, 1), wp.int32)  # radix sorts need 2x room
     if total == 0:

@@ -15,8 +15,9 @@ import warp as wp
 from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project, surfel_steps
 from warpgs.kernels.blend_gpu import warp_sums_supported
 from warpgs.render.cpu_threads import run_threads
-from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, Keep, TileFrame, _stage, bin_into_tiles,
-                                         blend_settings_key, run_blend_adjoint)
+from warpgs.render import fast_pipeline
+from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, InputCheck, Keep, TileFrame, _stage, add_input_check,
+                                         bin_into_tiles, blend_settings_key, run_blend_adjoint)
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
 from warpgs.render.workspace import Workspace
@@ -67,11 +68,12 @@ class SurfelFrame(TileFrame):
 
 
 def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, features, outputs,
-            keep: Optional[Keep]) -> SurfelFrame:
+            keep: Optional[Keep], check: Optional[InputCheck] = None) -> SurfelFrame:
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth, inv_depth, normal, median, distortion, features)
     arrays the blend writes (1-element dummies for outputs not asked for; features zeroed beforehand for the
-    per-thread CPU kernel). keep=None: everything in the workspace (no backward follows)."""
+    per-thread CPU kernel). keep=None: everything in the workspace (no backward follows). check: the input checks,
+    raised at the tile-pair count's sync (fast_pipeline.InputCheck)."""
     L = ws.launches
     n = int(inputs[0].shape[0])
 
@@ -83,12 +85,15 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     normals = per_call("normals", n, wp.vec3)
     colors = per_call("colors", n, wp.vec3)
     valid = ws.array("surfel_valid", n, wp.int32)
-    L.launch("surfel_project", surfel_project.project_surfels, n,
-             list(inputs) + _projection_settings(s) + [transforms, means2d, depths, normals, colors, valid])
+    seq = ws.sequence(immediate=fast_pipeline.stage_hook is not None)  # up to the sync: one graph on GPUs
+    seq.launch("surfel_project", surfel_project.project_surfels, n,
+               list(inputs) + _projection_settings(s) + [transforms, means2d, depths, normals, colors, valid])
+    if check is not None:
+        add_input_check(ws, seq, n, check)
     _stage(None, "surfel project")
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "surfel_footprints", surfel_project.surfel_footprints, [transforms, means2d, opacities, valid], depths,
-        s, per_call)
+        s, per_call, sequence=seq)
 
     npix = s.width * s.height
     transmittance = per_call("transmittance", npix, float)

@@ -176,6 +176,7 @@ def rasterize(
     check_inputs: bool = True,
     track_means2d: bool = False,
     _means2d_probe: Optional[torch.Tensor] = None,
+    _pipeline_checks: bool = False,
 ) -> RenderOutput:
     """Render N 3D Gaussians from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
 
@@ -192,16 +193,19 @@ def rasterize(
     gsplat's 0.999), a modelling choice, not a speed knob.
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
-                                      height, sh_degree, features, background, near, far, tile_size, check_inputs,
+                                      height, sh_degree, features, background, near, far, tile_size, False,
                                       max_sigmas, alpha_min, transmittance_min, scale_dims=3,
                                       track_means2d=track_means2d, alpha_max=alpha_max)
+    options = current_raster_options()
+    pipeline_checks = checks_before_render(check_inputs, _pipeline_checks, means, quats, scales, opacities, colors,
+                                           features, viewmat, K, background)
     if viewmat.dim() == 3:
         probe = means.new_zeros(viewmat.shape[0], means.shape[0], 2, requires_grad=True) if track_means2d else None
         per_camera = [rasterize(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
                                 sh_degree=sh_degree, features=features, background=background, outputs=outputs,
                                 near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
                                 transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=False,
-                                _means2d_probe=None if probe is None else probe[b])
+                                _means2d_probe=None if probe is None else probe[b], _pipeline_checks=pipeline_checks)
                       for b in range(viewmat.shape[0])]
         out = _stack(per_camera)
         out.means2d = probe
@@ -219,8 +223,8 @@ def rasterize(
                              num_features=feats.shape[1])
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, fout, visible, count = FastRasterizeFunction.apply(
-            settings, wanted, current_raster_options(), means, quats, scales, opacities, coeffs, feats, viewmat,
-            _intrinsics_vector(K), probe)
+            settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
+            probe, (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width
         shapes = [(H, W, 3) if wanted.color else (0,), (H, W, 1), (H, W, 1) if wanted.depth else (0,),
@@ -314,8 +318,36 @@ def _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width,
         raise ValueError(f"tile_size: at most 32 (a tile is one GPU block of tile_size² threads), got {tile_size}")
     if not (0 < near < far):
         raise ValueError(f"near/far: expected 0 < near < far, got near={near}, far={far}")
-    named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
-             "features": features, "viewmat": viewmat, "K": K, "background": background}
+    named = named_inputs(means, quats, scales, opacities, colors, features, viewmat, K, background)
     check_same_device(named)
     if check_values:
         check_finite(named, opacities)
+
+
+def named_inputs(means, quats, scales, opacities, colors, features, viewmat, K, background) -> dict:
+    """The tensors the finite-value checks look at, by the names their errors give (validation.CHECKED_NAMES)."""
+    return {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+            "features": features, "viewmat": viewmat, "K": K, "background": background}
+
+
+# Device types whose renders run the finite-value checks inside the pipeline (GPUs: no host sync of their own).
+# The CPU keeps the torch checks (a sync costs nothing there); tests add "cpu" to run the kernel's checks.
+PIPELINE_CHECK_DEVICES = {"cuda"}
+
+
+def checks_before_render(check_inputs: bool, pipeline_checks: bool, means, quats, scales, opacities, colors, features,
+                         viewmat, K, background) -> bool:
+    """Both ops' finite-value checks: run here (one host sync) when the render's pipeline cannot run them, else
+    left to it (a kernel's flags, raised at the sync it makes anyway). Returns whether the pipeline must check
+    (check_inputs, or `pipeline_checks`: a batched call asking each camera's render to)."""
+    in_pipeline = value_checks_in_pipeline(means)
+    if check_inputs and not in_pipeline:
+        check_finite(named_inputs(means, quats, scales, opacities, colors, features, viewmat, K, background),
+                     opacities)
+    return (check_inputs or pipeline_checks) and in_pipeline
+
+
+def value_checks_in_pipeline(means: torch.Tensor) -> bool:
+    """Whether a render of `means` runs its finite-value checks in the fast pipeline (a kernel's flags, read with
+    the tile-pair count) rather than in torch before it."""
+    return means.device.type in PIPELINE_CHECK_DEVICES and means.shape[0] > 0

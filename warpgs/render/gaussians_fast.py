@@ -22,6 +22,7 @@ import warp as wp
 
 from warpgs.render import fast_pipeline as fast
 from warpgs.render.defaults import DEPTH_EPS
+from warpgs.render.validation import raise_flagged
 from warpgs.render.workspace import Workspace
 
 class _DeviceState:
@@ -34,6 +35,8 @@ class _DeviceState:
             self.stream = wp.Stream(self.wdev, cuda_stream=torch_stream.cuda_stream)
             self.stream._torch_stream = torch_stream  # keeps torch's stream (and so its handle) alive
         self.ws = Workspace(self.wdev)
+        if torch_stream is not None:
+            self.ws.graphs.stream_factory = lambda: _nonblocking_stream(device, self.wdev)
         self._descs: Dict = {}
         self._arrays: Dict = {}
 
@@ -74,6 +77,15 @@ class _DeviceState:
         if self.stream is None:
             return _NULL_SCOPE
         return wp.ScopedStream(self.stream, sync_enter=False)
+
+
+def _nonblocking_stream(device: torch.device, wdev) -> wp.Stream:
+    """A Warp view of a new non-blocking CUDA stream (torch makes its streams non-blocking), where graphs are
+    captured: a blocking one would make other threads' work on the legacy default stream fail during a capture."""
+    side = torch.cuda.Stream(device)
+    stream = wp.Stream(wdev, cuda_stream=side.cuda_stream)
+    stream._torch_stream = side  # keeps torch's stream (and so its handle) alive
+    return stream
 
 
 class _NullScope:
@@ -217,12 +229,28 @@ def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: st
     return _features_arg(None, 0, layout, state)
 
 
+def input_check(state: "_DeviceState", primitives, viewmat: torch.Tensor, extra, alive: list) -> fast.InputCheck:
+    """The finite-value check of a render (fast_pipeline.InputCheck). primitives: the contiguous (means, quats,
+    scales, opacities, coeffs); viewmat [1, 4, 4]; extra: the caller's (features or None, K [3, 3], background or
+    None), checked as given (features even when not rendered, all nine entries of K). Copies made here go to
+    `alive`, which must outlive the render's sync."""
+    features, K, background = extra
+    tensors = list(primitives) + [features, viewmat, K, background]
+    tensors = [t if t is None or t.is_contiguous() else t.contiguous() for t in tensors]
+    alive.extend(tensors)
+    dummy = state.ws.dummy(float)
+    arrays = [dummy if t is None else state.array(t, t.numel(), wp.float32) for t in tensors]  # flat, memoised
+    widths = (primitives[2].shape[1], 3 * primitives[4].shape[1], 0 if features is None else features.shape[1])
+    return fast.InputCheck(arrays, widths, 0 if background is None else 3, raise_flagged)
+
+
 class FastRasterizeFunction(torch.autograd.Function):
-    """The 3D op through `fast_pipeline` (tests/legacy_raster.py holds a per-call op it must match bit for bit)."""
+    """The 3D op through `fast_pipeline` (tests/legacy_raster.py holds a per-call op it must match bit for bit).
+    check: None, or the caller's (features, K, background) when the finite-value checks run in the pipeline."""
 
     @staticmethod
     def forward(ctx, settings, wanted, options, means, quats, scales, opacities, coeffs, features, viewmat,
-                intrinsics, means2d_probe):
+                intrinsics, means2d_probe, check=None):
         needs = ctx.needs_input_grad[3:11]
         any_grad = any(ctx.needs_input_grad[3:])
         device = means.device
@@ -254,8 +282,11 @@ class FastRasterizeFunction(torch.autograd.Function):
                    desc(inv_depth.view(npix), wp.float32) if wanted.inv_depth else ws.dummy(float),
                    _features_arg(feats.view(npix, nf), nf, layout, state)]
 
+        alive = []
+        checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), viewmat,
+                                                        check, alive)
         with state.scope():
-            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep)
+            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, check=checks)
             if wanted.depth:
                 fast.normalize_depth(ws, zacc, outputs[1], desc(depth.view(npix), wp.float32), npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
@@ -315,4 +346,4 @@ class FastRasterizeFunction(torch.autograd.Function):
         ctx.state = None
         grads[3] = g_opac if needs[3] else None
         grads[5] = g_features if needs[5] else None
-        return (None, None, None) + tuple(grads) + (probe_grad,)
+        return (None, None, None) + tuple(grads) + (probe_grad, None)

@@ -16,10 +16,10 @@ from warpgs.render import fast_pipeline_surfels as fast
 from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN,
                                     current_raster_options)
 from warpgs.render.empty_scene import EmptySceneFunction
-from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted
-from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, checked_call, raster_settings,
-                                     set_image_outputs)
 from warpgs.render.fast_pipeline import feature_layout
+from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted
+from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, checked_call,
+                                     checks_before_render, raster_settings, set_image_outputs)
 from warpgs.render.gaussians_fast import _features_arg, device_state
 from warpgs.render.pipeline_gaussians import Settings
 from warpgs.render.surfels_fast import FastSurfelsFunction
@@ -56,6 +56,7 @@ def rasterize_surfels(
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
     alpha_max: float = DEFAULT_ALPHA_MAX,
     check_inputs: bool = True,
+    _pipeline_checks: bool = False,
 ) -> RenderOutput:
     """Render N 2D Gaussian surfels from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
 
@@ -67,15 +68,18 @@ def rasterize_surfels(
     as in `rasterize`.
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
-                                      height, sh_degree, features, background, near, far, tile_size, check_inputs,
+                                      height, sh_degree, features, background, near, far, tile_size, False,
                                       max_sigmas, alpha_min, transmittance_min, scale_dims=2, alpha_max=alpha_max)
+    options = current_raster_options()
+    pipeline_checks = checks_before_render(check_inputs, _pipeline_checks, means, quats, scales, opacities, colors,
+                                           features, viewmat, K, background)
     if viewmat.dim() == 3:
         per_camera = [rasterize_surfels(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
                                         sh_degree=sh_degree, features=features, background=background,
                                         outputs=outputs, near=near, far=far, tile_size=tile_size,
                                         max_sigmas=max_sigmas, alpha_min=alpha_min,
                                         transmittance_min=transmittance_min, alpha_max=alpha_max,
-                                        check_inputs=False)
+                                        check_inputs=False, _pipeline_checks=pipeline_checks)
                       for b in range(viewmat.shape[0])]
         return _stack(per_camera)
 
@@ -90,8 +94,8 @@ def rasterize_surfels(
         num_features=feats.shape[1], distortion_scale=DISTORTION_SCALE)
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = FastSurfelsFunction.apply(
-            settings, wanted, current_raster_options(), means, quats, scales, opacities, coeffs, feats, viewmat,
-            _intrinsics_vector(K))
+            settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
+            (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width
         shapes = [(H, W, c) if image_wanted(wanted, name) else (0,) for name, c, _ in IMAGES]

@@ -11,7 +11,7 @@ from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.fast_pipeline import feature_layout, normalize_depth, normalize_depth_backward
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
-                                          gradient_buffers, projection_gradients, projection_inputs,
+                                          gradient_buffers, input_check, projection_gradients, projection_inputs,
                                           upstream_features, upstream_gradient)
 
 ALPHA, DEPTH = (next(i for i, (name, _, _) in enumerate(IMAGES) if name == n) for n in ("alpha", "depth"))
@@ -19,11 +19,11 @@ ALPHA, DEPTH = (next(i for i, (name, _, _) in enumerate(IMAGES) if name == n) fo
 
 class FastSurfelsFunction(torch.autograd.Function):
     """The surfel op through `fast_pipeline_surfels` (tests/legacy_raster_surfels.py holds a per-call op it must
-    match bit for bit)."""
+    match bit for bit); `check` as in gaussians_fast.FastRasterizeFunction."""
 
     @staticmethod
     def forward(ctx, settings, wanted, options, means, quats, scales, opacities, coeffs, features, viewmat,
-                intrinsics):
+                intrinsics, check=None):
         needs = ctx.needs_input_grad[3:11]
         any_grad = any(needs)
         state = device_state(means.device)
@@ -50,9 +50,12 @@ class FastSurfelsFunction(torch.autograd.Function):
         if wanted.depth:
             zacc = outputs[DEPTH] = (keep if keep is not None else ws)("zacc", npix, float)
 
+        alive = []
+        checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), viewmat,
+                                                        check, alive)
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
-                                 _features_arg(features, nf, layout, state), outputs, keep)
+                                 _features_arg(features, nf, layout, state), outputs, keep, checks)
             if wanted.depth:
                 normalize_depth(ws, zacc, outputs[ALPHA], depth_out, npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
@@ -98,4 +101,4 @@ class FastSurfelsFunction(torch.autograd.Function):
         ctx.state = None
         grads[3] = g_opac if needs[3] else None
         grads[5] = g_features if needs[5] else None
-        return (None, None, None) + tuple(grads)
+        return (None, None, None) + tuple(grads) + (None,)

@@ -24,8 +24,19 @@ def check_same_device(named: dict) -> torch.device:
     return first
 
 
+# The arrays the finite-value checks name, in the order they are reported (the first bad one is named), and the
+# flag slots of kernels/input_checks.flag_bad_inputs (the last slot: an opacity outside [0, 1]).
+CHECKED_NAMES = ("means", "quats", "scales", "opacities", "colors", "features", "viewmat", "K", "background")
+OPACITY_RANGE_ERROR = "opacities must lie in [0, 1] (pass sigmoid(logits), not logits)"
+
+
+def nonfinite_error(name: str) -> ValueError:
+    return ValueError(f"{name} contains NaN or Inf values")
+
+
 def check_finite(named: dict, opacities: torch.Tensor) -> None:
-    """One host sync for all checks: finiteness of every tensor and opacities within [0, 1]."""
+    """One host sync for all checks: finiteness of every tensor and opacities within [0, 1]. (GPU renders of 3D
+    Gaussians flag these in a kernel instead, read at the pipeline's own sync: `raise_flagged`.)"""
     tensors = [t for t in named.values() if t is not None]
     flags = [torch.isfinite(t).all() for t in tensors]
     if opacities.numel():
@@ -35,5 +46,16 @@ def check_finite(named: dict, opacities: torch.Tensor) -> None:
         return
     for (name, t), good in zip([(n, t) for n, t in named.items() if t is not None], ok):
         if not good:
-            raise ValueError(f"{name} contains NaN or Inf values")
-    raise ValueError("opacities must lie in [0, 1] (pass sigmoid(logits), not logits)")
+            raise nonfinite_error(name)
+    raise ValueError(OPACITY_RANGE_ERROR)
+
+
+def raise_flagged(flags) -> None:
+    """Raises check_finite's error from the flags of kernels/input_checks.flag_bad_inputs (one per CHECKED_NAMES,
+    then the opacity range); returns when none is set."""
+    if not any(flags):
+        return
+    for name, flag in zip(CHECKED_NAMES, flags):
+        if flag:
+            raise nonfinite_error(name)
+    raise ValueError(OPACITY_RANGE_ERROR)

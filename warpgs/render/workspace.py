@@ -16,7 +16,10 @@ against 5 us for a replay, `set_param_at_index` 0.7 us, `wp.from_torch` 4.5 us (
 """
 from __future__ import annotations
 
+import os
 import threading
+import warnings
+from collections import OrderedDict
 from typing import Dict, Tuple
 
 import warp as wp
@@ -171,6 +174,11 @@ class Workspace(Buffers):
         self.launches = LaunchCache(self.device)
         self._cache: Dict[object, object] = {}  # small per-workspace memo (structs, dummies, host buffers)
         self._free_frames: list = []
+        self.graphs = GraphCache(self.device)
+
+    def sequence(self, immediate: bool = False) -> "LaunchSequence":
+        """An empty launch sequence on this workspace (see LaunchSequence)."""
+        return LaunchSequence(self, immediate)
 
     def lease_frame(self) -> FrameLease:
         """Buffers for one render whose backward will follow (see FrameLease)."""
@@ -195,6 +203,15 @@ class Workspace(Buffers):
         return self.memo(("dummy", dtype, ndim),
                          lambda: wp.zeros((1,) * ndim, dtype=dtype, device=self.device))
 
+    def pinned_ints(self, count: int):
+        """A pinned host int32 buffer of at least `count` entries and its numpy view (GPU reads land there)."""
+        size = max(16, count)
+        host = self._cache.get("pinned_ints")
+        if host is None or host.shape[0] < size:
+            host = self._cache["pinned_ints"] = wp.empty(size, dtype=wp.int32, device="cpu", pinned=True)
+            self._cache["pinned_ints_np"] = host.numpy()
+        return host, self._cache["pinned_ints_np"]
+
     def read_int(self, a: wp.array, index: int) -> int:
         """a[index] on the host: the one synchronisation of a render call (GPU: through a pinned buffer)."""
         if self.device.is_cpu:
@@ -204,3 +221,189 @@ class Workspace(Buffers):
         wp.copy(host, a, dest_offset=0, src_offset=index, count=1)
         wp.synchronize_stream(self.device.stream)
         return int(host_np[0])
+
+
+# CUDA graphs of fixed launch sequences (LaunchSequence.run). WARPGS_RASTER_GRAPHS=0 turns them off (benchmarks
+# compare both in one process by setting `GRAPHS_ENABLED`).
+GRAPHS_ENABLED = os.environ.get("WARPGS_RASTER_GRAPHS", "1") != "0"
+_GRAPHS_KEPT = 4  # graphs per workspace (a renderer alternating between a few buffer sets keeps them all)
+_KEYS_SEEN = 8  # keys remembered once; a key seen a second time is captured
+
+
+class GraphCache:
+    """CUDA graphs of launch sequences, keyed by everything a graph bakes in (array addresses and shapes, launch
+    sizes, scalar arguments). A sequence is captured the second time its key comes (a key seen once costs
+    nothing), and replayed while its key repeats. Capture runs on a private stream (CUDA cannot capture the legacy
+    default stream, which is torch's default); the graph is launched on the caller's stream.
+
+    The private stream must not block with the legacy stream: while a blocking stream captures, any other thread's
+    work on the legacy stream (torch's default) fails. `stream_factory` makes it; the torch bridge sets one that
+    makes a non-blocking stream (Warp's own streams are blocking)."""
+
+    def __init__(self, device):
+        self.device = device
+        self.stream_factory = lambda: wp.Stream(self.device)
+        self._graphs: "OrderedDict[tuple, tuple]" = OrderedDict()  # key -> (graph, referents)
+        self._seen: "OrderedDict[tuple, list]" = OrderedDict()  # key -> referents
+        self._stream = None
+        self.broken = False  # set when a capture failed: this workspace launches eagerly from then on
+        self.captures = 0  # counters, for tests and benchmarks
+        self.replays = 0
+
+    def enabled(self) -> bool:
+        return GRAPHS_ENABLED and self.device.is_cuda and not self.broken
+
+    def run(self, key: tuple, referents: list, issue) -> None:
+        """Runs `issue()` (launches only: no allocation, no host sync) as a graph when `key` came before, else
+        eagerly. `referents`: the objects whose ids the key holds, kept alive with it. Must be called with the
+        caller's stream current on the device."""
+        stream = self.device.stream
+        hit = self._graphs.get(key)
+        if hit is not None:
+            self._graphs.move_to_end(key)
+            wp.capture_launch(hit[0], stream=stream)
+            self.replays += 1
+            return
+        if key not in self._seen:
+            self._seen[key] = referents
+            if len(self._seen) > _KEYS_SEEN:
+                self._seen.popitem(last=False)
+            issue()
+            return
+        graph = self._capture(issue)
+        if graph is None:
+            issue()
+            return
+        self._seen.pop(key, None)
+        self._graphs[key] = (graph, referents)
+        if len(self._graphs) > _GRAPHS_KEPT:
+            self._graphs.popitem(last=False)
+        wp.capture_launch(graph, stream=stream)
+        self.captures += 1
+
+    def _capture(self, issue):
+        if self._stream is None:
+            self._stream = self.stream_factory()
+        try:
+            with wp.ScopedStream(self._stream, sync_enter=False):
+                with wp.ScopedCapture(device=self.device, stream=self._stream) as capture:
+                    issue()
+            return capture.graph
+        except Exception as exc:  # never fail a render for want of a graph: launch eagerly from now on
+            self.broken = True
+            warnings.warn(f"warpgs: CUDA graph capture failed ({exc}); rendering without graphs", RuntimeWarning)
+            return None
+
+
+_SORT, _SCAN, _ZERO = object(), object(), object()  # op kinds of a LaunchSequence (launch keys are anything else)
+
+
+class LaunchSequence:
+    """Launches whose sizes and arguments are all known before any of them runs, issued together: eagerly (through
+    the workspace's LaunchCache) on the CPU, or as one CUDA graph when the same sequence came before (GraphCache).
+    Ends with host reads of a few device ints (`read_ints`), made with one synchronisation by `run`.
+
+    immediate=True issues each op as it is added (no graph), for stage timing (fast_pipeline.stage_hook)."""
+
+    def __init__(self, ws: Workspace, immediate: bool = False):
+        self.ws = ws
+        self.immediate = immediate
+        self.ops: list = []
+        self.reads: list = []
+        self._read_size = 0
+        self._checks: list = []
+
+    def _add(self, op) -> None:
+        if self.immediate:
+            self._issue_op(op)
+        else:
+            self.ops.append(op)
+
+    def launch(self, key, kernel, dim: int, args, block_dim: int = 0) -> None:
+        if dim > 0:
+            self._add((key, kernel, dim, [_param(a) for a in args], block_dim))
+
+    def sort_pairs(self, keys: wp.array, values: wp.array, count: int, begin_bit: int = 0, end_bit=None) -> None:
+        self._add((_SORT, keys, values, count, begin_bit, end_bit))
+
+    def scan(self, src: wp.array, dst: wp.array) -> None:
+        """Inclusive prefix sum."""
+        self._add((_SCAN, src, dst))
+
+    def zero(self, a: wp.array) -> None:
+        self._add((_ZERO, a))
+
+    def read_ints(self, a: wp.array, index: int, count: int = 1) -> int:
+        """Asks for a[index : index + count] on the host; returns where they start in `run`'s list."""
+        self.reads.append((a, index, count, self._read_size))
+        self._read_size += count
+        return self._read_size - count
+
+    def on_values(self, check) -> None:
+        """check(values) runs on the values read, before `run` returns them (e.g. raises for flagged input)."""
+        self._checks.append(check)
+
+    def run(self) -> list:
+        """Issues the sequence and returns the ints asked for (one host sync when there are any)."""
+        ws = self.ws
+        if ws.device.is_cpu:
+            self._issue()
+            values = []
+            for a, index, count, _ in self.reads:  # zero-copy views of host memory
+                values.extend(int(v) for v in a.numpy()[index: index + count])
+        else:
+            self._host, host_np = ws.pinned_ints(self._read_size)
+            if not self.immediate and ws.graphs.enabled():
+                ws.graphs.run(*self._key(), self._issue)
+            else:
+                self._issue()
+            if self.reads:
+                wp.synchronize_stream(ws.device.stream)
+            values = [int(v) for v in host_np[: self._read_size]]
+        for check in self._checks:
+            check(values)
+        return values
+
+    def _issue(self) -> None:
+        for op in self.ops:
+            self._issue_op(op)
+        if not self.ws.device.is_cpu:
+            for a, index, count, slot in self.reads:
+                wp.copy(self._host, a, dest_offset=slot, src_offset=index, count=count)
+
+    def _issue_op(self, op) -> None:
+        kind = op[0]
+        if kind is _SORT:
+            wp.utils.radix_sort_pairs(op[1], op[2], op[3], begin_bit=op[4], end_bit=op[5])
+        elif kind is _SCAN:
+            wp.utils.array_scan(op[1], op[2], inclusive=True)
+        elif kind is _ZERO:
+            op[1].zero_()
+        else:
+            self.ws.launches.launch(op[0], op[1], op[2], op[3], op[4])
+
+    def _key(self):
+        """(key, referents): the key is everything the issued work depends on except memory contents, with arrays
+        and descriptors by identity (a view or descriptor object stands for one address, shape and strides: the
+        workspace and the descriptor memo hand out the same object for the same memory) and scalars by value. The
+        referents keep those objects alive as long as the key is stored, so no other object can take their ids."""
+        parts, referents = [], [self._host]
+        for op in self.ops:
+            kind = op[0]
+            if kind is _SORT or kind is _SCAN or kind is _ZERO:
+                arrays = [a for a in op[1:] if isinstance(a, wp.array)]
+                referents.extend(arrays)
+                parts.append((id(kind), tuple(map(id, arrays))) + tuple(a for a in op[3:] if not isinstance(a, wp.array)))
+            else:
+                args = op[3]
+                referents.extend(args)
+                parts.append((op[0], id(op[1]), op[2], op[4],
+                              tuple([a if type(a) in _BY_VALUE else id(a) for a in args])))
+        for a, index, count, slot in self.reads:
+            referents.append(a)
+            parts.append((id(a), index, count, slot))
+        parts.append(id(self._host))
+        return tuple(parts), referents
+
+
+_BY_VALUE = (int, float, bool)  # launch arguments keyed by value; the rest (arrays, descriptors, structs) by identity
