@@ -131,7 +131,7 @@ def main(argv=None) -> dict:
                "seed": args.seed, "config": cfg.to_dict(), "runs": runs, "ms_per_step": per_step,
                "init_source": str(trainer.init_source), "gsplat_reset": args.gsplat_reset if args.gsplat else None}
     payload["loop_raster"] = args.loop_raster
-    # A video capture whose poses jump has views that contradict each other: its scores say less (README, beer).
+    # A video capture whose poses jump has views that contradict each other: its scores say less (docs/real_captures.md, beer).
     payload["pose_jumps"] = scene_pose_jumps(scene)
     if payload["pose_jumps"]:
         print(f"note: the capture's poses jump {len(payload['pose_jumps'])} times between neighbouring frames "

@@ -1,7 +1,7 @@
 """Pool real_capture.py results over seeds: per capture and mark, warpgs's held-out PSNR against gsplat's loop,
 paired by seed (the two systems of one seed may come from one file or from two `--only` files).
 
-    python benchmarks/real_capture_seeds.py OUT_NAME benchmarks/results/real_capture_beer_*_colourfix*.json
+    python benchmarks/real_capture_seeds.py OUT_NAME benchmarks/results/real_capture_beer_*_beerB*.json
 
 Prints one row per capture, seed and mark and a summary per capture and mark (seeds, mean, sd and standard error
 of the paired difference, the worst seed); writes benchmarks/results/OUT_NAME.json. A capture's seed may appear once

@@ -142,7 +142,7 @@ def test_key_values_keep_their_key_and_overrides_expand_aliases():
 
 
 def test_gaussians_preset_clamps_alpha_as_gsplat_and_every_render_gets_it():
-    # The real-capture recipe uses gsplat's 0.999 (measured better on real captures, README "Real captures"); the
+    # The real-capture recipe uses gsplat's 0.999 (measured better on real captures, docs/real_captures.md); the
     # library default stays 3DGS's 0.99. render_options() is what training, evaluation and viewers render with.
     preset = load_config(str(CONFIGS / "gaussians.yaml"))
     assert preset.train.alpha_max == pytest.approx(0.999)

@@ -1,7 +1,7 @@
 """Pose sanity for video captures: consecutive frames of a video are a few degrees and a short step apart, so a
 pose that turns half around between two neighbouring frames was put on the wrong side of the scene by SfM (a
 symmetric object, repeated texture). Such frames contradict the others; training fits them anyway and held-out
-scores turn erratic (README, "Real captures": beer). Photo collections have no order and are not judged."""
+scores turn erratic (docs/real_captures.md: beer). Photo collections have no order and are not judged."""
 from __future__ import annotations
 
 import re
