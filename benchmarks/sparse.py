@@ -134,9 +134,9 @@ def prior_folder(out: Path, protocol: str, scene: SceneSpec) -> Path:
     return out / "priors" / f"{protocol}_{scene.name}"
 
 
-def needs_prior(run: Run) -> bool:
+def needs_prior(run: Run, user_overrides=()) -> bool:
     _, preset, overrides, _ = SETTINGS[run.setting]
-    return ablation.uses_prior(preset, overrides)
+    return ablation.uses_prior(preset, [*user_overrides, *overrides])
 
 
 # --- the two kinds of worker process -------------------------------------------------------------------------------
@@ -145,7 +145,7 @@ def make_prior(args, scene: SceneSpec) -> dict:
     from warpgs.data import compute_depth_priors
     from warpgs.train.setup import plane_sweep
 
-    folder = prior_folder(Path(args.out), args.protocol, scene)
+    folder = prior_folder(Path(args.out), args.tag, scene)
     loaded = load(scene, args.proto)
     start = time.perf_counter()
     _, report = compute_depth_priors(loaded, plane_sweep(None), out_dir=folder)
@@ -188,7 +188,7 @@ def train_one(args, run: Run) -> dict:
             f"data.downscale={run.scene.downscale}"] + ([f"strategy.max_primitives={budget}"] if budget else [])
     extra = (ablation.setting_overrides_for_run(preset, setting_overrides, budget, base + list(args.overrides))
              + ([f"data.depth_priors={prior_folder(Path(args.out), run.protocol, run.scene)}"]
-                if needs_prior(run) else []))
+                if needs_prior(run, args.overrides) else []))
     with tempfile.TemporaryDirectory(prefix="warpgs-sparse-") as tmp:
         result = ablation.run_setting(run.setting, preset, steps, run.seed, args.device, extra, Path(tmp), args.pairs,
                                       FULL_STEPS, marr, reference)
@@ -228,10 +228,10 @@ def mean_se(values: list) -> tuple[Optional[float], Optional[float]]:
     return statistics.fmean(vals), (statistics.stdev(vals) / math.sqrt(len(vals)) if len(vals) > 1 else None)
 
 
-def fmt(m: Optional[float], se: Optional[float], digits: int) -> str:
+def fmt(m: Optional[float], se: Optional[float], digits: int, sign: bool = False) -> str:
     if m is None:
         return "n/a"
-    return f"{m:.{digits}f}" + (f" ± {se:.{digits}f}" if se is not None else "")
+    return f"{m:{'+' if sign else ''}.{digits}f}" + (f" ± {se:.{digits}f}" if se is not None else "")
 
 
 def paired(runs: dict, key: str, ref: str, metric: str = "psnr") -> list[float]:
@@ -292,7 +292,8 @@ def print_tables(summary: dict, header: str) -> None:
         print("| Setting | " + " | ".join(h for h, _ in used) + " |")
         print("|---|" + "---|" * len(used))
         for key, r in rows.items():
-            cells = [fmt(*r[k], digits.get(k, 2)) for _, k in used]
+            cells = ["—" if (key, k) == ("baseline", "d_psnr_vs_baseline") else
+                     fmt(*r[k], digits.get(k, 2), sign=k.startswith("d_")) for _, k in used]
             print(f"| {SETTINGS[key][0]} | " + " | ".join(cells) + " |")
 
     print(header)
@@ -312,9 +313,10 @@ def print_tables(summary: dict, header: str) -> None:
         paper_full = PAPER_TABLE2["full"][1]
         for key, (row, psnr, ssim, lp) in PAPER_TABLE2.items():
             ours = mean.get(key)
-            cells = ([fmt(*ours["psnr"], 2), fmt(*ours["d_psnr_vs_full"], 2) if key != "full" else "—",
+            cells = ([fmt(*ours["psnr"], 2), fmt(*ours["d_psnr_vs_full"], 2, sign=True) if key != "full" else "—",
                       fmt(*ours["ssim"], 3), fmt(*ours["lpips"], 3)] if ours else ["not run"] * 4)
-            print(f"| {row} | {psnr:.2f} | {psnr - paper_full:+.2f} | {ssim:.3f} | {lp:.3f} | " + " | ".join(cells)
+            paper_delta = "—" if key == "full" else f"{psnr - paper_full:+.2f}"
+            print(f"| {row} | {psnr:.2f} | {paper_delta} | {ssim:.3f} | {lp:.3f} | " + " | ".join(cells)
                   + " |")
 
 
@@ -332,7 +334,7 @@ def tables(args, runs: list[Run]) -> dict:
               f"{len(results)} of {len(runs)} runs, {first['steps']} steps, {first['device']}, budget "
               f"{first['budget'] or 'preset'}" + (f"; missing {len(missing)}" if missing else ""))
     print_tables(summary, header)
-    payload = {"protocol": args.protocol, "about": args.proto.about, "missing": missing,
+    payload = {"protocol": args.protocol, "tag": args.tag, "about": args.proto.about, "missing": missing,
                "paper_table2": PAPER_TABLE2, "summary": summary,
                "splits": {r["scene"]: {k: r[k] for k in ("size", "downscale", "train", "train_index", "test",
                                                          "test_index", "reference")} for r in results},
@@ -375,6 +377,8 @@ def parse(argv):
             raise SystemExit(f"--n-train: expected at least 1, got {args.n_train}")
         protocol = Protocol(args.n_train, protocol.downscale, f"{protocol.about}, with {args.n_train} training views")
     args.proto = protocol
+    # Names of run files and priors: the protocol, and the training-view count when it is not the protocol's.
+    args.tag = args.protocol if args.n_train is None else f"{args.protocol}_n{args.n_train}"
     scenes = [parse_scene(s, protocol) for s in args.scenes.split(",") if s]
     if len({s.name for s in scenes}) != len(scenes):
         raise SystemExit("--scenes: two scenes share a folder name (it names their run files)")
@@ -389,13 +393,14 @@ def parse(argv):
         raise SystemExit("--gpus: give --device cuda too")
     if any("=" not in o for o in args.overrides):
         raise SystemExit(f"overrides: expected key=value, got {args.overrides}")
-    args.name = args.name or f"{args.protocol}_{args.device.replace(':', '')}_{run_steps(args)}"
+    args.name = args.name or f"{args.tag}_{args.device.replace(':', '')}_{run_steps(args)}"
     return args, scenes, expand_settings(args.settings), seeds, gpus
 
 
 def worker_cmd(args, kind: str, scene: SceneSpec, run: Optional[Run] = None) -> list[str]:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", kind, "--protocol", args.protocol,
-           "--scenes", f"{scene.path}@{scene.downscale}", "--device", args.device, "--out", str(Path(args.out).resolve()),
+           "--scenes", f"{scene.path}@{scene.downscale}", "--device", args.device,
+           "--out", str(Path(args.out).resolve()),
            "--pairs", str(args.pairs), "--threads", str(args.threads)]
     cmd += ["--n-train", str(args.n_train)] if args.n_train is not None else []
     cmd += [a for flag, v in (("--steps", args.steps), ("--budget", args.budget)) if v for a in (flag, str(v))]
@@ -410,7 +415,7 @@ def dry_run(args, runs: list[Run], scenes: list[SceneSpec]) -> None:
         loaded = load(sc, args.proto)
         ref = ("reference_depth.npz" if (sc.path / REFERENCE_FILE).is_file() else
                "sparse/0" if (sc.path / "sparse" / "0" / "points3D.bin").is_file() else "none (image metrics only)")
-        prior = "done" if (prior_folder(out, args.protocol, sc) / "prior.json").is_file() else "to do"
+        prior = "done" if (prior_folder(out, args.tag, sc) / "prior.json").is_file() else "to do"
         print(f"{sc.name} ({sc.path}, downscale {sc.downscale}, {loaded.cameras[0].width}x{loaded.cameras[0].height}"
               f", {len(loaded)} views): train {loaded.train} {[loaded.names[v] for v in loaded.train]}, test "
               f"{loaded.test}; depth reference: {ref}; prior: {prior}")
@@ -426,8 +431,8 @@ def main(argv=None):
     if args.worker == "prior":
         return make_prior(args, scenes[0])
     if args.worker == "run":
-        return train_one(args, Run(args.protocol, scenes[0], args.setting, args.seed))
-    runs = plan(args.protocol, scenes, settings, seeds)
+        return train_one(args, Run(args.tag, scenes[0], args.setting, args.seed))
+    runs = plan(args.tag, scenes, settings, seeds)
     out = Path(args.out).resolve()
     args.out = str(out)
     if args.dry_run:
@@ -444,13 +449,13 @@ def main(argv=None):
     todo = [r for r in runs if not run_file(out, r).is_file()]
     groups = [str(g) for g in gpus] or [""]
     env = lambda i: {"CUDA_VISIBLE_DEVICES": groups[i % len(groups)]} if gpus else {}  # noqa: E731
-    priors = [sc for sc in {r.scene: None for r in todo if needs_prior(r)}
-              if not (prior_folder(out, args.protocol, sc) / "prior.json").is_file()]
+    priors = [sc for sc in {r.scene: None for r in todo if needs_prior(r, args.overrides)}
+              if not (prior_folder(out, args.tag, sc) / "prior.json").is_file()]
     start = time.perf_counter()
     logs = out / "logs"
     if priors:
         print(f"priors: {', '.join(sc.name for sc in priors)}", file=sys.stderr, flush=True)
-        run_jobs([Job(f"prior_{args.protocol}_{sc.name}", worker_cmd(args, "prior", sc), groups[i % len(groups)],
+        run_jobs([Job(f"prior_{args.tag}_{sc.name}", worker_cmd(args, "prior", sc), groups[i % len(groups)],
                       env(i)) for i, sc in enumerate(priors)], args.per_gpu, logs)
     print(f"runs: {len(todo)} to do of {len(runs)}", file=sys.stderr, flush=True)
     run_jobs([Job(r.id, worker_cmd(args, "run", r.scene, r), groups[i % len(groups)], env(i))

@@ -3,17 +3,20 @@ each at the benchmark's resolution that a GPU machine can receive (64 MiB a call
 
     python benchmarks/sparse_data.py sources                           # the known public copies
     python benchmarks/sparse_data.py extract MIRROR data/leaves data/raw/leaves   # a folder of a fetched repo
-    python benchmarks/sparse_data.py llff data/raw/leaves data/sparse/leaves      # images_8 + poses + SfM model
+    python benchmarks/sparse_data.py llff data/raw/leaves data/sparse/leaves --jpeg 98   # images_8 + poses + ref.
+    python benchmarks/sparse_data.py gather data/raw/bonsai_src data/bonsai800/images --skip images  # for SfM
     python benchmarks/sparse_data.py colmap data/bonsai800 data/sparse/bonsai800  # images + sparse/0, as they are
     python benchmarks/sparse_data.py size data/sparse/*                           # MiB per scene and in all
 
-MIRROR is the bare git directory `fetch` made (/work/.mirror/<owner>+<name>/repo). `llff` writes
-images_<factor>/<name>.png at 1/factor of the poses' full size (from the source's own images_<factor> when it has
-them at that size, else area-resized from whichever images it has: some copies hold 800x600 JPEGs), copies
-poses_bounds.npy and, when present, sparse/0 (cameras, images, points3D: the all-view SfM points the benchmark
-scores test-view depth at; never used for training). `colmap` copies images/ and sparse/0 unchanged (a 360° capture
-is read at data.downscale, e.g. 2 for bonsai800's 800x533 photos, ~FSGS's images_8 size). Nothing here is committed:
-data/ is git-ignored.
+MIRROR is the bare git directory `fetch` made (/work/.mirror/<owner>+<name>/repo); a snapshot lacks files of 4 MiB
+and more, which `extract` names and skips (often sparse/0/images.bin). `llff` writes images_<factor>/<name> at
+1/factor of the poses' full size (from the source's own images_<factor> when it has them at that size, else
+area-resized from whichever complete image folder it has: some copies hold 800x600 JPEGs), PNG or, with --jpeg Q,
+JPEG (half the bytes), copies poses_bounds.npy, and turns the source's SfM model (sparse/0, made from every view)
+into reference_depth.npz: the depth of its points in each view that saw them, what the benchmark scores test-view
+depth at (never used for training). `colmap` copies images/ and sparse/0 unchanged (a 360° capture is read at
+data.downscale, e.g. 2 for bonsai800's 800x533 photos, ~FSGS's images_8 size). data/ is git-ignored: nothing
+here is committed.
 """
 from __future__ import annotations
 
@@ -54,20 +57,20 @@ SOURCES = {
     "fern": Source("luo-ziyuan/CopyRNeRF-code", "data/nerf_llff_data/fern", "llff",
                    "original images_4/images_8 PNGs, sparse/0 points3D.bin (no images.bin)"),
     "flower": Source("zhelianl-zl/deeplearning_Nerf", "data/flower", "llff",
-                     "original images_8 PNGs (image000.png ...), sparse/0 complete"),
+                     "original images_8 PNGs (image000.png ...), sparse/0 without images.bin (a snapshot lacks it)"),
     "horns": Source("Bussler/CustomNeRF", "data/horns", "llff",
                     "images/ holds the 504x378 images_8 PNGs; no SfM model (no depth reference)"),
     "leaves": Source("bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF", "data/leaves", "llff",
-                     "800x600 JPEG copies of the originals, sparse/0 complete"),
+                     "800x600 JPEGs (the release's names and count), sparse/0 without images.bin"),
     "orchids": Source("bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF", "data/orchids", "llff",
-                      "800x600 JPEG copies of the originals, sparse/0 complete"),
+                      "800x600 JPEGs (the release's names and count), sparse/0 without images.bin"),
     "room": Source("bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF", "data/room", "llff",
-                   "800x600 JPEG copies of the originals, sparse/0 complete"),
+                   "800x600 JPEGs (the release's names and count), sparse/0 complete"),
     "trex": Source("bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF", "data/trex", "llff",
-                   "800x600 JPEG copies of the originals, sparse/0 complete"),
+                   "800x600 JPEGs (the release's names and count), sparse/0 without images.bin"),
     "bonsai800": Source("EricXu23/Bonsaidownload", ".", "images",
                         "Mip-NeRF 360 bonsai, 292 photos at 800x533, no usable poses: run SfM "
-                        "(benchmarks/sfm.py --mapper global) into sparse/0 first"),
+                        "(benchmarks/sfm.py --mapper global) into sparse/0 first; gather --skip images"),
 }
 
 
@@ -96,6 +99,27 @@ def extract(mirror: Path, path: str, dest: Path, commit: str = "HEAD") -> tuple[
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(blob.stdout)
     return dest, missing
+
+
+def gather_images(src: Path, dest: Path, skip=()) -> list[Path]:
+    """Every image under src, except in the `skip` subfolders, into dest (one folder, for SfM), by file name; two
+    different files of one name are an error. EricXu23/Bonsaidownload spreads bonsai800's 292 photos over its root
+    and input/ (its images/ holds 3 undistorted 699x461 outputs: skip it)."""
+    from warpgs.data.formats.image_io import IMAGE_EXTENSIONS
+
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    seen: dict = {}
+    for p in sorted(Path(src).rglob("*")):
+        if not p.is_file() or p.suffix not in IMAGE_EXTENSIONS or dest in p.parents:
+            continue
+        if any(Path(src) / k in p.parents for k in skip):
+            continue
+        if p.name in seen and seen[p.name].read_bytes() != p.read_bytes():
+            raise SystemExit(f"{p} and {seen[p.name]}: two different images named {p.name}")
+        seen[p.name] = p
+        shutil.copyfile(p, dest / p.name)
+    return sorted(dest / n for n in seen)
 
 
 def _source_images(src: Path, n: int, factor: int, size: tuple[int, int]) -> tuple[list[Path], bool]:
@@ -231,6 +255,9 @@ def main(argv=None) -> None:
     p.add_argument("--factor", type=int, default=8)
     p.add_argument("--jpeg", type=int, default=0, metavar="Q", help="write JPEGs of quality Q (default: PNG)")
     p.add_argument("--keep-model", action="store_true", help="keep sparse/0 beside reference_depth.npz")
+    g = sub.add_parser("gather", help="every image under SRC into one folder DEST (for SfM)")
+    g.add_argument("src"), g.add_argument("dest")
+    g.add_argument("--skip", action="append", default=[], help="a subfolder of SRC to leave out (repeatable)")
     c = sub.add_parser("colmap", help="copy a COLMAP scene's images/ and sparse/0")
     c.add_argument("src"), c.add_argument("out")
     s = sub.add_parser("size", help="MiB per scene folder and in all, against the carry budget")
@@ -241,10 +268,13 @@ def main(argv=None) -> None:
             print(f"{name:10s} {src.kind:7s} github:{src.repo} {src.path}  ({src.note})")
     elif args.cmd == "extract":
         dest, missing = extract(Path(args.mirror), args.path, Path(args.dest), args.commit)
-        print(f"{dest}" + (f" (the snapshot lacks {len(missing)} file(s): {', '.join(missing[:5])})" if missing else ""))
+        lacks = f" (the snapshot lacks {len(missing)} file(s): {', '.join(missing[:5])})" if missing else ""
+        print(f"{dest}{lacks}")
+    elif args.cmd == "gather":
+        print(f"{args.dest}: {len(gather_images(Path(args.src), Path(args.dest), args.skip))} images")
     elif args.cmd in ("llff", "colmap"):
-        out = prepare_llff(args.src, args.out, args.factor, args.jpeg, args.keep_model) if args.cmd == "llff" else prepare_colmap(args.src,
-                                                                                                      args.out)
+        out = (prepare_llff(args.src, args.out, args.factor, args.jpeg, args.keep_model) if args.cmd == "llff"
+               else prepare_colmap(args.src, args.out))
         print(f"{out}: {folder_mib(out):.1f} MiB")
     else:
         total = 0.0

@@ -53,7 +53,7 @@ def _result(scene, setting, seed, psnr):
             "depth_order": None, "abs_rel": None, "coverage": None, "num_primitives": 10, "train_seconds": 1.0}
 
 
-def test_tables_pair_seeds_and_average_scenes():
+def test_tables_pair_seeds_and_average_scenes(capsys):
     results = [_result("a", "baseline", 0, 15.0), _result("a", "baseline", 1, 16.0),
                _result("a", "full", 0, 17.0), _result("a", "full", 1, 19.0),
                _result("a", "wo_depth", 0, 16.0), _result("a", "wo_depth", 1, 18.0),
@@ -68,6 +68,11 @@ def test_tables_pair_seeds_and_average_scenes():
     assert mean["full"]["psnr"][0] == pytest.approx((18.0 + 21.0) / 2)
     assert mean["full"]["psnr"][1] is None  # scene b has a single seed
     assert mean["wo_depth"]["scenes"] == 1
+    sparse.print_tables(summary, "header")
+    printed = capsys.readouterr().out
+    # The paper's rows beside ours: w/o DR (the depth term) is 0.32 dB under the paper's full method, ours -1.00.
+    assert "| w/o DR | 21.79 | -0.32 | 0.722 | 0.228 | 17.00 ± 1.00 | -1.00 ± 0.00 |" in printed
+    assert "| w/o DGR | 22.00 | -0.11 | 0.728 | 0.222 | not run |" in printed
 
 
 def test_settings_groups_and_bad_input():
