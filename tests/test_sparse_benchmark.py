@@ -24,7 +24,8 @@ def _runs(out: Path) -> dict:
     return {p.name: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")}
 
 
-def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys):
+def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path))  # the table's JSON, not into benchmarks/results
     scene = synthetic_dir("orbit")  # 36 views at 128x96: 24 train under the 360 protocol, 5 test (0, 8, ...)
     out = tmp_path / "out"
     common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--seeds", "3",
@@ -33,6 +34,8 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys):
     listed = capsys.readouterr().out
     assert "1 runs (0 done, 1 to do)" in listed and "m360_24_orbit_baseline_s3" in listed
     payload = sparse.main(common + ["--name", "t_orbit"])
+    assert json.loads((tmp_path / "sparse_t_orbit.json").read_text())["summary"] == json.loads(json.dumps(
+        payload["summary"]))
     assert set(_runs(out)) == {"m360_24_orbit_baseline_s3.json"}
     run = json.loads((out / "runs" / "m360_24_orbit_baseline_s3.json").read_text())
     want_train, want_test = fsgs_split(36, 24)
