@@ -137,11 +137,13 @@ def _source_images(src: Path, n: int, factor: int, size: tuple[int, int]) -> tup
     raise SystemExit(f"{src}: no image folder holds one image per row of poses_bounds.npy ({n})")
 
 
-def prepare_llff(src: Path, out: Path, factor: int = 8, jpeg_quality: int = 0, keep_model: bool = False) -> Path:
+def prepare_llff(src: Path, out: Path, factor: int = 8, jpeg_quality: int = 0, keep_model: bool = False,
+                 triangulate: bool = False) -> Path:
     """An LLFF scene trimmed to one resolution: images_<factor>/ + poses_bounds.npy, and, when the source has an SfM
     model, reference_depth.npz (its points' depth in every view, what the benchmark scores depth at) instead of the
     model (kept too with keep_model). jpeg_quality > 0 writes JPEGs (4:4:4) instead of PNGs, about half the bytes:
-    at 98 they differ from the PNGs by ~46 dB PSNR (fern, horns, room, trex at 1/8)."""
+    at 98 they differ from the PNGs by ~46 dB PSNR (fern, horns, room, trex at 1/8). triangulate: a source without
+    a model gets one for the reference from every view's known pose (pycolmap; horns: a few minutes on 2 cores)."""
     src, out = Path(src), Path(out)
     poses_path = src / "poses_bounds.npy"
     if not poses_path.is_file():
@@ -177,6 +179,18 @@ def prepare_llff(src: Path, out: Path, factor: int = 8, jpeg_quality: int = 0, k
             print(f"{out}: no depth reference ({e})", file=sys.stderr)
         if not keep_model:
             shutil.rmtree(out / "sparse")
+    elif triangulate:
+        import tempfile
+
+        from warpgs.data import load_scene
+        from warpgs.data.sfm.triangulate import triangulate_scene
+
+        scene = load_scene(out, split="all", downscale=factor)
+        with tempfile.TemporaryDirectory(prefix="sparse-data-tri-") as tmp:
+            tri = triangulate_scene(scene, tmp, views=range(len(scene)))
+            print(f"{out}: triangulated {len(tri.points)} points from all {len(scene)} views "
+                  f"({tri.mean_error:.2f} px) for the depth reference", file=sys.stderr)
+            write_reference_depth(out, factor, Path(tmp) / "model")
     return out
 
 
@@ -188,7 +202,7 @@ def _jpeg(rgb: np.ndarray, quality: int) -> bytes:
     return buf.getvalue()
 
 
-def write_reference_depth(scene_dir: Path, downscale: int) -> Path:
+def write_reference_depth(scene_dir: Path, downscale: int, model_dir=None) -> Path:
     """reference_depth.npz: per view name, the [K, 3] (column, row, camera z) of the scene's SfM points its track
     saw, at the served resolution (the nearest point per pixel), from warpgs.data.depth.reference_points. A few
     hundred KiB instead of a model of several MiB; benchmarks/sparse.py reads it back as sparse depth maps."""
@@ -196,7 +210,7 @@ def write_reference_depth(scene_dir: Path, downscale: int) -> Path:
     from warpgs.data.depth.reference_points import sparse_depth_map, view_reference_points
 
     scene = load_scene(scene_dir, split="llff", downscale=downscale)
-    points, per_view = view_reference_points(scene)
+    points, per_view = view_reference_points(scene, model_dir)
     arrays = {}
     for v, name in enumerate(scene.names):
         depth = sparse_depth_map(scene.cameras[v], points.xyz[per_view[v]])
@@ -255,6 +269,8 @@ def main(argv=None) -> None:
     p.add_argument("--factor", type=int, default=8)
     p.add_argument("--jpeg", type=int, default=0, metavar="Q", help="write JPEGs of quality Q (default: PNG)")
     p.add_argument("--keep-model", action="store_true", help="keep sparse/0 beside reference_depth.npz")
+    p.add_argument("--triangulate", action="store_true",
+                   help="no model in SRC: triangulate every view's known pose for the depth reference")
     g = sub.add_parser("gather", help="every image under SRC into one folder DEST (for SfM)")
     g.add_argument("src"), g.add_argument("dest")
     g.add_argument("--skip", action="append", default=[], help="a subfolder of SRC to leave out (repeatable)")
@@ -273,7 +289,7 @@ def main(argv=None) -> None:
     elif args.cmd == "gather":
         print(f"{args.dest}: {len(gather_images(Path(args.src), Path(args.dest), args.skip))} images")
     elif args.cmd in ("llff", "colmap"):
-        out = (prepare_llff(args.src, args.out, args.factor, args.jpeg, args.keep_model) if args.cmd == "llff"
+        out = (prepare_llff(args.src, args.out, args.factor, args.jpeg, args.keep_model, args.triangulate) if args.cmd == "llff"
                else prepare_colmap(args.src, args.out))
         print(f"{out}: {folder_mib(out):.1f} MiB")
     else:
