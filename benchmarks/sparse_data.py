@@ -68,6 +68,9 @@ SOURCES = {
                    "800x600 JPEGs (the release's names and count), sparse/0 complete"),
     "trex": Source("bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF", "data/trex", "llff",
                    "800x600 JPEGs (the release's names and count), sparse/0 without images.bin"),
+    "phone64": Source("Scodive/Data", ".", "llff",
+                      "64 phone photos around a subject (360-ish), 1920x1080, poses_bounds.npy, sparse/0 without "
+                      "images.bin; the issue's capture: prepare with --factor 4 and read it as PATH@4"),
     "bonsai800": Source("EricXu23/Bonsaidownload", ".", "images",
                         "Mip-NeRF 360 bonsai, 292 photos at 800x533, no usable poses: run SfM "
                         "(benchmarks/sfm.py --mapper global) into sparse/0 first; gather --skip images"),
