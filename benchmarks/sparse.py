@@ -14,6 +14,7 @@ train: warpgs.data.formats.splits.llff_split, FSGS's and DNGaussian's reader):
   llff3    3 training views at 1/8 resolution (images_8): the FSGS / DNGaussian LLFF protocol
   m360_24  24 training views (FSGS's Mip-NeRF 360 protocol; FSGS reads images_8, i.e. ~390x260 for bonsai)
   m360_3   3 training views of the same captures
+--n-train N keeps a protocol's rule with another count (its run files are then named <protocol>_nN_...).
 A scene is a folder (LLFF or COLMAP), optionally `PATH@N` for data.downscale N (default: 8 for llff3, 1 for the 360
 protocols; bonsai800's 800x533 photos at @2 are FSGS's images_8 size). benchmarks/sparse_data.py prepares copies.
 
@@ -199,7 +200,8 @@ def train_one(args, run: Run) -> dict:
                "test": [loaded.names[v] for v in loaded.test], "test_index": loaded.test,
                "reference": reference_from, "device": args.device, "budget": budget,
                "schedule_overrides": ablation.schedule_overrides(steps, FULL_STEPS),
-               "torch_threads": torch.get_num_threads(), "machine": platform.node(), **result}
+               "torch_threads": torch.get_num_threads(), "machine": platform.node(),
+               "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None, **result}
     path = run_file(Path(args.out), run)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp_path = path.with_suffix(".json.tmp")
