@@ -70,7 +70,7 @@ SOURCES = {
                    "800x600 JPEGs (the release's names and count), sparse/0 without images.bin"),
     "phone64": Source("Scodive/Data", ".", "llff",
                       "64 phone photos around a subject (360-ish), 1920x1080, poses_bounds.npy, sparse/0 without "
-                      "images.bin; the issue's capture: prepare with --factor 4 and read it as PATH@4"),
+                      "images.bin; the issue's capture: prepare with --factor 4 --keep-images, read it as PATH@4"),
     "bonsai800": Source("EricXu23/Bonsaidownload", ".", "images",
                         "Mip-NeRF 360 bonsai, 292 photos at 800x533, no usable poses: run SfM "
                         "(benchmarks/sfm.py --mapper global) into sparse/0 first; gather --skip images"),
@@ -141,12 +141,15 @@ def _source_images(src: Path, n: int, factor: int, size: tuple[int, int]) -> tup
 
 
 def prepare_llff(src: Path, out: Path, factor: int = 8, jpeg_quality: int = 0, keep_model: bool = False,
-                 triangulate: bool = False) -> Path:
+                 triangulate: bool = False, keep_images: bool = False) -> Path:
     """An LLFF scene trimmed to one resolution: images_<factor>/ + poses_bounds.npy, and, when the source has an SfM
     model, reference_depth.npz (its points' depth in every view, what the benchmark scores depth at) instead of the
     model (kept too with keep_model). jpeg_quality > 0 writes JPEGs (4:4:4) instead of PNGs, about half the bytes:
     at 98 they differ from the PNGs by ~46 dB PSNR (fern, horns, room, trex at 1/8). triangulate: a source without
-    a model gets one for the reference from every view's known pose (pycolmap; horns: a few minutes on 2 cores)."""
+    a model gets one for the reference from every view's known pose (pycolmap; horns: a few minutes on 2 cores).
+    keep_images: copy the source's images/ as they are instead (no images_<factor>): the presets triangulate their
+    initial points from the scene's native images (up to 1600 px), and 3 views of phone64 at 1/4 give fewer than
+    the 100 points they need (93), where its 1920x1080 photos gave the issue's runs enough."""
     src, out = Path(src), Path(out)
     poses_path = src / "poses_bounds.npy"
     if not poses_path.is_file():
@@ -154,21 +157,12 @@ def prepare_llff(src: Path, out: Path, factor: int = 8, jpeg_quality: int = 0, k
     poses = np.load(poses_path)
     if poses.ndim != 2 or poses.shape[1] != 17:
         raise SystemExit(f"{poses_path}: expected an [N, 17] array, got {poses.shape}")
-    h, w = poses[0, :15].reshape(3, 5)[:2, 4]
-    size = (max(1, round(w / factor)), max(1, round(h / factor)))
-    files, same = _source_images(src, len(poses), factor, size)
-    # Name each image after the full-size file it belongs to when the scene has them (the SfM model names those).
-    full = list_images(src / "images") if (src / "images").is_dir() else []
-    names = [p.stem for p in full] if len(full) == len(files) else [p.stem for p in files]
-    folder = out / f"images_{factor}"
-    folder.mkdir(parents=True, exist_ok=True)
-    for f, name in zip(files, names):
-        rgb, _ = read_image(f)
-        rgb = rgb if same else resize_area(rgb, *size)
-        if jpeg_quality:
-            atomic_write_bytes(folder / f"{name}.jpg", _jpeg(rgb, jpeg_quality))
-        else:
-            write_png(folder / f"{name}.png", rgb)
+    if keep_images:  # the full-size images as they are: the loader resizes them (and caches the result)
+        if not (src / "images").is_dir():
+            raise SystemExit(f"{src}: --keep-images, but there is no images/ folder")
+        shutil.copytree(src / "images", out / "images", dirs_exist_ok=True)
+    else:
+        _write_scaled_images(src, out, len(poses), poses[0, :15].reshape(3, 5)[:2, 4], factor, jpeg_quality)
     shutil.copyfile(poses_path, out / "poses_bounds.npy")
     model = src / "sparse" / "0"
     if model.is_dir():
@@ -195,6 +189,25 @@ def prepare_llff(src: Path, out: Path, factor: int = 8, jpeg_quality: int = 0, k
                   f"({tri.mean_error:.2f} px) for the depth reference", file=sys.stderr)
             write_reference_depth(out, factor, Path(tmp) / "model")
     return out
+
+
+def _write_scaled_images(src: Path, out: Path, n: int, hw, factor: int, jpeg_quality: int) -> None:
+    """images_<factor>/: the n images at 1/factor of the poses' full size, named after the full-size files."""
+    h, w = hw
+    size = (max(1, round(w / factor)), max(1, round(h / factor)))
+    files, same = _source_images(src, n, factor, size)
+    # Name each image after the full-size file it belongs to when the scene has them (the SfM model names those).
+    full = list_images(src / "images") if (src / "images").is_dir() else []
+    names = [p.stem for p in full] if len(full) == len(files) else [p.stem for p in files]
+    folder = out / f"images_{factor}"
+    folder.mkdir(parents=True, exist_ok=True)
+    for f, name in zip(files, names):
+        rgb, _ = read_image(f)
+        rgb = rgb if same else resize_area(rgb, *size)
+        if jpeg_quality:
+            atomic_write_bytes(folder / f"{name}.jpg", _jpeg(rgb, jpeg_quality))
+        else:
+            write_png(folder / f"{name}.png", rgb)
 
 
 def _jpeg(rgb: np.ndarray, quality: int) -> bytes:
@@ -272,6 +285,8 @@ def main(argv=None) -> None:
     p.add_argument("--factor", type=int, default=8)
     p.add_argument("--jpeg", type=int, default=0, metavar="Q", help="write JPEGs of quality Q (default: PNG)")
     p.add_argument("--keep-model", action="store_true", help="keep sparse/0 beside reference_depth.npz")
+    p.add_argument("--keep-images", action="store_true",
+                   help="copy images/ as they are instead of writing images_<factor> (full-size native images)")
     p.add_argument("--triangulate", action="store_true",
                    help="no model in SRC: triangulate every view's known pose for the depth reference")
     g = sub.add_parser("gather", help="every image under SRC into one folder DEST (for SfM)")
@@ -292,7 +307,8 @@ def main(argv=None) -> None:
     elif args.cmd == "gather":
         print(f"{args.dest}: {len(gather_images(Path(args.src), Path(args.dest), args.skip))} images")
     elif args.cmd in ("llff", "colmap"):
-        out = (prepare_llff(args.src, args.out, args.factor, args.jpeg, args.keep_model, args.triangulate) if args.cmd == "llff"
+        out = (prepare_llff(args.src, args.out, args.factor, args.jpeg, args.keep_model, args.triangulate,
+                            args.keep_images) if args.cmd == "llff"
                else prepare_colmap(args.src, args.out))
         print(f"{out}: {folder_mib(out):.1f} MiB")
     else:

@@ -113,3 +113,8 @@ def test_trimmed_llff_copy_keeps_split_cameras_and_reference(tmp_path):
         np.testing.assert_allclose(got[name], want, rtol=1e-6)
     with pytest.raises(SystemExit, match="made at"):
         sparse_data.read_reference_depth(out, names, 10, 10)
+    # With the full-size images kept instead, they are the native ones (what triangulation reads), served at 1/2.
+    kept_dir = sparse_data.prepare_llff(src, tmp_path / "kept", factor=2, keep_images=True)
+    kept = load_scene(kept_dir, downscale=2)
+    assert (kept.native_cameras[0].width, kept.cameras[0].width) == (64, 32)
+    assert not (kept_dir / "images_2").exists() and (kept_dir / sparse_data.REFERENCE_FILE).is_file()
