@@ -52,6 +52,8 @@ from common import ROOT, write_json
 from job_pool import Job, detach, run_jobs
 from sparse_data import REFERENCE_FILE, read_reference_depth
 
+from warpgs.utils.atomic_file import atomic_write_bytes
+
 HERE = Path(__file__).resolve().parent
 SETTINGS = {key: (label, preset, overrides, marr) for key, label, preset, overrides, marr in ablation.REAL_SETTINGS}
 TERMS = [f"wo_{t}" for t in ablation.REAL_TERMS]
@@ -152,7 +154,7 @@ def make_prior(args, scene: SceneSpec) -> dict:
     _, report = compute_depth_priors(loaded, plane_sweep(None), out_dir=folder)
     report["seconds_total"] = round(time.perf_counter() - start, 1)
     report["device"] = args.device
-    (folder / "prior.json").write_text(json.dumps(report, indent=1, default=str))
+    atomic_write_bytes(folder / "prior.json", json.dumps(report, indent=1, default=str).encode())
     return report
 
 
@@ -202,11 +204,7 @@ def train_one(args, run: Run) -> dict:
                "schedule_overrides": ablation.schedule_overrides(steps, FULL_STEPS),
                "torch_threads": torch.get_num_threads(), "machine": platform.node(),
                "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None, **result}
-    path = run_file(Path(args.out), run)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp_path = path.with_suffix(".json.tmp")
-    tmp_path.write_text(json.dumps(payload, indent=1))
-    os.replace(tmp_path, path)
+    atomic_write_bytes(run_file(Path(args.out), run), json.dumps(payload, indent=1).encode())
     return payload
 
 
