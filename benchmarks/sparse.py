@@ -345,7 +345,7 @@ def tables(args, runs: list[Run]) -> dict:
 
 # --- the driver ----------------------------------------------------------------------------------------------------
 def parse(argv):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--protocol", choices=list(PROTOCOLS), default="llff3")
     ap.add_argument("--scenes", required=True, help="comma-separated scene folders, each optionally PATH@DOWNSCALE")
