@@ -148,8 +148,11 @@ def run_setting(key: str, preset: str, steps: int, seed: int, device: str, extra
     if reference is not None:
         views = [dataclasses.replace(v, depth=torch.as_tensor(reference[v.name])[..., None].to(v.image.device))
                  for v in views]
-    depth = evaluate_depth(lambda v: trainer.render(v, ("depth", "alpha")), views,
-                           num_primitives=trainer.model.num_primitives, num_pairs=pairs, seed=seed)
+    if any(getattr(v, "depth", None) is not None for v in views):
+        depth = evaluate_depth(lambda v: trainer.render(v, ("depth", "alpha")), views,
+                               num_primitives=trainer.model.num_primitives, num_pairs=pairs, seed=seed)
+    else:  # a capture with no reference depth (no SfM model): image metrics only
+        depth = {"depth_order": None, "abs_rel": None, "coverage": None, "num_pairs": 0, "per_view": {}}
     m = result.metrics
     return {"preset": preset, "overrides": extra, "marr": marr_settings or {}, "seed": seed, "steps": result.steps,
             "split": split, "psnr": m["psnr"],

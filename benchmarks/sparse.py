@@ -1,0 +1,476 @@
+"""The sparse-view benchmark (issue 30): scenes x seeds x settings under the field's few-view protocols, one process a
+run (side by side on each GPU), a JSON a run, then per-scene tables (mean ± standard error over seeds), the mean
+over scenes, and the per-term ablation beside the paper's Table 2.
+
+    python benchmarks/sparse.py --protocol llff3 --scenes data/sparse/fern,data/sparse/horns --dry-run
+    python benchmarks/sparse.py --protocol llff3 --scenes data/sparse/fern --settings main --steps 300  # CPU smoke
+    python benchmarks/sparse.py --protocol llff3 --scenes data/sparse/fern,data/sparse/flower,data/sparse/leaves,\\
+        data/sparse/orchids --seeds 0,1,2 --settings paper --device cuda --gpus 0,1,2,3 --per-gpu 6 \\
+        --out /tmp/sparse --name llff3 --detach
+    python benchmarks/sparse.py ... --table        # only the tables, from the run files there are
+
+Protocols (every 8th view, 0, 8, 16, ... in sorted name order, tests; n_train views spread evenly over the rest
+train: warpgs.data.formats.splits.llff_split, FSGS's and DNGaussian's reader):
+  llff3    3 training views at 1/8 resolution (images_8): the FSGS / DNGaussian LLFF protocol
+  m360_24  24 training views (FSGS's Mip-NeRF 360 protocol; FSGS reads images_8, i.e. ~390x260 for bonsai)
+  m360_3   3 training views of the same captures
+--n-train N keeps a protocol's rule with another count (its run files are then named <protocol>_nN_...).
+A scene is a folder (LLFF or COLMAP), optionally `PATH@N` for data.downscale N (default: 8 for llff3, 1 for the 360
+protocols; bonsai800's 800x533 photos at @2 are FSGS's images_8 size). benchmarks/sparse_data.py prepares copies.
+
+Settings (benchmarks/ablation.py's REAL_SETTINGS: the presets sparse_llff_baseline and sparse_llff, with one term or
+part removed): any comma-separated keys, or the groups main (baseline, full), terms (w/o each Marr and Gestalt
+term), paper (main + terms: the rows of the paper's Table 2), all. The depth prior of each scene and protocol is
+estimated once (from its training views, as data.depth_priors=estimate does) and shared by every run that uses it.
+Depth (order, AbsRel, coverage) is scored at the capture's all-view SfM points seen by each test view
+(reference_depth.npz from sparse_data.py, else sparse/0); without either only the image metrics are given. LPIPS is
+given when its weights are on disk.
+
+Runs shorter than the preset's 10k steps scale its step schedule as ablation.py does; on the CPU the primitive budget
+is 10k (prior points scaled with it) unless --budget says otherwise. Run files: <out>/runs/<protocol>_<scene>_<setting>
+_s<seed>.json; a run whose file exists is skipped (so a cut wave resumes). The tables go to
+benchmarks/results/sparse_<name>.json (or $OUT). On a device, $OUT is emptied between commands: give --out a folder of
+your own and copy the table there at the end.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import ablation
+from common import ROOT, write_json
+from job_pool import Job, detach, run_jobs
+from sparse_data import REFERENCE_FILE, read_reference_depth
+
+from warpgs.utils.atomic_file import atomic_write_bytes
+
+HERE = Path(__file__).resolve().parent
+SETTINGS = {key: (label, preset, overrides, marr) for key, label, preset, overrides, marr in ablation.REAL_SETTINGS}
+TERMS = [f"wo_{t}" for t in ablation.REAL_TERMS]
+GROUPS = {"main": ["baseline", "full"], "terms": TERMS, "paper": ["baseline", *TERMS, "full"], "all": list(SETTINGS)}
+# The paper's Table 2 (its 3x3 light-field protocol, 30k steps): PSNR, SSIM, LPIPS. Its abbreviations: DR depth,
+# DGR depth gradient, LDR local depth, GOR opacity, GSR scale, GCR count.
+PAPER_TABLE2 = {"baseline": ("3DGS", 21.13, 0.695, 0.248), "wo_depth": ("w/o DR", 21.79, 0.722, 0.228),
+                "wo_depth_grad": ("w/o DGR", 22.00, 0.728, 0.222), "wo_depth_local": ("w/o LDR", 21.98, 0.728, 0.223),
+                "wo_opacity": ("w/o GOR", 21.75, 0.723, 0.221), "wo_scale": ("w/o GSR", 22.03, 0.729, 0.221),
+                "wo_count": ("w/o GCR", 21.97, 0.720, 0.224), "full": ("Ours", 22.11, 0.732, 0.218)}
+FULL_STEPS = ablation.FULL_STEPS["real"]  # the presets' train.steps
+CPU_STEPS = 300
+
+
+@dataclass(frozen=True)
+class Protocol:
+    n_train: int
+    downscale: int  # default data.downscale of its scenes
+    about: str
+
+
+PROTOCOLS = {"llff3": Protocol(3, 8, "LLFF, 3 training views, 1/8 resolution (FSGS / DNGaussian)"),
+             "m360_24": Protocol(24, 1, "360°, 24 training views (FSGS's Mip-NeRF 360 protocol)"),
+             "m360_3": Protocol(3, 1, "360°, 3 training views")}
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    path: Path
+    downscale: int
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+
+@dataclass(frozen=True)
+class Run:
+    protocol: str
+    scene: SceneSpec
+    setting: str
+    seed: int
+
+    @property
+    def id(self) -> str:
+        return f"{self.protocol}_{self.scene.name}_{self.setting}_s{self.seed}"
+
+
+def parse_scene(spec: str, protocol: Protocol) -> SceneSpec:
+    path, _, ds = spec.partition("@")
+    if not ds.isdigit() and ds:
+        raise SystemExit(f"--scenes: {spec!r}: expected PATH or PATH@DOWNSCALE")
+    if not Path(path).is_dir():
+        raise SystemExit(f"--scenes: {path} is not a folder")
+    return SceneSpec(Path(path).resolve(), int(ds) if ds else protocol.downscale)
+
+
+def expand_settings(text: str) -> list[str]:
+    keys = []
+    for part in text.split(","):
+        for key in GROUPS.get(part, [part]):
+            if key not in SETTINGS:
+                raise SystemExit(f"--settings: {key!r} is neither a setting ({', '.join(SETTINGS)}) nor a group "
+                                 f"({', '.join(GROUPS)})")
+            if key not in keys:
+                keys.append(key)
+    return keys
+
+
+def plan(protocol: str, scenes: list[SceneSpec], settings: list[str], seeds: list[int]) -> list[Run]:
+    return [Run(protocol, sc, key, seed) for sc in scenes for key in settings for seed in seeds]
+
+
+def load(scene: SceneSpec, protocol: Protocol):
+    from warpgs.data import load_scene
+
+    return load_scene(scene.path, split="llff", n_train=protocol.n_train, downscale=scene.downscale)
+
+
+def prior_folder(out: Path, protocol: str, scene: SceneSpec) -> Path:
+    return out / "priors" / f"{protocol}_{scene.name}"
+
+
+def needs_prior(run: Run, user_overrides=()) -> bool:
+    _, preset, overrides, _ = SETTINGS[run.setting]
+    return ablation.uses_prior(preset, [*user_overrides, *overrides])
+
+
+# --- the two kinds of worker process -------------------------------------------------------------------------------
+def make_prior(args, scene: SceneSpec) -> dict:
+    """The prior of one scene's training views, written to <out>/priors/...; prior.json (last) marks it done."""
+    from warpgs.data import compute_depth_priors
+    from warpgs.train.setup import plane_sweep
+
+    folder = prior_folder(Path(args.out), args.tag, scene)
+    loaded = load(scene, args.proto)
+    start = time.perf_counter()
+    _, report = compute_depth_priors(loaded, plane_sweep(None), out_dir=folder)
+    report["seconds_total"] = round(time.perf_counter() - start, 1)
+    report["device"] = args.device
+    atomic_write_bytes(folder / "prior.json", json.dumps(report, indent=1, default=str).encode())
+    return report
+
+
+def reference_depth(scene: SceneSpec, loaded) -> tuple[Optional[dict], str]:
+    """({test view name: [H, W] sparse depth}, where it came from) or (None, why not)."""
+    names = [loaded.names[v] for v in loaded.test]
+    w, h = loaded.cameras[0].width, loaded.cameras[0].height
+    if (scene.path / REFERENCE_FILE).is_file():
+        return read_reference_depth(scene.path, names, w, h), REFERENCE_FILE
+    if (scene.path / "sparse" / "0" / "points3D.bin").is_file():
+        from warpgs.data.depth.reference_points import sparse_depth_map, view_reference_points
+        from warpgs.data.errors import SceneError
+
+        try:
+            points, per_view = view_reference_points(loaded)
+        except SceneError as e:
+            return None, f"sparse/0 unusable: {e}"
+        return {loaded.names[v]: sparse_depth_map(loaded.cameras[v], points.xyz[per_view[v]])
+                for v in loaded.test}, "sparse/0"
+    return None, "no SfM model"
+
+
+def train_one(args, run: Run) -> dict:
+    """One training run, scored on the protocol's test views; its JSON is written atomically."""
+    import torch
+
+    label, preset, setting_overrides, marr = SETTINGS[run.setting]
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    loaded = load(run.scene, args.proto)
+    reference, reference_from = reference_depth(run.scene, loaded)
+    steps, budget = run_steps(args), run_budget(args)
+    base = [f"data.path={run.scene.path}", "data.split=llff", f"data.n_train={args.proto.n_train}",
+            f"data.downscale={run.scene.downscale}"] + ([f"strategy.max_primitives={budget}"] if budget else [])
+    extra = (ablation.setting_overrides_for_run(preset, setting_overrides, budget, base + list(args.overrides))
+             + ([f"data.depth_priors={prior_folder(Path(args.out), run.protocol, run.scene)}"]
+                if needs_prior(run, args.overrides) else []))
+    with tempfile.TemporaryDirectory(prefix="warpgs-sparse-") as tmp:
+        result = ablation.run_setting(run.setting, preset, steps, run.seed, args.device, extra, Path(tmp), args.pairs,
+                                      FULL_STEPS, marr, reference)
+    payload = {"id": run.id, "protocol": run.protocol, "scene": run.scene.name, "scene_path": str(run.scene.path),
+               "downscale": run.scene.downscale, "n_train": args.proto.n_train, "setting": run.setting,
+               "label": label, "size": [loaded.cameras[0].width, loaded.cameras[0].height],
+               "train": [loaded.names[v] for v in loaded.train], "train_index": loaded.train,
+               "test": [loaded.names[v] for v in loaded.test], "test_index": loaded.test,
+               "reference": reference_from, "device": args.device, "budget": budget,
+               "schedule_overrides": ablation.schedule_overrides(steps, FULL_STEPS),
+               "torch_threads": torch.get_num_threads(), "machine": platform.node(),
+               "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None, **result}
+    atomic_write_bytes(run_file(Path(args.out), run), json.dumps(payload, indent=1).encode())
+    return payload
+
+
+def run_steps(args) -> int:
+    return args.steps or (FULL_STEPS if args.device.startswith("cuda") else CPU_STEPS)
+
+
+def run_budget(args) -> Optional[int]:
+    return args.budget or (None if args.device.startswith("cuda") else ablation.CPU_BUDGET)
+
+
+def run_file(out: Path, run: Run) -> Path:
+    return out / "runs" / f"{run.id}.json"
+
+
+# --- tables --------------------------------------------------------------------------------------------------------
+def mean_se(values: list) -> tuple[Optional[float], Optional[float]]:
+    vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    if not vals:
+        return None, None
+    return statistics.fmean(vals), (statistics.stdev(vals) / math.sqrt(len(vals)) if len(vals) > 1 else None)
+
+
+def fmt(m: Optional[float], se: Optional[float], digits: int, sign: bool = False) -> str:
+    if m is None:
+        return "n/a"
+    return f"{m:{'+' if sign else ''}.{digits}f}" + (f" ± {se:.{digits}f}" if se is not None else "")
+
+
+def paired(runs: dict, key: str, ref: str, metric: str = "psnr") -> list[float]:
+    """Per seed, `key`'s metric minus `ref`'s (the seeds both have)."""
+    a, b = runs.get(key, {}), runs.get(ref, {})
+    return [a[s][metric] - b[s][metric] for s in sorted(a) if s in b]
+
+
+def summarise(results: list[dict], settings: list[str]) -> dict:
+    """{scene: {setting: {metric: (mean, se)}, ...}} plus the mean over scenes, and the printed rows."""
+    by_scene: dict = {}
+    for r in results:
+        by_scene.setdefault(r["scene"], {}).setdefault(r["setting"], {})[r["seed"]] = r
+    metrics = (("psnr", 2), ("ssim", 4), ("lpips", 3), ("depth_order", 3), ("abs_rel", 4), ("coverage", 3),
+               ("num_primitives", 0), ("train_seconds", 0))
+    scenes = {}
+    for scene, runs in sorted(by_scene.items()):
+        rows = {}
+        for key in settings:
+            if key not in runs:
+                continue
+            seeds = runs[key]
+            row = {m: mean_se([seeds[s][m] for s in seeds]) for m, _ in metrics}
+            row["seeds"] = sorted(seeds)
+            row["d_psnr_vs_baseline"] = mean_se(paired(runs, key, "baseline")) if key != "baseline" else (None, None)
+            row["d_psnr_vs_full"] = mean_se(paired(runs, key, "full")) if key != "full" else (None, None)
+            rows[key] = row
+        scenes[scene] = rows
+    # Mean over the scenes that have the setting: the scene means averaged, their standard errors combined.
+    overall = {}
+    for key in settings:
+        have = [scenes[s][key] for s in scenes if key in scenes[s]]
+        if not have:
+            continue
+        row = {}
+        for m in [m for m, _ in metrics] + ["d_psnr_vs_baseline", "d_psnr_vs_full"]:
+            pairs = [r[m] for r in have if r[m][0] is not None]
+            if not pairs:
+                row[m] = (None, None)
+                continue
+            ses = [se for _, se in pairs if se is not None]
+            row[m] = (statistics.fmean(v for v, _ in pairs),
+                      math.sqrt(sum(se * se for se in ses)) / len(pairs) if len(ses) == len(pairs) else None)
+        row["scenes"] = len(have)
+        overall[key] = row
+    return {"scenes": scenes, "mean": overall, "digits": dict(metrics)}
+
+
+def print_tables(summary: dict, header: str) -> None:
+    digits = summary["digits"]
+    cols = [("PSNR ↑", "psnr"), ("Δ PSNR vs 3DGS", "d_psnr_vs_baseline"), ("SSIM ↑", "ssim"), ("LPIPS ↓", "lpips"),
+            ("AbsRel ↓", "abs_rel"), ("Depth order ↑", "depth_order"), ("Coverage", "coverage"),
+            ("#Primitives", "num_primitives"), ("Train s", "train_seconds")]
+
+    def table(title: str, rows: dict) -> None:
+        used = [(h, k) for h, k in cols if any(r[k][0] is not None for r in rows.values())]
+        print(f"\n{title}\n")
+        print("| Setting | " + " | ".join(h for h, _ in used) + " |")
+        print("|---|" + "---|" * len(used))
+        for key, r in rows.items():
+            cells = ["—" if (key, k) == ("baseline", "d_psnr_vs_baseline") else
+                     fmt(*r[k], digits.get(k, 2), sign=k.startswith("d_")) for _, k in used]
+            print(f"| {SETTINGS[key][0]} | " + " | ".join(cells) + " |")
+
+    print(header)
+    for scene, rows in summary["scenes"].items():
+        seeds = sorted({s for r in rows.values() for s in r["seeds"]})
+        table(f"{scene} (seeds {','.join(map(str, seeds))}; mean ± standard error over seeds)", rows)
+    if len(summary["scenes"]) > 1:
+        table(f"Mean over scenes ({len(summary['scenes'])}; a setting's mean covers the scenes that ran it)",
+              summary["mean"])
+    mean = summary["mean"]
+    if "full" in mean and any(k in mean for k in TERMS):
+        print("\nPer-term ablation beside the paper's Table 2 (paper: 3x3 light fields, 30k steps; ours: the mean "
+              "above; Δ = the row minus Ours (full), ours paired by seed)\n")
+        print("| Paper row | paper PSNR | paper Δ | paper SSIM | paper LPIPS | ours PSNR | ours Δ | ours SSIM | "
+              "ours LPIPS |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        paper_full = PAPER_TABLE2["full"][1]
+        for key, (row, psnr, ssim, lp) in PAPER_TABLE2.items():
+            ours = mean.get(key)
+            cells = ([fmt(*ours["psnr"], 2), fmt(*ours["d_psnr_vs_full"], 2, sign=True) if key != "full" else "—",
+                      fmt(*ours["ssim"], 3), fmt(*ours["lpips"], 3)] if ours else ["not run"] * 4)
+            paper_delta = "—" if key == "full" else f"{psnr - paper_full:+.2f}"
+            print(f"| {row} | {psnr:.2f} | {paper_delta} | {ssim:.3f} | {lp:.3f} | " + " | ".join(cells)
+                  + " |")
+
+
+def tables(args, runs: list[Run]) -> dict:
+    results, missing = [], []
+    for run in runs:
+        f = run_file(Path(args.out), run)
+        (results.append(json.loads(f.read_text())) if f.is_file() else missing.append(run.id))
+    if not results:
+        raise SystemExit(f"no run files under {Path(args.out) / 'runs'} for this plan")
+    settings = [k for k in SETTINGS if k in {r.setting for r in runs}]
+    summary = summarise(results, settings)
+    first = results[0]
+    header = (f"\nsparse-view benchmark, protocol {args.protocol} ({args.proto.about}): "
+              f"{len(results)} of {len(runs)} runs, {first['steps']} steps, {first['device']}, budget "
+              f"{first['budget'] or 'preset'}" + (f"; missing {len(missing)}" if missing else ""))
+    print_tables(summary, header)
+    payload = {"protocol": args.protocol, "tag": args.tag, "about": args.proto.about, "missing": missing,
+               "paper_table2": PAPER_TABLE2, "summary": summary,
+               "splits": {r["scene"]: {k: r[k] for k in ("size", "downscale", "train", "train_index", "test",
+                                                         "test_index", "reference")} for r in results},
+               "runs": results}
+    print(f"\nwrote {write_json(f'sparse_{args.name}', payload)}", file=sys.stderr)
+    return payload
+
+
+# --- the driver ----------------------------------------------------------------------------------------------------
+def parse(argv):
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--protocol", choices=list(PROTOCOLS), default="llff3")
+    ap.add_argument("--scenes", required=True, help="comma-separated scene folders, each optionally PATH@DOWNSCALE")
+    ap.add_argument("--n-train", type=int, default=None, help="training views, instead of the protocol's")
+    ap.add_argument("--settings", default="main", help="setting keys and groups (main, terms, paper, all)")
+    ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
+    ap.add_argument("--steps", type=int, default=None, help=f"default: {FULL_STEPS} on CUDA, {CPU_STEPS} on CPU")
+    ap.add_argument("--budget", type=int, default=None,
+                    help=f"strategy.max_primitives (default: the preset's on CUDA, {ablation.CPU_BUDGET} on CPU)")
+    ap.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    ap.add_argument("--gpus", default="", help="comma-separated CUDA device indices, one group of processes each")
+    ap.add_argument("--per-gpu", type=int, default=1, help="processes at once per GPU (or in all without --gpus)")
+    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads per process (0: torch's default)")
+    ap.add_argument("--pairs", type=int, default=2000, help="probe pairs per test view for the depth order")
+    ap.add_argument("--out", default=str(ROOT / "out" / "sparse"), help="folder of the run files and priors")
+    ap.add_argument("--name", default=None, help="table name: benchmarks/results/sparse_<name>.json "
+                                                 "(default: <protocol>_<device>_<steps>)")
+    ap.add_argument("--dry-run", action="store_true", help="list the runs (done / to do) and the splits, run nothing")
+    ap.add_argument("--table", action="store_true", help="only the tables, from the run files there are")
+    ap.add_argument("--detach", action="store_true", help="start the wave in its own process session and return")
+    ap.add_argument("--worker", choices=("prior", "run"), help=argparse.SUPPRESS)
+    ap.add_argument("--setting", help=argparse.SUPPRESS)
+    ap.add_argument("--seed", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("overrides", nargs="*", help="extra key=value config overrides for every run")
+    args = ap.parse_args(argv)
+    protocol = PROTOCOLS[args.protocol]
+    if args.n_train is not None:  # the protocol's split rule with another count (e.g. FSGS-style 12 views)
+        if args.n_train < 1:
+            raise SystemExit(f"--n-train: expected at least 1, got {args.n_train}")
+        protocol = Protocol(args.n_train, protocol.downscale, f"{protocol.about}, with {args.n_train} training views")
+    args.proto = protocol
+    # Names of run files and priors: the protocol, and the training-view count when it is not the protocol's.
+    args.tag = args.protocol if args.n_train is None else f"{args.protocol}_n{args.n_train}"
+    scenes = [parse_scene(s, protocol) for s in args.scenes.split(",") if s]
+    if len({s.name for s in scenes}) != len(scenes):
+        raise SystemExit("--scenes: two scenes share a folder name (it names their run files)")
+    try:
+        seeds = [int(s) for s in args.seeds.split(",")]
+        gpus = [int(g) for g in args.gpus.split(",")] if args.gpus else []
+    except ValueError as e:
+        raise SystemExit(f"--seeds / --gpus: comma-separated integers expected ({e})")
+    if args.per_gpu < 1:
+        raise SystemExit(f"--per-gpu: expected at least 1, got {args.per_gpu}")
+    if args.gpus and not args.device.startswith("cuda"):
+        raise SystemExit("--gpus: give --device cuda too")
+    if any("=" not in o for o in args.overrides):
+        raise SystemExit(f"overrides: expected key=value, got {args.overrides}")
+    args.name = args.name or f"{args.tag}_{args.device.replace(':', '')}_{run_steps(args)}"
+    return args, scenes, expand_settings(args.settings), seeds, gpus
+
+
+def worker_cmd(args, kind: str, scene: SceneSpec, run: Optional[Run] = None) -> list[str]:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", kind, "--protocol", args.protocol,
+           "--scenes", f"{scene.path}@{scene.downscale}", "--device", args.device,
+           "--out", str(Path(args.out).resolve()),
+           "--pairs", str(args.pairs), "--threads", str(args.threads)]
+    cmd += ["--n-train", str(args.n_train)] if args.n_train is not None else []
+    cmd += [a for flag, v in (("--steps", args.steps), ("--budget", args.budget)) if v for a in (flag, str(v))]
+    if run is not None:
+        cmd += ["--setting", run.setting, "--seed", str(run.seed)]
+    return cmd + list(args.overrides)
+
+
+def dry_run(args, runs: list[Run], scenes: list[SceneSpec]) -> None:
+    out = Path(args.out)
+    for sc in scenes:
+        loaded = load(sc, args.proto)
+        ref = ("reference_depth.npz" if (sc.path / REFERENCE_FILE).is_file() else
+               "sparse/0" if (sc.path / "sparse" / "0" / "points3D.bin").is_file() else "none (image metrics only)")
+        prior = "done" if (prior_folder(out, args.tag, sc) / "prior.json").is_file() else "to do"
+        print(f"{sc.name} ({sc.path}, downscale {sc.downscale}, {loaded.cameras[0].width}x{loaded.cameras[0].height}"
+              f", {len(loaded)} views): train {loaded.train} {[loaded.names[v] for v in loaded.train]}, test "
+              f"{loaded.test}; depth reference: {ref}; prior: {prior}")
+    done = sum(run_file(out, r).is_file() for r in runs)
+    print(f"\n{len(runs)} runs ({done} done, {len(runs) - done} to do), {run_steps(args)} steps on {args.device}, "
+          f"budget {run_budget(args) or 'preset'}, out {out}:")
+    for r in runs:
+        print(f"  {'done ' if run_file(out, r).is_file() else 'to do'}  {r.id}  ({SETTINGS[r.setting][1]})")
+
+
+def main(argv=None):
+    args, scenes, settings, seeds, gpus = parse(argv)
+    if args.worker == "prior":
+        return make_prior(args, scenes[0])
+    if args.worker == "run":
+        return train_one(args, Run(args.tag, scenes[0], args.setting, args.seed))
+    runs = plan(args.tag, scenes, settings, seeds)
+    out = Path(args.out).resolve()
+    args.out = str(out)
+    if args.dry_run:
+        return dry_run(args, runs, scenes)
+    if args.table:
+        return tables(args, runs)
+    if args.detach:
+        if os.environ.get("OUT") and out.is_relative_to(Path(os.environ["OUT"]).resolve()):
+            raise SystemExit("--detach: --out must not lie under $OUT, which a device empties before its next command")
+        cmd = [sys.executable, str(Path(__file__).resolve()), *[a for a in (argv or sys.argv[1:]) if a != "--detach"]]
+        pid = detach(cmd, out / f"{args.name}_jobs.log")
+        print(f"detached: pid {pid}, output in {out / f'{args.name}_jobs.log'} (pid beside it)")
+        return None
+    todo = [r for r in runs if not run_file(out, r).is_file()]
+    groups = [str(g) for g in gpus] or [""]
+    env = lambda i: {"CUDA_VISIBLE_DEVICES": groups[i % len(groups)]} if gpus else {}  # noqa: E731
+    priors = [sc for sc in {r.scene: None for r in todo if needs_prior(r, args.overrides)}
+              if not (prior_folder(out, args.tag, sc) / "prior.json").is_file()]
+    start = time.perf_counter()
+    logs = out / "logs"
+    if priors:
+        print(f"priors: {', '.join(sc.name for sc in priors)}", file=sys.stderr, flush=True)
+        run_jobs([Job(f"prior_{args.tag}_{sc.name}", worker_cmd(args, "prior", sc), groups[i % len(groups)],
+                      env(i)) for i, sc in enumerate(priors)], args.per_gpu, logs)
+    print(f"runs: {len(todo)} to do of {len(runs)}", file=sys.stderr, flush=True)
+    run_jobs([Job(r.id, worker_cmd(args, "run", r.scene, r), groups[i % len(groups)], env(i))
+              for i, r in enumerate(todo)], args.per_gpu, logs, summary=lambda job, log: _summary(out, job))
+    print(f"all runs done in {time.perf_counter() - start:.0f} s", file=sys.stderr)
+    return tables(args, runs)
+
+
+def _summary(out: Path, job: Job) -> str:
+    f = out / "runs" / f"{job.name}.json"
+    if not f.is_file():
+        return job.name
+    r = json.loads(f.read_text())
+    return f"{job.name}: psnr {r['psnr']:.2f} ssim {r['ssim']:.4f} abs_rel {r['abs_rel']} ({r['wall_seconds']:.0f} s)"
+
+
+if __name__ == "__main__":
+    main()

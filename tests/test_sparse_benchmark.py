@@ -1,0 +1,120 @@
+"""benchmarks/sparse.py (issue 30): the plan, the protocol's split, resuming, the tables' statistics; and
+benchmarks/sparse_data.py's trimmed LLFF copy with its reference depth."""
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from data_fixtures import synthetic_dir
+from test_sparse_llff import _cameras, _llff_with_model, _tracked_points, fsgs_split
+from warpgs.data import load_scene
+from warpgs.data.depth.reference_points import sparse_depth_map, view_reference_points
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCH))
+
+import sparse  # noqa: E402
+import sparse_data  # noqa: E402
+
+
+def _runs(out: Path) -> dict:
+    return {p.name: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")}
+
+
+def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path))  # the table's JSON, not into benchmarks/results
+    scene = synthetic_dir("orbit")  # 36 views at 128x96: 24 train under the 360 protocol, 5 test (0, 8, ...)
+    out = tmp_path / "out"
+    common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--seeds", "3",
+              "--steps", "8", "--budget", "1000", "--threads", "1", "--out", str(out)]
+    sparse.main(common + ["--dry-run"])
+    listed = capsys.readouterr().out
+    assert "1 runs (0 done, 1 to do)" in listed and "m360_24_orbit_baseline_s3" in listed
+    payload = sparse.main(common + ["--name", "t_orbit"])
+    assert json.loads((tmp_path / "sparse_t_orbit.json").read_text())["summary"] == json.loads(json.dumps(
+        payload["summary"]))
+    assert set(_runs(out)) == {"m360_24_orbit_baseline_s3.json"}
+    run = json.loads((out / "runs" / "m360_24_orbit_baseline_s3.json").read_text())
+    want_train, want_test = fsgs_split(36, 24)
+    assert run["train_index"] == want_train and run["test_index"] == want_test
+    assert (run["steps"], run["seed"], run["budget"]) == (8, 3, 1000)
+    assert math.isfinite(run["psnr"]) and run["abs_rel"] is not None  # the synthetic scene carries exact depth
+    assert payload["summary"]["scenes"]["orbit"]["baseline"]["psnr"] == (run["psnr"], None)
+    # A second call finds every run done: nothing trains again, the table is made from the files.
+    before = _runs(out)
+    sparse.main(common + ["--name", "t_orbit"])
+    assert _runs(out) == before
+    sparse.main(common + ["--dry-run"])
+    assert "1 runs (1 done, 0 to do)" in capsys.readouterr().out
+
+
+def _result(scene, setting, seed, psnr):
+    return {"scene": scene, "setting": setting, "seed": seed, "psnr": psnr, "ssim": 0.5, "lpips": None,
+            "depth_order": None, "abs_rel": None, "coverage": None, "num_primitives": 10, "train_seconds": 1.0}
+
+
+def test_tables_pair_seeds_and_average_scenes(capsys):
+    results = [_result("a", "baseline", 0, 15.0), _result("a", "baseline", 1, 16.0),
+               _result("a", "full", 0, 17.0), _result("a", "full", 1, 19.0),
+               _result("a", "wo_depth", 0, 16.0), _result("a", "wo_depth", 1, 18.0),
+               _result("b", "baseline", 0, 20.0), _result("b", "full", 0, 21.0)]
+    summary = sparse.summarise(results, ["baseline", "wo_depth", "full"])
+    a = summary["scenes"]["a"]
+    assert a["full"]["psnr"] == pytest.approx((18.0, 1.0))  # mean, stdev / sqrt(2)
+    assert a["full"]["d_psnr_vs_baseline"] == pytest.approx((2.5, 0.5))  # paired: +2, +3
+    assert a["wo_depth"]["d_psnr_vs_full"] == pytest.approx((-1.0, 0.0))
+    assert summary["scenes"]["b"]["full"]["psnr"] == (21.0, None)  # one seed: no standard error
+    mean = summary["mean"]
+    assert mean["full"]["psnr"][0] == pytest.approx((18.0 + 21.0) / 2)
+    assert mean["full"]["psnr"][1] is None  # scene b has a single seed
+    assert mean["wo_depth"]["scenes"] == 1
+    sparse.print_tables(summary, "header")
+    printed = capsys.readouterr().out
+    # The paper's rows beside ours: w/o DR (the depth term) is 0.32 dB under the paper's full method, ours -1.00.
+    assert "| w/o DR | 21.79 | -0.32 | 0.722 | 0.228 | 17.00 ± 1.00 | -1.00 ± 0.00 |" in printed
+    assert "| w/o DGR | 22.00 | -0.11 | 0.728 | 0.222 | not run |" in printed
+
+
+def test_settings_groups_and_bad_input():
+    assert sparse.expand_settings("main") == ["baseline", "full"]
+    assert sparse.expand_settings("paper")[1:-1] == [f"wo_{t}" for t in ("depth", "depth_grad", "depth_local",
+                                                                          "opacity", "scale", "count")]
+    assert set(sparse.PAPER_TABLE2) == set(sparse.expand_settings("paper"))
+    with pytest.raises(SystemExit, match="--settings: 'wo_nothing'"):
+        sparse.expand_settings("baseline,wo_nothing")
+    with pytest.raises(SystemExit, match="is not a folder"):
+        sparse.main(["--scenes", "/no/such/scene", "--dry-run"])
+
+
+def test_trimmed_llff_copy_keeps_split_cameras_and_reference(tmp_path):
+    cams = _cameras(n=12)
+    points = _tracked_points(cams)
+    src = _llff_with_model(tmp_path / "src", cams, points, images_bin=False)  # ids from the LLFF bounds
+    out = sparse_data.prepare_llff(src, tmp_path / "out", factor=2, jpeg_quality=98)
+    assert not (out / "images").exists() and not (out / "sparse").exists()
+    assert len(list((out / "images_2").glob("*.jpg"))) == 12
+    full = load_scene(src, split="llff", n_train=3, downscale=2)
+    trimmed = load_scene(out, split="llff", n_train=3, downscale=2)
+    assert (trimmed.train, trimmed.test) == (full.train, full.test) == fsgs_split(12, 3)
+    for a, b in zip(full.cameras, trimmed.cameras):
+        assert (a.width, a.height) == (b.width, b.height)
+        np.testing.assert_allclose(a.K, b.K)
+        np.testing.assert_allclose(a.viewmat, b.viewmat)
+    # The reference depth read back is the one made from the model at the served resolution.
+    ref, per_view = view_reference_points(full)
+    names = [trimmed.names[v] for v in trimmed.test]
+    got = sparse_data.read_reference_depth(out, names, trimmed.cameras[0].width, trimmed.cameras[0].height)
+    for v, name in zip(trimmed.test, names):
+        want = sparse_depth_map(full.cameras[v], ref.xyz[per_view[v]])
+        assert (want > 0).sum() > 0
+        np.testing.assert_allclose(got[name], want, rtol=1e-6)
+    with pytest.raises(SystemExit, match="made at"):
+        sparse_data.read_reference_depth(out, names, 10, 10)
+    # With the full-size images kept instead, they are the native ones (what triangulation reads), served at 1/2.
+    kept_dir = sparse_data.prepare_llff(src, tmp_path / "kept", factor=2, keep_images=True)
+    kept = load_scene(kept_dir, downscale=2)
+    assert (kept.native_cameras[0].width, kept.cameras[0].width) == (64, 32)
+    assert not (kept_dir / "images_2").exists() and (kept_dir / sparse_data.REFERENCE_FILE).is_file()
