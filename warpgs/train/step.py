@@ -25,7 +25,7 @@ def train_step(trainer) -> dict:
     mine = [trainer.view(i) for i in drawn[trainer.ranks.shard(len(drawn))]]
     model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
     update_learning_rates(trainer.optimizer, step, cfg.optim, trainer.extent, trainer.max_steps, trainer.lr_scale)
-    densify = step < cfg.strategy.refine_stop
+    densify = trainer.strategy.densifying(step)  # the schedule's stop (train/schedule.py), not refine_stop alone
     passes = []
     for view in mine:
         # Through the method, so a Trainer subclass that overrides view_pass is honoured.
