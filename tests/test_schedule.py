@@ -231,3 +231,23 @@ def test_auto_run_logs_its_decisions_and_resumes_to_the_same_end(tmp_path):
     again = resumed.fit()
     assert again.metrics["schedule"] == sched and again.steps == result.steps
     assert again.metrics["psnr"] == pytest.approx(result.metrics["psnr"], abs=1e-4)
+
+
+def test_views_held_out_come_back_and_resume():
+    from test_train_parts import FakeScene
+    from warpgs.train.views import TrainViews
+
+    scene = FakeScene(n=12, test=(0, 8))
+    views = TrainViews(scene, "cpu", seed=3)
+    kept, val = validation_split(scene.train, 8)
+    views.hold_out(val)
+    assert views.draw(len(kept)) and set(views.draw(len(kept) * 3)) == set(kept)  # never a held-out view
+    state = views.state_dict()
+    resumed = TrainViews(scene, "cpu", seed=3)
+    resumed.hold_out(val)
+    resumed.load_state_dict(state)
+    assert resumed.draw(7) == views.draw(7)
+    assert views.restore_held_out() == val and set(views.draw(len(scene.train) * 3)) == set(scene.train)
+    fixed = TrainViews(scene, "cpu", seed=3).state_dict()  # a fixed-step run's checkpoint
+    with pytest.raises(ValueError, match="train.steps=auto: the checkpoint was written by a run that drew every"):
+        resumed.load_state_dict(fixed)
