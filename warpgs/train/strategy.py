@@ -45,6 +45,10 @@ trainer computes from what the cameras see (warpgs/data/extent.py), not only fro
 A refine step that removes more than half of the primitives issues a `PruningWarning` naming how many each rule
 removed; every refine's report carries the same counts under "pruned_by".
 
+When densification and resets happen over a run (the tail a fixed-step run leaves alone: `refine_stop_fraction`, a
+reset only with a whole interval of densification after it; `train.steps=auto`'s earlier stop) is train/schedule.py's;
+`densifying(step)` and `resets_at(step)` apply it, and maybe_refine / step_post_backward do nothing outside it.
+
 A refine grows before it prunes (3DGS and gsplat): a high-gradient primitive the world-size rule flags is split and
 only children still over the limit go. Deleting it outright instead cost 1.9 dB of held-out PSNR after the first
 opacity reset on a real phone capture (benchmarks/strategy_compare.py), when every primitive's gradient is high.
