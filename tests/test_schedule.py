@@ -39,8 +39,15 @@ def test_a_short_run_leaves_its_last_half_alone():
     s = preset_strategy(3000)  # warpgs-train gaussians steps=3000
     assert refine_steps(s, 3000)[-1] == 1400 and not s.densifying(1500)
     assert reset_steps(s, 3000) == []
+    s = preset_strategy(7000)
+    assert reset_steps(s, 7000) == [3000] and refine_steps(s, 7000)[-1] == 3400
     s = preset_strategy(13_000)
-    assert reset_steps(s, 13_000) == [3000] and refine_steps(s, 13_000)[-1] == 6400
+    assert reset_steps(s, 13_000) == [3000, 6000] and refine_steps(s, 13_000)[-1] == 6400
+    s = DensifyStrategy(load_config(resolve_config_source("gaussians"),
+                                    ["strategy.refine_stop_fraction=1"]).strategy, run_steps=7000)
+    assert reset_steps(s, 7000) == [3000]  # not 6000: the run would end 1000 steps after it
+    assert reset_steps(DensifyStrategy(load_config(resolve_config_source("sparse_llff_baseline")).strategy, run_steps=10_000),
+                       10_000) == [3000]  # the other presets keep their schedules at their own lengths
 
 
 @settings(max_examples=60, deadline=None)
@@ -53,14 +60,14 @@ def test_no_refine_or_reset_in_the_tail(run, every, fraction):
     assert stop <= fraction * run
     changed = [t for t in range(0, run, 50) if s.densifying(t)]
     assert all(t < fraction * run for t in changed)
-    # Every reset is followed by a whole interval of densification, then the quiet tail.
-    assert all(t + every <= stop for t in range(every, run, every) if s.resets_at(t))
+    # Every reset comes while densifying, with a whole interval of training after it.
+    assert all(t < stop and t + every <= run for t in range(every, run, every) if s.resets_at(t))
 
 
 def _short_run(tmp_path, callbacks=()):
     """400 steps on the built-in 36-view orbit at 64x48 with a compressed 3DGS schedule: refines every 25 steps
     from 50, an opacity reset every 125. The former rules reset at 125, 250 and 375 and refined up to 375; the tail
-    rule stops densifying at 200, which leaves no room for any reset."""
+    rule stops densifying at 200, so only the reset at 125 is left."""
     settings = {"output.dir": tmp_path, "train.steps": 400, "train.device": "cpu", "data.width": 64,
                 "data.height": 48, "train.progress": False, "train.checkpoint_every": 0, "eval.every": 50,
                 "eval.lpips": False, "eval.save_images": False, "model.sh_interval": 100,
@@ -79,7 +86,7 @@ def test_fixed_run_does_not_end_in_the_wake_of_its_schedule(tmp_path):
     run with that reset put back (by hand: the rules no longer make it) ends far below it, so the check can fail."""
     result, reports, before_former_reset = _short_run(tmp_path / "tail")
     assert reports and max(r["step"] for r in reports) < 200
-    assert not any(r.get("opacity_reset") for r in reports)
+    assert [r["step"] for r in reports if r.get("opacity_reset")] == [125]
     assert result.metrics["psnr"] >= before_former_reset
 
     def former_last_reset(trainer, step, info):

@@ -4,12 +4,12 @@
   - densification (refines and the statistics for them) ends at min(refine_stop, refine_stop_fraction x N). 3DGS
     densifies for the first half of its 30k steps; the same half of a 3000-step run is 1500 steps, so a short run
     no longer densifies up to its last refine and is scored before its newest primitives have settled;
-  - an opacity reset at step s happens only when densification goes on for a whole reset interval after it
-    (s + reset_every <= that stop), as 3DGS's last reset (12k) precedes its densification stop (15k) by one
-    interval: the refines after a reset prune what stayed faint, and the opacities have grown back long before the
-    end. A run shorter than 2 x reset_every / refine_stop_fraction (12k steps with the preset) resets nothing: with
-    reset_every 3000 a reset needs more room than the run has.
-With the preset at 30k this is 3DGS's schedule unchanged (densify 500..15k, resets 3k..12k).
+  - an opacity reset at step s happens only while densifying (s < that stop: the refines after a reset prune what
+    stayed faint) and with a whole reset interval of training after it (s + reset_every <= N: the opacities grow
+    back before the end; with refine_stop_fraction <= 0.5 the first condition implies it). A run of fewer than
+    reset_every / refine_stop_fraction steps (6000 with the preset) resets nothing; 7000 steps reset once, at 3000.
+With the preset at 30k this is 3DGS's schedule unchanged (densify 500..15k, resets 3k..12k), and the other presets
+keep theirs at their own lengths (sparse_llff_baseline: densify to 5000 of 10000, one reset at 3000).
 
 **`train.steps=auto`** (the `gaussians` preset's default): AutoStop below decides when densification stops and when
 training stops, from a validation split of the *training* views (every `schedule.val_nth`-th training view is held

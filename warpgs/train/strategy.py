@@ -46,7 +46,7 @@ A refine step that removes more than half of the primitives issues a `PruningWar
 removed; every refine's report carries the same counts under "pruned_by".
 
 When densification and resets happen over a run (the tail a fixed-step run leaves alone: `refine_stop_fraction`, a
-reset only with a whole interval of densification after it; `train.steps=auto`'s earlier stop) is train/schedule.py's;
+reset only with a whole interval of training after it; `train.steps=auto`'s earlier stop) is train/schedule.py's;
 `densifying(step)` and `resets_at(step)` apply it, and maybe_refine / step_post_backward do nothing outside it.
 
 A refine grows before it prunes (3DGS and gsplat): a high-gradient primitive the world-size rule flags is split and
@@ -82,8 +82,8 @@ class StrategyConfig:
     # The run's tail (train/schedule.py): with a known run length T, densification also stops at this fraction of
     # it (3DGS: 15k of 30k), so the last (1 - fraction) x T steps train the model they have; 1: only refine_stop.
     refine_stop_fraction: float = 0.5
-    # opacities clamped to reset_opacity when step % reset_every == 0 and densification goes on for a whole
-    # interval after it (step + reset_every <= the refine stop: 3DGS's last reset, 12k, before its 15k); 0 off
+    # opacities clamped to reset_opacity when step % reset_every == 0, while densifying (< the refine stop), and
+    # with a whole interval of training after it before the run ends (when its length is known); 0 off
     reset_every: int = 3000
     reset_opacity: float = 0.01
     prune_opacity: float = 0.005  # prune below this opacity
@@ -232,11 +232,13 @@ class DensifyStrategy:
         return step < self.refine_stop_at()
 
     def resets_at(self, step: int) -> bool:
-        """An opacity reset at this step: on the reset_every grid, and only when densification goes on for a whole
-        interval after it (the refines after a reset prune what stayed faint; the opacities grow back before the
-        run's quiet tail)."""
+        """An opacity reset at this step: on the reset_every grid, while densifying (the refines after it prune what
+        stayed faint), and with a whole interval of training after it before the run ends (the opacities grow
+        back; with refine_stop_fraction <= 0.5 the quiet tail already guarantees it)."""
         every = int(self.config.reset_every)
-        return bool(every) and step > 0 and step % every == 0 and step + every <= self.refine_stop_at()
+        if not every or step <= 0 or step % every or step >= self.refine_stop_at():
+            return False
+        return self.run_steps is None or step + every <= self.run_steps
 
     def last_reset(self, step: int) -> Optional[int]:
         """The latest step <= `step` the schedule resets opacities at (None: none yet)."""
