@@ -258,3 +258,15 @@ def test_views_held_out_come_back_and_resume():
     fixed = TrainViews(scene, "cpu", seed=3).state_dict()  # a fixed-step run's checkpoint
     with pytest.raises(ValueError, match="train.steps=auto: the checkpoint was written by a run that drew every"):
         resumed.load_state_dict(fixed)
+
+
+def test_the_position_lr_anneals_once_densification_stops():
+    def bounded(step):  # a log-linear decay from 1e-4 to 1e-6 over the bound, as optim.means_lr_at
+        return 1e-4 * (1e-2) ** (step / CFG.max_steps)
+    rule = AutoStop(CFG)
+    assert rule.means_lr(3000, bounded) is None  # still densifying: the bounded schedule holds
+    rule, _, _ = run_rule(peaked, until=4600)  # densification stopped at 4500
+    assert rule.means_lr(4500, bounded) == pytest.approx(bounded(4500))
+    span = CFG.patience + CFG.polish
+    assert rule.means_lr(4500 + span // 2, bounded) == pytest.approx((bounded(4500) * 1e-6) ** 0.5)
+    assert rule.means_lr(4500 + span, bounded) == pytest.approx(1e-6) == rule.means_lr(20_000, bounded)
