@@ -72,7 +72,7 @@ def _short_run(tmp_path, callbacks=()):
                 "data.height": 48, "train.progress": False, "train.checkpoint_every": 0, "eval.every": 50,
                 "eval.lpips": False, "eval.save_images": False, "model.sh_interval": 100,
                 "strategy.refine_start": 50, "strategy.refine_every": 25, "strategy.refine_stop": 15000,
-                "strategy.reset_every": 125, "strategy.max_primitives": 6000}
+                "strategy.reset_every": 125, "strategy.max_primitives": 6000, "strategy.refine_stop_fraction": 0.5}
     reports = []
     trainer = Trainer(None, overrides=[f"{k}={v}" for k, v in settings.items()], quiet=True,
                       callbacks=[lambda t, step, info: info["densify"] and reports.append(info["densify"]),

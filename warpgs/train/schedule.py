@@ -1,7 +1,9 @@
 """When a run densifies, resets opacities and stops.
 
 **Fixed step counts** (`train.steps=N`): the run's tail is left alone (DensifyStrategy applies it):
-  - densification (refines and the statistics for them) ends at min(refine_stop, refine_stop_fraction x N). 3DGS
+  - densification (refines and the statistics for them) ends at min(refine_stop, refine_stop_fraction x N), with
+    refine_stop_fraction 0.5 in the `gaussians` preset (the library default, 1, leaves refine_stop alone for the
+    configs that set their own schedule, e.g. short test runs that densify to their end). 3DGS
     densifies for the first half of its 30k steps; the same half of a 3000-step run is 1500 steps, so a short run
     no longer densifies up to its last refine and is scored before its newest primitives have settled;
   - an opacity reset at step s happens only while densifying (s < that stop: the refines after a reset prune what

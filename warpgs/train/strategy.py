@@ -80,8 +80,9 @@ class StrategyConfig:
     refine_stop: int = 15_000
     refine_every: int = 100
     # The run's tail (train/schedule.py): with a known run length T, densification also stops at this fraction of
-    # it (3DGS: 15k of 30k), so the last (1 - fraction) x T steps train the model they have; 1: only refine_stop.
-    refine_stop_fraction: float = 0.5
+    # it (3DGS: 15k of 30k; the gaussians preset: 0.5), so the last (1 - fraction) x T steps train the model they
+    # have. 1 (the default, for configs that set their own refine_stop): refine_stop alone.
+    refine_stop_fraction: float = 1.0
     # opacities clamped to reset_opacity when step % reset_every == 0, while densifying (< the refine stop), and
     # with a whole interval of training after it before the run ends (when its length is known); 0 off
     reset_every: int = 3000
