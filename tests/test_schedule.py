@@ -202,7 +202,8 @@ def test_config_accepts_auto_and_checks_the_schedule():
 
 # ----- train.steps=auto end to end -----------------------------------------------------------------------------
 AUTO = {"train.steps": "auto", "schedule.max_steps": 200, "schedule.val_every": 20, "schedule.patience": 40,
-        "schedule.settle": 20, "schedule.polish": 20, "strategy.refine_stop": 1000, "train.checkpoint_every": 0}
+        "schedule.settle": 20, "schedule.polish": 20, "strategy.refine_stop": 1000, "train.checkpoint_every": 0,
+        "strategy.refine_stop_fraction": 0.5}  # as the gaussians preset
 
 
 class Interrupt:
