@@ -131,7 +131,8 @@ def main(argv=None) -> dict:
             runs.append(run_gsplat(gsplat_cfg, eval_every, scene, start, args.gsplat_reset))
 
     rows = [{"system": r["system"], "step": p["step"], "seconds": p["seconds"], "psnr": p["psnr"], "ssim": p["ssim"],
-             "primitives": p["num_primitives"]} for r in runs for p in r["points"] if p["step"] in [0] + marks]
+             "primitives": p["num_primitives"]} for r in runs for p in r["points"]
+            if p["step"] in [0] + marks or p is r["points"][-1]]  # a train.steps=auto run ends off the marks
     print(f"held-out PSNR vs training time: {data.name}, {marks[-1]} steps, device {args.device}")
     print_table(rows, ["system", "step", "seconds", "psnr", "ssim", "primitives"])
     per_step = {r["system"]: r["final"]["train_seconds"] / r["final"].get("steps", marks[-1]) for r in runs}
