@@ -8,7 +8,7 @@
     no longer densifies up to its last refine and is scored before its newest primitives have settled;
   - an opacity reset at step s happens only while densifying (s < that stop: the refines after a reset prune what
     stayed faint) and with a whole reset interval of training after it (s + reset_every <= N: the opacities grow
-    back before the end; with refine_stop_fraction <= 0.5 the first condition implies it). A run of fewer than
+    back before the end; with refine_stop_fraction <= 0.5 the first condition implies it). A run of at most
     reset_every / refine_stop_fraction steps (6000 with the preset) resets nothing; 7000 steps reset once, at 3000.
 With the preset at 30k this is 3DGS's schedule unchanged (densify 500..15k, resets 3k..12k), and the other presets
 keep theirs at their own lengths (sparse_llff_baseline: densify to 5000 of 10000, one reset at 3000).
