@@ -6,7 +6,8 @@ learning rates and losses (benchmarks/train_compare.py).
     python benchmarks/real_capture.py data/fern --downscale 8 --steps 300           # CPU smoke run
 
 DIR is any scene warpgs-train reads (COLMAP, transforms.json, LLFF poses_bounds.npy); the held-out views are
-the every-8th LLFF split. Each --steps value is an evaluation point of one run to the largest. Prints a table
+the every-8th LLFF split. Each --steps value is an evaluation point of one run to the largest (with the override
+train.steps=auto warpgs stops by its own rule, bounded by the largest; the gsplat loop runs to it). Prints a table
 and writes benchmarks/results/real_capture_<name>_<device>[_gsplat].json (every evaluation point, time per step
 of each system and their ratio, the largest one-step drop in primitive count) and a PNG plot next to it.
 """
@@ -104,6 +105,11 @@ def main(argv=None) -> dict:
     if args.downscale:
         overrides.append(f"data.downscale={args.downscale}")
     cfg = load_config(resolve_config_source(args.config), overrides + list(args.overrides))
+    gsplat_cfg = cfg
+    if cfg.train.steps == "auto":  # (override train.steps=auto) warpgs stops by its own rule within the largest mark
+        cfg.schedule.max_steps = marks[-1]
+        gsplat_cfg = cfg.copy()
+        gsplat_cfg.train.steps = marks[-1]  # the gsplat loop runs its fixed schedule to the largest mark
 
     trainer, start, counts = initial_model(cfg)
     scene = trainer.scene
@@ -112,16 +118,17 @@ def main(argv=None) -> dict:
     runs = [] if args.only == "gsplat" else [run_warpgs(trainer, counts, eval_every)]
     if args.gsplat and args.only != "warpgs":
         if args.loop_raster == "warpgs":
-            runs.append(run_gsplat(cfg, eval_every, scene, start, args.gsplat_reset, rasterization=warpgs_as_gsplat,
+            runs.append(run_gsplat(gsplat_cfg, eval_every, scene, start, args.gsplat_reset, rasterization=warpgs_as_gsplat,
                                    system="gsplat loop, warpgs raster, warpgs visibility"))
         else:
-            runs.append(run_gsplat(cfg, eval_every, scene, start, args.gsplat_reset))
+            runs.append(run_gsplat(gsplat_cfg, eval_every, scene, start, args.gsplat_reset))
 
     rows = [{"system": r["system"], "step": p["step"], "seconds": p["seconds"], "psnr": p["psnr"], "ssim": p["ssim"],
-             "primitives": p["num_primitives"]} for r in runs for p in r["points"] if p["step"] in [0] + marks]
+             "primitives": p["num_primitives"]} for r in runs for p in r["points"]
+            if p["step"] in [0] + marks or p is r["points"][-1]]  # a train.steps=auto run ends off the marks
     print(f"held-out PSNR vs training time: {data.name}, {marks[-1]} steps, device {args.device}")
     print_table(rows, ["system", "step", "seconds", "psnr", "ssim", "primitives"])
-    per_step = {r["system"]: r["final"]["train_seconds"] / marks[-1] for r in runs}
+    per_step = {r["system"]: r["final"]["train_seconds"] / r["final"].get("steps", marks[-1]) for r in runs}
     for r in runs:
         d = r["largest_drop"]
         print(f"{r['system']}: {1e3 * per_step[r['system']]:.2f} ms/step; largest one-step primitive drop "
@@ -136,6 +143,10 @@ def main(argv=None) -> dict:
     if payload["pose_jumps"]:
         print(f"note: the capture's poses jump {len(payload['pose_jumps'])} times between neighbouring frames "
               "(benchmarks/pose_continuity.py): its views contradict each other")
+    for r in runs:
+        if r.get("schedule"):
+            print(f"{r['system']}: steps=auto ended at step {r['final']['steps']}: "
+                  + "; ".join(f"{d['decision']} @ {d['step']} ({d['reason']})" for d in r["schedule"]["decisions"]))
     if len(per_step) == 2 and "gsplat" in per_step:
         payload["step_time_ratio"] = per_step["warpgs"] / per_step["gsplat"]
         print(f"time per step warpgs / gsplat = {payload['step_time_ratio']:.2f}")

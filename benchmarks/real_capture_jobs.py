@@ -20,7 +20,9 @@ when it returns, so a wave longer than one command must be detached, then waited
 
 `--variant NAME KEY=VALUE ...` (repeatable) adds, for every seed, a third process on the pair's GPU: warpgs with
 those config overrides (e.g. `--variant clamp0999 train.alpha_max=0.999`), tagged NAME_VARIANT and pooled on its
-own against the same gsplat runs (real_capture_seeds_NAME_VARIANT.json)."""
+own against the same gsplat runs (real_capture_seeds_NAME_VARIANT.json). A variant with `train.steps=auto` (issue 31's
+default run) is pooled with `real_capture_seeds.py --against-best`: its final model against the best point of gsplat's
+curve, and its training time over gsplat's whole run's."""
 from __future__ import annotations
 
 import argparse
@@ -112,9 +114,11 @@ def main(argv=None) -> dict:
     os.environ["OUT"] = str(out)  # the pooled tables go beside the runs
     files = _results(out, args.name)
     gsplat_runs = [f for f in files if "_gsplat_only_" in Path(f).name]
-    for variant in args.variant:  # each variant against the same gsplat runs
+    for variant, overrides in args.variant.items():  # each variant against the same gsplat runs
+        # train.steps=auto ends where its rule says, not on the marks: its final model against gsplat's best point
+        best = ["--against-best"] if "train.steps=auto" in overrides else []
         real_capture_seeds.main([f"real_capture_seeds_{args.name}_{variant}", *gsplat_runs,
-                                 *_results(out, f"{args.name}_{variant}")])
+                                 *_results(out, f"{args.name}_{variant}"), *best])
     return real_capture_seeds.main([f"real_capture_seeds_{args.name}", *files])
 
 

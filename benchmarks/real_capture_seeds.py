@@ -3,6 +3,9 @@ paired by seed (the two systems of one seed may come from one file or from two `
 
     python benchmarks/real_capture_seeds.py OUT_NAME benchmarks/results/real_capture_beer_*_beerB*.json
 
+With --against-best (issue 31's target for the default `train.steps=auto` run): warpgs's final PSNR against the
+best point of gsplat's curve, and warpgs's training seconds over gsplat's whole run's, per capture and seed.
+
 Prints one row per capture, seed and mark and a summary per capture and mark (seeds, mean, sd and standard error
 of the paired difference, the worst seed); writes benchmarks/results/OUT_NAME.json. A capture's seed may appear once
 per system: pass the files of one code version, not old and new together."""
@@ -65,13 +68,68 @@ def summary(rows: list[dict]) -> list[dict]:
     return out
 
 
+def against_best(payloads: list[tuple[str, dict]]) -> list[dict]:
+    """Issue 31's target for warpgs's default run (train.steps=auto): per capture and seed, warpgs's final held-out
+    PSNR against the best point of gsplat's curve, and warpgs's training seconds over gsplat's whole run's."""
+    finals: dict = {}
+    for name, p in payloads:
+        for run in p["runs"]:
+            if run["system"] in SYSTEMS:
+                finals.setdefault((Path(p["data"]).name, p["seed"]), {})[run["system"]] = run
+    rows = []
+    for (capture, seed), slot in sorted(finals.items()):
+        if len(slot) < 2:
+            continue
+        w, g = slot["warpgs"], slot["gsplat"]
+        best = max(g["points"], key=lambda pt: pt["psnr"])
+        rows.append({"capture": capture, "seed": seed, "warpgs_steps": w["final"].get("steps"),
+                     "warpgs": w["final"]["psnr"], "gsplat_best": best["psnr"], "gsplat_best_step": best["step"],
+                     "delta": w["final"]["psnr"] - best["psnr"],
+                     "time_ratio": w["final"]["train_seconds"] / g["final"]["train_seconds"]})
+    return rows
+
+
+def best_summary(rows: list[dict]) -> list[dict]:
+    out = []
+    for capture in sorted({r["capture"] for r in rows}):
+        mine = [r for r in rows if r["capture"] == capture]
+        d = [r["delta"] for r in mine]
+        sd = statistics.stdev(d) if len(d) > 1 else None
+        out.append({"capture": capture, "seeds": len(d), "delta_mean": statistics.fmean(d), "delta_sd": sd,
+                    "delta_se": sd / len(d) ** 0.5 if sd is not None else None,
+                    "time_ratio_mean": statistics.fmean(r["time_ratio"] for r in mine)})
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("name", help="output name (benchmarks/results/NAME.json)")
     ap.add_argument("files", nargs="+", help="real_capture.py result JSON files")
     ap.add_argument("--marks", default="7000,30000", help="comma-separated steps to compare")
+    ap.add_argument("--against-best", action="store_true",
+                    help="warpgs's final PSNR (e.g. train.steps=auto) against the best point of gsplat's curve, and "
+                         "the training-time ratio to gsplat's whole run (issue 31's target)")
     args = ap.parse_args(argv)
     payloads = read_results(args.files, "real_capture.py result")
+    if args.against_best:
+        rows = against_best(payloads)
+        if not rows:
+            raise SystemExit("no capture and seed has both systems")
+        print_table(rows, ["capture", "seed", "warpgs_steps", "warpgs", "gsplat_best", "gsplat_best_step", "delta",
+                           "time_ratio"])
+        stats = best_summary(rows)
+        print()
+        print_table(stats, ["capture", "seeds", "delta_mean", "delta_sd", "delta_se", "time_ratio_mean"])
+        overall = {"delta_mean_over_captures": statistics.fmean(r["delta_mean"] for r in stats),
+                   "worst_capture_delta": min(r["delta_mean"] for r in stats),
+                   "time_ratio_mean_over_captures": statistics.fmean(r["time_ratio_mean"] for r in stats)}
+        print(f"\nover captures: delta {overall['delta_mean_over_captures']:+.2f} dB (worst capture "
+              f"{overall['worst_capture_delta']:+.2f}), time ratio {overall['time_ratio_mean_over_captures']:.2f} "
+              f"(target: delta >= 0, no capture below -0.3, ratio <= 0.5)")
+        payload = {"files": [f for f, _ in payloads], "mode": "against_best", "rows": rows, "summary": stats,
+                   "overall": overall}
+        print(f"\nwrote {write_json(args.name, payload)}")
+        return payload
     marks = [int(m) for m in args.marks.split(",")]
     rows = paired(runs_by_seed(payloads), marks)
     if not rows:

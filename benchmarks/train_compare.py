@@ -92,11 +92,14 @@ def run_warpgs(trainer, counts: list, eval_every: int) -> dict:
         points.append({"step": result.steps, "seconds": round(result.train_seconds, 3),
                        "psnr": result.metrics["psnr"], "ssim": result.metrics["ssim"],
                        "num_primitives": result.num_primitives})
-    final = {k: result.metrics[k] for k in ("psnr", "ssim", "num_primitives", "train_seconds")}
+    final = {k: result.metrics[k] for k in ("psnr", "ssim", "num_primitives", "train_seconds", "steps")}
     if result.metrics.get("lpips") is not None:
         final["lpips"] = result.metrics["lpips"]
-    return {"system": "warpgs", "points": points, "wall_seconds": round(wall, 2), "final": final,
-            "largest_drop": largest_drop(counts)}
+    out = {"system": "warpgs", "points": points, "wall_seconds": round(wall, 2), "final": final,
+           "largest_drop": largest_drop(counts)}
+    if "schedule" in result.metrics:  # train.steps=auto: its decisions and validation scores
+        out["schedule"] = result.metrics["schedule"]
+    return out
 
 
 def gsplat_skips_opacity_reset() -> bool:

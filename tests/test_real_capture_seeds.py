@@ -58,3 +58,30 @@ def test_unreadable_file_is_named(tmp_path, monkeypatch):
     bad.write_text("{not json")
     with pytest.raises(SystemExit, match="bad.json"):
         real_capture_seeds.main(["x", str(bad)])
+
+
+def test_against_best_scores_the_final_model_against_gsplats_peak(tmp_path, monkeypatch):
+    """Issue 31's target: warpgs's final PSNR (train.steps=auto) against the best point of gsplat's curve, and
+    warpgs's training seconds over gsplat's whole run's."""
+    monkeypatch.setenv("OUT", str(tmp_path / "out"))
+
+    def run(system, points, seconds, steps=None):
+        final = {"psnr": points[-1][1], "train_seconds": seconds, **({"steps": steps} if steps else {})}
+        return {"system": system, "points": [{"step": s, "psnr": p} for s, p in points], "final": final}
+
+    files = []
+    for capture, seed, warpgs_final, gsplat_curve in (("beer", 1, 23.0, [(3000, 23.4), (30000, 21.0)]),
+                                                      ("beer", 2, 22.8, [(3000, 22.6), (30000, 21.2)]),
+                                                      ("bonsai", 1, 31.0, [(7000, 29.5), (30000, 31.2)])):
+        payload = {"data": f"/data/{capture}", "seed": seed,
+                   "runs": [run("warpgs", [(5000, 22.0), (6000, warpgs_final)], 30.0, 6000),
+                            run("gsplat", gsplat_curve, 150.0)]}
+        path = tmp_path / f"{capture}{seed}.json"
+        path.write_text(json.dumps(payload))
+        files.append(str(path))
+    out = real_capture_seeds.main(["best", *files, "--against-best"])
+    by = {s["capture"]: s for s in out["summary"]}
+    assert by["beer"]["delta_mean"] == pytest.approx(-0.1) and by["beer"]["seeds"] == 2
+    assert by["bonsai"]["delta_mean"] == pytest.approx(-0.2) and by["bonsai"]["time_ratio_mean"] == pytest.approx(0.2)
+    assert out["overall"]["worst_capture_delta"] == pytest.approx(-0.2)
+    assert out["rows"][0]["gsplat_best_step"] == 3000 and out["rows"][0]["warpgs_steps"] == 6000

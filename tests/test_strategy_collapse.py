@@ -155,7 +155,8 @@ def test_forward_facing_capture_survives_the_first_size_prune(tmp_path):
     overrides = [f"data.path={scene}", f"output.dir={tmp_path / 'out'}", "train.device=cpu", "train.steps=200",
                  "train.progress=false", "train.checkpoint_every=0", "eval.every=100", "eval.lpips=false",
                  "eval.save_images=false", "model.sh_interval=50", "strategy.refine_start=25",
-                 "strategy.refine_every=25", "strategy.reset_every=100", "strategy.size_prune_start=100"]
+                 "strategy.refine_every=25", "strategy.reset_every=100", "strategy.size_prune_start=100",
+                 "strategy.refine_stop_fraction=1"]  # densify to the end: the test is about the pruning after the reset
     reports = []
     trainer = Trainer(resolve_config_source("gaussians"), overrides=overrides, quiet=True,
                       callbacks=[lambda t, step, info: info["densify"] and reports.append(info["densify"])])

@@ -86,6 +86,8 @@ def _build_section(section: str, factory, value):
 def _check_value(key: str, value, tp):
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
+    if key == "train.steps":
+        return _check_steps(key, value)
     if tp is Any:
         value = _check_background(key, value) if key == "train.background" else value
         return value
@@ -159,6 +161,19 @@ def _as_number(key: str, value, kind):
             raise ConfigError(key, f"expected an integer, got {value!r}")
         return int(value)
     return float(value)
+
+
+def _check_steps(key: str, value):
+    """A positive step count, or "auto" (train/schedule.py)."""
+    if isinstance(value, str) and value.strip().lower() == "auto":
+        return "auto"
+    try:
+        steps = _as_number(key, value, int)
+    except ConfigError:
+        raise ConfigError(key, f"expected a positive integer or 'auto', got {value!r}") from None
+    if steps < 1:
+        raise ConfigError(key, f"expected a positive integer or 'auto', got {value!r}")
+    return steps
 
 
 def _check_device(key: str, value: str) -> None:

@@ -4,12 +4,13 @@ from __future__ import annotations
 import copy
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Union
 
 import yaml
 
 from warpgs.train.optim import OptimConfig
 from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.train.schedule import ScheduleConfig
 from warpgs.train.strategy import StrategyConfig
 
 
@@ -63,7 +64,7 @@ class ModelConfig:
 
 @dataclass
 class TrainConfig:
-    steps: int = 30_000
+    steps: Union[int, str] = 30_000  # or "auto": stop by a validation split of the training views (`schedule`)
     seed: int = 0
     device: str = "auto"  # "auto" (CUDA when available), "cpu", "cuda", "cuda:N"
     background: Any = "auto"  # "auto" (the scene's, else black), "black", "white" or [r, g, b] in [0, 1]
@@ -128,6 +129,7 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     strategy: StrategyConfig = field(default_factory=StrategyConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)  # the rule of train.steps=auto
     losses: Dict[str, Any] = field(default_factory=lambda: {"l1": 0.8, "dssim": 0.2})
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)

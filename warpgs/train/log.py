@@ -114,6 +114,16 @@ class TrainLog:
             for name, rgb in metrics.get("images", {}).items():
                 self._tb.add_image(f"eval/{Path(name).stem}", rgb.numpy(), step, dataformats="HWC")
 
+    def event(self, kind: str, step: int, fields: dict, *, train_seconds: float) -> None:
+        """Another kind of line (`type` kind), e.g. train.steps=auto's "validation" scores and "schedule"
+        decisions; numeric fields also go to TensorBoard as kind/name."""
+        entry = {"type": kind, "step": step, **fields, "train_seconds": round(train_seconds, 3),
+                 "elapsed": self._elapsed()}
+        self._write(entry)
+        if self._tb is not None:
+            self._scalars({f"{kind}/{k}": v for k, v in fields.items()
+                           if isinstance(v, (int, float)) and not isinstance(v, bool)}, step)
+
     def _elapsed(self) -> float:
         return round(time.perf_counter() - self._t0, 3)
 

@@ -13,6 +13,7 @@ from typing import Callable, List, Optional
 
 import torch
 
+from warpgs.metrics.image import psnr
 from warpgs.metrics.views import write_json
 from warpgs.train import setup as train_setup
 from warpgs.train.distributed import DistributedError
@@ -78,7 +79,7 @@ class TrainingLoop:
             self.say(f"warpgs: {tr.scene.summary()}")
             self.say(f"warpgs: {tr.num_primitives} {tr.model.kind} from {tr.init_source}; "
                      f"losses {tr.loss_set.names} render {list(tr.outputs)}; "
-                     f"{tr.max_steps} steps on {tr.device}; output {tr.out_dir}")
+                     f"{self._length()} on {tr.device}; output {tr.out_dir}")
             if cfg.data.path is not None and not tr.quiet:  # once per training run: not on resume, render or eval
                 train_setup.warn_pose_jumps(tr.scene, self.say)
         else:
@@ -89,7 +90,7 @@ class TrainingLoop:
             self.say(f"warpgs: {loaded} training views loaded onto {tr.device} in {time.perf_counter() - t0:.1f} s")
         try:
             with StopOnSigint(self.say) as sigint:
-                while tr.step < tr.max_steps:
+                while tr.step < self.end():
                     if sigint.requested and not tr.ranks.enabled:
                         raise KeyboardInterrupt
                     # Distributed: the request travels with the step's gradients, so every rank stops after the
@@ -121,14 +122,63 @@ class TrainingLoop:
         self.progress.update(tr.step, loss=self.loss_mean.update(info["loss"]),
                              psnr=self.psnr_mean.update(info["psnr"]), n=tr.num_primitives,
                              test=last.get("psnr"))
-        if tr.log.due(tr.step, tr.max_steps):
+        if tr.strategy.auto is not None:  # before the log line, so a run that ends here logs its last step
+            self._auto_schedule()
+        end = self.end()
+        if tr.log.due(tr.step, end):
             tr.log.train(tr.step, info, tr.learning_rates(), tr.train_seconds)
-        if cfg.eval.every and tr.step % cfg.eval.every == 0 and tr.step < tr.max_steps:
+        if cfg.eval.every and tr.step % cfg.eval.every == 0 and tr.step < end:
             self._periodic_eval()
-        if cfg.train.checkpoint_every and tr.step % cfg.train.checkpoint_every == 0 and tr.step < tr.max_steps:
+        if cfg.train.checkpoint_every and tr.step % cfg.train.checkpoint_every == 0 and tr.step < end:
             tr.save_checkpoint()
         if info.get("stop"):  # a rank got Ctrl-C: every rank stops at this same boundary
             raise KeyboardInterrupt
+
+    def _length(self) -> str:
+        tr = self.trainer
+        if tr.strategy.auto is None:
+            return f"{tr.max_steps} steps"
+        return (f"steps=auto (at most {tr.max_steps}; validation on {len(tr.views.held_out)} held-out training "
+                f"views every {tr.config.schedule.val_every} steps)")
+
+    def end(self) -> int:
+        """The step count the run stops at: max_steps, or train.steps=auto's decided end."""
+        auto = self.trainer.strategy.auto
+        return auto.end if auto is not None and auto.end is not None else self.trainer.max_steps
+
+    def _auto_schedule(self) -> None:
+        """train.steps=auto (train/schedule.py): score the validation views when due, apply the rule's decisions
+        (stop densifying; put the validation views back for the polish and fix the end), log them."""
+        tr = self.trainer
+        auto, strategy, step = tr.strategy.auto, tr.strategy, tr.step
+        decisions = []
+        if auto.due(step):
+            psnr = self._validation_psnr()
+            tr.log.event("validation", step, {"psnr": psnr, "num_views": len(tr.views.held_out)},
+                         train_seconds=tr.train_seconds)
+            decisions += auto.observe(step, psnr, last_reset=strategy.last_reset(step - 1),
+                                      scheduled_stop=strategy.scheduled_stop())
+        decisions += auto.check_bound(step)
+        for d in decisions:
+            if d["decision"] == "stop" and auto.end > step:
+                back = tr.views.restore_held_out()
+                d["views_restored"] = len(back)
+            tr.log.event("schedule", step, d, train_seconds=tr.train_seconds)
+            self.say(f"[schedule @ {step}] {d['decision'].replace('_', ' ')}: {d['reason']}")
+        if decisions and self.progress is not None:
+            self.progress.total = self.end()
+
+    @torch.no_grad()
+    def _validation_psnr(self) -> float:
+        """Mean PSNR over the held-out training views (renders clamped to [0, 1], as evaluations score). Every rank
+        scores them; rank 0's value counts, so all ranks take the same decisions."""
+        tr = self.trainer
+        scores = []
+        for i in tr.views.held_out:
+            view = tr.views.kept_or_new(i)
+            rgb = tr.render(view, ("rgb",)).rgb.clamp(0.0, 1.0)
+            scores.append(float(psnr(rgb, view.image)))
+        return tr.ranks.broadcast_object(sum(scores) / len(scores), what="the validation score")
 
     def _close_progress(self) -> None:
         self.progress.close()
@@ -171,6 +221,8 @@ class TrainingLoop:
         metrics = {"split": m["split"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"]}
         if "lpips_unavailable" in m:
             metrics["lpips_unavailable"] = m["lpips_unavailable"]
+        if tr.strategy.auto is not None:
+            metrics["schedule"] = tr.strategy.auto.summary()
         if tr.device.type == "cuda":  # rank 0's peak (with train.parallel=model: one share's)
             metrics["peak_gpu_memory_bytes"] = int(torch.cuda.max_memory_allocated(tr.device))
         metrics.update({"num_primitives": tr.num_primitives, "steps": tr.step,

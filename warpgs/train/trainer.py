@@ -40,6 +40,7 @@ from warpgs.model.gaussians import GaussianModel
 from warpgs.model.rendering import check_outputs, render_model
 from warpgs.train.optim import build_optimizer
 from warpgs.train.scaling import apply_batch_scaling, lr_scale
+from warpgs.train.schedule import AutoStop, validation_split
 from warpgs.train.strategy import DensifyStrategy
 from warpgs.data.extent import scene_content_extent
 from warpgs.model import environment  # noqa: F401  (registers the built-in "environment" extension)
@@ -102,7 +103,12 @@ class Trainer:
             lambda: train_setup.load_training_scene(cfg.data, self.out_dir), "loading the scene")
         self.extent = train_setup.scene_extent(self.scene, cfg.train.scene_extent)
         self.background = train_setup.resolve_background(cfg.train.background, self.scene, self.device)
-        self.max_steps = cfg.train.steps
+        # train.steps=auto: the run is bounded by schedule.max_steps (its learning-rate horizon) and ends when
+        # train/schedule.py's rule says so; the strategy and the loop apply its decisions.
+        self.auto_steps = cfg.train.steps == "auto"
+        if self.auto_steps and self.model_parallel:
+            raise ValueError("train.steps=auto: not available with train.parallel=model yet; give a step count")
+        self.max_steps = int(cfg.schedule.max_steps if self.auto_steps else cfg.train.steps)
         self.guard = NonFiniteGuard(self.named_parameters)
         self.checkpointer = Checkpointer(self.out_dir / cfg.output.checkpoint, self.device,
                                          guard=self.guard if cfg.train.nan_guard else None,
@@ -153,10 +159,14 @@ class Trainer:
             apply_batch_scaling(self.optimizers, self.base_learning_rates(), batch_size=self.batch_size,
                                 rule=cfg.train.batch_scaling)
         self.strategy = DensifyStrategy(cfg.strategy, self.extent, invisible_below=cfg.train.alpha_min,
-                                        world_extent=cfg.train.scene_extent or scene_content_extent(self.scene))
+                                        world_extent=cfg.train.scene_extent or scene_content_extent(self.scene),
+                                        run_steps=self.max_steps)
         self.strategy.initialize(self.model)
 
         self.views = TrainViews(self.scene, self.device, seed=cfg.train.seed, preload=cfg.data.preload)
+        if self.auto_steps:  # validation views from the training views (never the test views)
+            self.strategy.auto = AutoStop(cfg.schedule)
+            self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth)[1])
         self.evaluator = Evaluator(self.scene, cfg.eval, self.device, self.out_dir,
                                    render=lambda v: self.render(v, ("rgb",)).rgb, views=self.views,
                                    ranks=self.ranks, render_round=self._render_round if self.model_parallel else None)

@@ -1,7 +1,9 @@
 """The training views a Trainer draws from: device copies kept when data.preload (all of them loaded before the
 first step, as 3DGS does), and a seeded order reshuffled every epoch. The order's generator and queue go into
 checkpoints, so a resumed run draws the same views. The order is global (the same on every rank of a distributed
-run), so any rank may render any view and each keeps them all."""
+run), so any rank may render any view and each keeps them all. With train.steps=auto some training views are held
+out for validation (`hold_out`) and may come back for the run's last steps (`restore_held_out`); the current
+training list goes into checkpoints too."""
 from __future__ import annotations
 
 from typing import Dict, List
@@ -19,7 +21,27 @@ class TrainViews:
         self.indices: List[int] = list(scene.train)
         self.generator = torch.Generator().manual_seed(int(seed))
         self.queue: List[int] = []
+        self.held_out: List[int] = []  # training views kept out of the draws (train.steps=auto's validation)
+        self._split = False  # whether views were ever held out
         self._kept: Dict[int, object] = {}
+
+    def hold_out(self, indices) -> None:
+        """Take these training views out of the draws (before the first draw: the queue holds positions)."""
+        held = [int(i) for i in indices]
+        missing = [i for i in held if i not in self.indices]
+        if missing:
+            raise ValueError(f"hold_out: views {missing} are not training views")
+        if self.queue:
+            raise RuntimeError("hold_out: only before the first draw")
+        self.held_out, self._split = held, True
+        self.indices = [i for i in self.indices if i not in set(held)]
+
+    def restore_held_out(self) -> List[int]:
+        """Put the held-out views back into the draws (from the next epoch: the rest of this one stays as drawn).
+        Returns them."""
+        back, self.held_out = self.held_out, []
+        self.indices = self.indices + back
+        return back
 
     def view(self, index: int):
         """Scene view `index` on the device (kept for the next call when preloading)."""
@@ -36,7 +58,7 @@ class TrainViews:
         were loaded (0 without preload, or when all were kept already)."""
         if not self.preload:
             return 0
-        missing = [i for i in self.indices if i not in self._kept]
+        missing = [i for i in self.indices + self.held_out if i not in self._kept]
         for i in missing:
             self.view(i)
         return len(missing)
@@ -62,10 +84,20 @@ class TrainViews:
             out.append(self.indices[self.queue.pop(0)])
         return out
 
-    # The checkpoint keys of checkpoints written before this class existed.
+    # The checkpoint keys of checkpoints written before this class existed, plus the drawn and held-out lists.
+    # (the lists only in runs that held views out, so other checkpoints keep their keys).
     def state_dict(self) -> dict:
-        return {"view_generator": self.generator.get_state(), "view_queue": list(self.queue)}
+        state = {"view_generator": self.generator.get_state(), "view_queue": list(self.queue)}
+        if self._split:
+            state.update(view_indices=list(self.indices), view_held_out=list(self.held_out))
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         self.generator.set_state(state["view_generator"])
         self.queue = list(state["view_queue"])
+        if self._split and "view_indices" not in state:
+            raise ValueError("train.steps=auto: the checkpoint was written by a run that drew every training view "
+                             "(a step count); resume it with that step count, or start the auto run afresh")
+        if "view_indices" in state:  # older checkpoints: every training view was drawn
+            self.indices = list(state["view_indices"])
+            self.held_out, self._split = list(state.get("view_held_out", [])), True
