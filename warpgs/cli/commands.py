@@ -260,7 +260,7 @@ def load_run(model_dir, device: Optional[str] = None, overrides: Sequence[str] =
     if not ply.is_file():
         raise FileNotFoundError(f"{run}: neither {config.output.checkpoint} nor {config.output.ply} found")
     trainer = Trainer(config, model=load_ply(ply), quiet=True)
-    trainer.step = config.train.steps
+    trainer.step = trainer.max_steps  # train.steps=auto has no fixed count: its bound stands for a finished run
     return trainer
 
 
