@@ -1,6 +1,7 @@
 """`warpgs-mesh`: a coloured triangle mesh (binary PLY) from a trained run.
 
-    warpgs-mesh --model OUT [--voxel V] [--trunc T] [--depth-trunc D] [--radius R] [--unbounded] [--out mesh.ply]
+    warpgs-mesh --model OUT [--voxel V] [--trunc T] [--depth-trunc D] [--radius R] [--center X,Y,Z] [--unbounded]
+                [--out mesh.ply]
 
 Renders depth (surfels: median depth; 3D Gaussians: expected depth, worse) and colour from the training cameras,
 fuses them into a sparse TSDF volume (Warp kernels, CPU or CUDA), runs marching cubes and drops small pieces.
@@ -23,6 +24,16 @@ def _error(message: str) -> int:
     return EXIT_CONFIG
 
 
+def _triple(text: str):
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expected three numbers x,y,z, got {text!r}")
+    return values
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     from warpgs.mesh.from_model import DEFAULT_RESOLUTION, TRUNC_VOXELS, MeshSettings
 
@@ -36,6 +47,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                                                       "none with --unbounded)")
     ap.add_argument("--radius", type=float, help="R, the half-size of the meshed cube around the cameras' centre "
                                                  "(default: the training cameras' extent)")
+    ap.add_argument("--center", type=_triple, metavar="X,Y,Z",
+                    help="centre of the meshed cube (default: the training cameras' mean centre)")
     ap.add_argument("--unbounded", action="store_true",
                     help="also mesh what lies outside R, contracted (coarser with distance)")
     ap.add_argument("--alpha-min", type=float, default=0.5, help="pixels less opaque carry no depth (default 0.5)")
@@ -44,7 +57,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--device", help="cpu, cuda, cuda:1, ... (default: the run's)")
     args = ap.parse_args(argv)
     settings = MeshSettings(voxel=args.voxel, trunc=args.trunc, depth_trunc=args.depth_trunc, radius=args.radius,
-                            unbounded=args.unbounded, alpha_min=args.alpha_min, min_component=args.min_component)
+                            centre=args.center, unbounded=args.unbounded, alpha_min=args.alpha_min,
+                            min_component=args.min_component)
     try:
         settings.check()
     except ValueError as e:

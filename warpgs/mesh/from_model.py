@@ -24,6 +24,7 @@ class MeshSettings:
     trunc: Optional[float] = None  # default TRUNC_VOXELS voxels
     depth_trunc: Optional[float] = None  # ignore depth beyond this; default 2 radius (bounded), none (unbounded)
     radius: Optional[float] = None  # the bound's half-size; default the training cameras' extent
+    centre: Optional[Sequence[float]] = None  # the bound's centre; default the training cameras' mean centre
     unbounded: bool = False  # contract the world outside the radius into the volume (background too)
     alpha_min: float = 0.5  # pixels less opaque than this carry no depth
     min_component: float = 0.01  # drop connected pieces with fewer faces than this fraction of the largest
@@ -36,6 +37,8 @@ class MeshSettings:
             if value is not None and not (np.isfinite(value) and value > 0):
                 flag = "--" + name.replace("_", "-")
                 raise ValueError(f"{flag}: expected a positive length, got {value}")
+        if self.centre is not None and (np.shape(self.centre) != (3,) or not np.isfinite(self.centre).all()):
+            raise ValueError(f"--center: expected three finite numbers x,y,z, got {self.centre}")
         if not 0.0 <= self.alpha_min < 1.0:
             raise ValueError(f"--alpha-min: expected a value in [0, 1), got {self.alpha_min}")
         if not 0.0 <= self.min_component <= 1.0:
@@ -45,6 +48,7 @@ class MeshSettings:
 def make_volume(settings: MeshSettings, centre: np.ndarray, radius: float, device: str) -> SparseTSDFVolume:
     settings.check()
     radius = settings.radius or radius
+    centre = np.asarray(centre if settings.centre is None else settings.centre, dtype=np.float64)
     voxel = settings.voxel or 2.0 * radius / DEFAULT_RESOLUTION
     trunc = settings.trunc or TRUNC_VOXELS * voxel
     depth_max = settings.depth_trunc or (np.inf if settings.unbounded else 2.0 * radius)
