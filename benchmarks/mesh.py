@@ -19,8 +19,10 @@ issue bounds (300 views at 1 MP <= 60 s on one GPU). Writes benchmarks/results/m
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -80,22 +82,24 @@ def in_box(points: np.ndarray) -> np.ndarray:
     return ((points >= BOX_LO) & (points <= BOX_HI)).all(1)
 
 
-def exact_views(cameras, definition) -> list:
-    """(depth [H, W] camera z with inf for sky, world normal [H, W, 3], label [H, W]) per camera: one ray per
-    pixel centre, no shading (fast enough for the timing run's megapixel views)."""
-    views = []
-    for cam in cameras:
+def exact_views(cameras, definition, with_normals: bool = True) -> list:
+    """(depth [H, W] camera z with inf for sky, world normal [H, W, 3] or None) per camera: one ray per pixel
+    centre, no shading (fast enough for the timing run's megapixel views), several views at once (numpy
+    releases the GIL)."""
+    def one(cam):
         o, d = raytrace.camera_rays(cam)
-        t, normal, label = raytrace.intersect(definition, o, d)
-        views.append((t.reshape(cam.height, cam.width).astype(np.float32),
-                      normal.reshape(cam.height, cam.width, 3), label.reshape(cam.height, cam.width)))
-    return views
+        t, normal, _ = raytrace.intersect(definition, o, d)
+        depth = t.reshape(cam.height, cam.width).astype(np.float32)
+        return depth, (normal.reshape(cam.height, cam.width, 3) if with_normals else None)
+
+    with ThreadPoolExecutor(max(1, min(16, os.cpu_count() or 1))) as pool:
+        return list(pool.map(one, cameras))
 
 
 def truth_samples(cameras, views, max_points: int, rng) -> tuple[np.ndarray, np.ndarray]:
     """The surface points the views see (pixel-centre hits), inside the evaluation box, with their normals."""
     pts, nrm = [], []
-    for cam, (depth, normal, _) in zip(cameras, views):
+    for cam, (depth, normal) in zip(cameras, views):
         o, d = raytrace.camera_rays(cam)
         z = depth.reshape(-1).astype(np.float64)
         hit = np.isfinite(z)
@@ -203,7 +207,7 @@ def accuracy_run(args) -> dict:
     settings = dict(voxel=args.voxel, radius=MESH_RADIUS, centre=tuple(TARGET), depth_trunc=args.depth_trunc)
 
     exact_settings = MeshSettings(**settings)
-    frames = [(depth, None, cam.K, cam.viewmat) for cam, (depth, _, _) in zip(cams, views)]
+    frames = [(depth, None, cam.K, cam.viewmat) for cam, (depth, _) in zip(cams, views)]
     exact = fuse_depth_maps(frames, exact_settings, TARGET, MESH_RADIUS, device=args.device)
     result = {"exact_depth": score(exact, truth_pts, truth_nrm, definition.objects, rng, args.mesh_points)}
     result["exact_depth"]["timings"] = exact_settings.timings
@@ -235,9 +239,9 @@ def timing_run(args) -> dict:
     definition = scene_definition()
     cameras, _, _ = orbit_rig(RigSettings(width=args.width, height=args.height, n_orbit=args.views))
     t0 = time.perf_counter()
-    views = exact_views(cameras, definition)
+    views = exact_views(cameras, definition, with_normals=False)
     prep = time.perf_counter() - t0
-    frames = [(depth, None, cam.K, cam.viewmat) for cam, (depth, _, _) in zip(cameras, views)]
+    frames = [(depth, None, cam.K, cam.viewmat) for cam, (depth, _) in zip(cameras, views)]
     settings = MeshSettings(voxel=args.voxel, radius=MESH_RADIUS, centre=tuple(TARGET), depth_trunc=args.depth_trunc)
     fuse_depth_maps(frames[:2], MeshSettings(**{**settings.__dict__, "timings": {}}), TARGET, MESH_RADIUS,
                     device=args.device)  # compile / load the kernels outside the timing

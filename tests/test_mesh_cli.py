@@ -24,7 +24,7 @@ def surfel_run(tmp_path_factory):
 
 def test_mesh_of_a_trained_run(surfel_run, tmp_path, capsys):
     out = tmp_path / "mesh.ply"
-    assert main(["--model", str(surfel_run), "--voxel", "0.05", "--out", str(out)]) == 0
+    assert main(["--model", str(surfel_run), "--voxel", "0.1", "--radius", "2", "--out", str(out)]) == 0
     assert "faces" in capsys.readouterr().out
     ply = plyfile.PlyData.read(str(out))
     v, f = ply["vertex"], ply["face"]
