@@ -35,7 +35,7 @@ def remove_small_components(mesh: Mesh, min_fraction: float = 0.01, min_faces: i
     if len(faces) == 0:
         return mesh
     labels = connected_components(faces, len(mesh.vertices))[faces[:, 0]]
-    roots, inverse, sizes = np.unique(labels, return_inverse=True, return_counts=True)
+    _, inverse, sizes = np.unique(labels, return_inverse=True, return_counts=True)
     keep_piece = (sizes >= min_fraction * sizes.max()) & (sizes >= min_faces)
     return compact(Mesh(mesh.vertices, faces[keep_piece[inverse]], mesh.colors))
 

@@ -103,12 +103,6 @@ class SparseTSDFVolume:
                 return
             capacity *= 2
 
-    @property
-    def memory_bytes(self) -> int:
-        arrays = (self.keys, self.block_of_slot, self.slot_frame, self.active, self.block_key, self.tsdf,
-                  self.weight, self.color)
-        return int(sum(a.capacity for a in arrays))
-
     # ----- fusion -------------------------------------------------------------------------------------------
     def integrate(self, depth: np.ndarray, K_matrix: np.ndarray, viewmat: np.ndarray,
                   color: Optional[np.ndarray] = None) -> int:
