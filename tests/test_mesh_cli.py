@@ -37,6 +37,17 @@ def test_mesh_of_a_trained_run(surfel_run, tmp_path, capsys):
     assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)
 
 
+def test_gaussians_mesh_from_expected_depth(tmp_path, capsys):
+    from warpgs.cli.commands import train_main
+
+    run = tmp_path / "gaussian_run"
+    assert train_main(["--quiet"] + quick_overrides(run, steps=3, **{"model.kind": "gaussians"})) == 0
+    capsys.readouterr()
+    assert main(["--model", str(run), "--voxel", "0.1", "--radius", "2"]) == 0
+    assert "expected depth" in capsys.readouterr().err
+    assert len(plyfile.PlyData.read(str(run / "mesh.ply"))["face"]) > 0
+
+
 def test_ply_round_trip(tmp_path):
     verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
