@@ -44,8 +44,8 @@ def test_data_without_a_preset_trains_with_the_gaussians_recipe(capsys, tmp_path
     # Issue 34: the demo preset is for the built-in scene; a user's scene gets the real-capture recipe.
     cfg = resolved(capsys, ["--data", str(tmp_path)])
     assert cfg["data"]["path"] == str(tmp_path)
-    assert (cfg["train"]["steps"], cfg["strategy"]["reset_every"]) == (30000, 3000)
-    assert resolved(capsys, [f"data.path={tmp_path}"])["train"]["steps"] == 30000
+    assert (cfg["train"]["steps"], cfg["strategy"]["reset_every"]) == ("auto", 3000)  # the gaussians preset
+    assert resolved(capsys, [f"data.path={tmp_path}"])["train"]["steps"] == "auto"
     assert resolved(capsys, ["data.path=null"])["train"]["steps"] == 1000  # the built-in scene after all
     demo = resolved(capsys, [])
     assert (demo["data"]["path"], demo["train"]["steps"], demo["strategy"]["reset_every"]) == (None, 1000, 0)
@@ -61,7 +61,7 @@ def test_help_says_which_preset_data_gets(capsys):
 
 def test_a_video_as_data_trains_on_the_scene_folder_beside_it(capsys, tmp_path):
     cfg = resolved(capsys, ["--data", str(tmp_path / "clip.mp4")])
-    assert cfg["data"]["path"] == str(tmp_path / "clip") and cfg["train"]["steps"] == 30000
+    assert cfg["data"]["path"] == str(tmp_path / "clip") and cfg["train"]["steps"] == "auto"
     bad = tmp_path / "bad.mov"
     bad.write_bytes(b"no video")
     pytest.importorskip("imageio_ffmpeg")
