@@ -9,7 +9,7 @@ from train_fixtures import quick_overrides
 from warpgs.cli.commands import load_run, render_main
 from warpgs.data.depth.files import read_depth, read_depth_file, read_exr_channels, write_depth_png16, write_exr
 from warpgs.data.formats.image_io import read_image
-from warpgs.model.maps import depth_colours, normal_colours, parse_maps, render_outputs
+from warpgs.model.maps import depth_colours, normal_colours, parse_maps, render_outputs, stretch_range
 
 
 def test_depth_png16_round_trip_to_its_quantum(tmp_path):
@@ -53,6 +53,13 @@ def test_previews_colour_valid_pixels_only():
     normal = torch.tensor([[[0.0, 0.0, 2.0], [0.0, -1.0, 0.0]]])
     nc = normal_colours(normal, torch.tensor([[True, False]]))
     assert torch.allclose(nc[0, 0], torch.tensor([0.5, 0.5, 1.0])) and (nc[0, 1] == 0).all()
+
+
+def test_preview_stretch_takes_more_than_torch_quantiles_limit():
+    # torch.quantile refuses more than 2^24 values: a 6000x4000 photo's depth preview failed with it.
+    inv = torch.linspace(1.0, 2.0, 2**24 + 7)
+    lo, hi = stretch_range(inv)
+    assert abs(lo - 1.02) < 1e-3 and abs(hi - 1.98) < 1e-3
 
 
 def test_output_names_and_kinds_are_checked():
