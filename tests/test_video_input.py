@@ -95,6 +95,18 @@ def test_unreadable_and_missing_videos_name_the_file(tmp_path, capsys):
         video_to_scene(tmp_path / "nothere.mp4")
 
 
+def test_a_frame_target_below_the_minimum_is_refused_before_decoding(tmp_path, capsys):
+    # --frames 5 could never give the 10 frames SfM needs; it was refused only after decoding the whole video,
+    # as "too few sharp frames ... film longer".
+    video = tmp_path / "clip.mp4"
+    make_video(video, 12, set())
+    assert process_main([str(video), "--frames", "5"]) == 2
+    assert "frames: expected at least 10" in capsys.readouterr().err
+    assert not (tmp_path / "clip").exists()
+    with pytest.raises(ValueError, match="frames: expected at least 4"):
+        select_frames([1.0] * 12, 3, min_frames=4)
+
+
 def test_missing_extra_says_what_to_install(tmp_path, monkeypatch, capsys):
     video = tmp_path / "clip.mp4"
     video.write_bytes(b"x")

@@ -17,7 +17,8 @@ from PIL import Image
 
 from warpgs.data.errors import MissingSceneFile, PathLike, SceneError, read_json
 from warpgs.data.video.decode import iter_frames, require_video_support
-from warpgs.data.video.sharpness import DEFAULT_BLUR_RATIO, MIN_SHARP_FRAMES, select_frames, sharpness
+from warpgs.data.video.sharpness import (DEFAULT_BLUR_RATIO, MIN_SHARP_FRAMES, check_frame_target, select_frames,
+                                        sharpness)
 from warpgs.utils.atomic_file import atomic_write_bytes
 from warpgs.utils.progress import Stages
 
@@ -110,8 +111,7 @@ def video_to_scene(video: PathLike, out: Optional[PathLike] = None, *, frames: i
     video = Path(video)
     if not video.is_file():
         raise MissingSceneFile(video, "video file")
-    if frames < 1:
-        raise ValueError(f"frames: expected a positive number of frames, got {frames}")
+    check_frame_target(frames, min_frames)  # before decoding: a target below the minimum can never succeed
     if max_size < 0:
         raise ValueError(f"max_size: expected 0 (keep) or a positive number of pixels, got {max_size}")
     require_video_support()
