@@ -95,7 +95,7 @@ def test_unreadable_and_missing_videos_name_the_file(tmp_path, capsys):
         video_to_scene(tmp_path / "nothere.mp4")
 
 
-def test_a_frame_target_below_the_minimum_is_refused_before_decoding(tmp_path, capsys):
+def test_settings_that_cannot_succeed_are_refused_before_decoding(tmp_path, capsys):
     # --frames 5 could never give the 10 frames SfM needs; it was refused only after decoding the whole video,
     # as "too few sharp frames ... film longer".
     video = tmp_path / "clip.mp4"
@@ -105,6 +105,9 @@ def test_a_frame_target_below_the_minimum_is_refused_before_decoding(tmp_path, c
     assert not (tmp_path / "clip").exists()
     with pytest.raises(ValueError, match="frames: expected at least 4"):
         select_frames([1.0] * 12, 3, min_frames=4)
+    assert process_main([str(video), "--blur-ratio", "1.5"]) == 2
+    assert "blur_ratio: expected a value in [0, 1), got 1.5" in capsys.readouterr().err
+    assert not (tmp_path / "clip").exists()
 
 
 def test_missing_extra_says_what_to_install(tmp_path, monkeypatch, capsys):

@@ -17,7 +17,7 @@ from PIL import Image
 
 from warpgs.data.errors import MissingSceneFile, PathLike, SceneError, read_json
 from warpgs.data.video.decode import iter_frames, require_video_support
-from warpgs.data.video.sharpness import (DEFAULT_BLUR_RATIO, MIN_SHARP_FRAMES, check_frame_target, select_frames,
+from warpgs.data.video.sharpness import (DEFAULT_BLUR_RATIO, MIN_SHARP_FRAMES, check_selection, select_frames,
                                         sharpness)
 from warpgs.utils.atomic_file import atomic_write_bytes
 from warpgs.utils.progress import Stages
@@ -111,7 +111,7 @@ def video_to_scene(video: PathLike, out: Optional[PathLike] = None, *, frames: i
     video = Path(video)
     if not video.is_file():
         raise MissingSceneFile(video, "video file")
-    check_frame_target(frames, min_frames)  # before decoding: a target below the minimum can never succeed
+    check_selection(frames, blur_ratio, min_frames)  # before decoding: bad settings could never succeed
     if max_size < 0:
         raise ValueError(f"max_size: expected 0 (keep) or a positive number of pixels, got {max_size}")
     require_video_support()
