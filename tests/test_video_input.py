@@ -166,6 +166,11 @@ def test_a_foreign_folder_is_not_overwritten(tmp_path):
     with pytest.raises(SceneError, match="mine: exists and holds no video.json"):
         video_to_scene(video, mine, frames=5, min_frames=2, progress=False, sfm=_SfmStandIn())
     assert (mine / "notes.txt").read_text() == "keep"
+    # A folder that cannot be made (beside a video on a read-only card, say) is a named error, not a traceback.
+    blocked = tmp_path / "afile"
+    blocked.write_text("")
+    with pytest.raises(SceneError, match=r"afile/scene: cannot write the scene folder .*warpgs-process VIDEO --out"):
+        video_to_scene(video, blocked / "scene", frames=10, min_frames=2, progress=False, sfm=_SfmStandIn())
 
 
 def test_video_extensions():

@@ -27,6 +27,7 @@ DEFAULT_MAX_SIZE = 1600  # longest side of the written frames (SfM extracts feat
 RECORD = "video.json"
 STAGES = ("score", "extract", "sfm")
 JPEG_QUALITY = 95
+ELSEWHERE = "make the scene in another folder: warpgs-process VIDEO --out DIR, then warpgs-train --data DIR"
 
 
 def video_scene_dir(video: PathLike) -> Path:
@@ -71,15 +72,17 @@ def _claim(out: Path, settings: dict) -> dict:
         if old != settings:
             diff = sorted(k for k in settings if not isinstance(old, dict) or old.get(k) != settings[k])
             raise SceneError(out, f"made from another video or other settings (differs in {diff}: "
-                                  f"{ {k: (old or {}).get(k) for k in diff} }); give another output folder, "
-                                  f"or delete this one to redo it")
+                                  f"{ {k: (old or {}).get(k) for k in diff} }); delete it to redo it, or "
+                                  f"{ELSEWHERE}")
         return record
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise SceneError(out, f"exists and holds no {RECORD} (not a folder made from a video); give another "
-                              f"output folder")
-    out.mkdir(parents=True, exist_ok=True)
+        raise SceneError(out, f"exists and holds no {RECORD} (not a folder made from a video); {ELSEWHERE}")
     record = {"settings": settings}
-    _write_record(out, record)
+    try:  # beside the video by default, which may be read-only (a card, a share)
+        out.mkdir(parents=True, exist_ok=True)
+        _write_record(out, record)
+    except OSError as exc:
+        raise SceneError(out, f"cannot write the scene folder ({exc.strerror or exc}); {ELSEWHERE}") from exc
     return record
 
 
