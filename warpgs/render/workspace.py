@@ -212,16 +212,6 @@ class Workspace(Buffers):
             self._cache["pinned_ints_np"] = host.numpy()
         return host, self._cache["pinned_ints_np"]
 
-    def read_int(self, a: wp.array, index: int) -> int:
-        """a[index] on the host: the one synchronisation of a render call (GPU: through a pinned buffer)."""
-        if self.device.is_cpu:
-            return int(a.numpy()[index])  # a zero-copy view of host memory
-        host = self.memo("pinned_int", lambda: wp.empty(1, dtype=wp.int32, device="cpu", pinned=True))
-        host_np = self.memo("pinned_int_np", host.numpy)
-        wp.copy(host, a, dest_offset=0, src_offset=index, count=1)
-        wp.synchronize_stream(self.device.stream)
-        return int(host_np[0])
-
 
 # CUDA graphs of fixed launch sequences (LaunchSequence.run). WARPGS_RASTER_GRAPHS=0 turns them off (benchmarks
 # compare both in one process by setting `GRAPHS_ENABLED`).
