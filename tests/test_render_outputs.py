@@ -24,8 +24,9 @@ def test_depth_png16_round_trip_to_its_quantum(tmp_path):
     assert np.array_equal(ok, valid & (depth <= 65.535))
     assert np.abs(got[ok] - depth[ok]).max() <= 0.5 / 1000 + 1e-6
     assert (got[~ok] == 0).all()
-    with pytest.raises(ValueError, match="scale must be positive"):
-        write_depth_png16(tmp_path / "e.png", depth, 0.0)
+    for bad in (0.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="e.png: depth scale must be positive and finite"):
+            write_depth_png16(tmp_path / "e.png", depth, bad)
 
 
 def test_depth_and_normal_exr_round_trip_exactly(tmp_path):
@@ -125,5 +126,6 @@ def test_normals_of_gaussians_are_a_clear_error(runs, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "warpgs-render: error: --outputs: model.kind=gaussians cannot render ['normal']" in err
     assert not any(tmp_path.iterdir())
-    assert render_main(["--model", str(runs["gaussians"]), "--outputs", "depth", "--depth-scale", "0"]) == 2
-    assert "--depth-scale: expected a positive number" in capsys.readouterr().err
+    for bad in ("0", "inf"):
+        assert render_main(["--model", str(runs["gaussians"]), "--outputs", "depth", "--depth-scale", bad]) == 2
+        assert "--depth-scale: expected a positive number" in capsys.readouterr().err
