@@ -57,7 +57,7 @@ def test_previews_colour_valid_pixels_only():
 
 
 def test_preview_stretch_takes_more_than_torch_quantiles_limit():
-    # torch.quantile refuses more than 2^24 values: a 6000x4000 photo's depth preview failed with it.
+    # More values than torch.quantile takes (2^24), as in the depth preview of a 6000x4000 photo.
     inv = torch.linspace(1.0, 2.0, 2**24 + 7)
     lo, hi = stretch_range(inv)
     assert abs(lo - 1.02) < 1e-3 and abs(hi - 1.98) < 1e-3

@@ -96,8 +96,8 @@ def test_unreadable_and_missing_videos_name_the_file(tmp_path, capsys):
 
 
 def test_settings_that_cannot_succeed_are_refused_before_decoding(tmp_path, capsys):
-    # --frames 5 could never give the 10 frames SfM needs; it was refused only after decoding the whole video,
-    # as "too few sharp frames ... film longer".
+    # Settings that can never succeed (fewer than the 10 frames SfM needs, a ratio outside [0, 1)) are named
+    # before minutes of decoding, and leave no scene folder behind.
     video = tmp_path / "clip.mp4"
     make_video(video, 12, set())
     assert process_main([str(video), "--frames", "5"]) == 2
