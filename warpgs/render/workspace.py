@@ -1,7 +1,7 @@
 """What a render call keeps between calls, to cut its fixed host cost (torch-free).
 
 At 100k Gaussians a GPU render is mostly host work: every `wp.launch` re-packs its arguments, every `wp.zeros`
-allocates and clears memory, every wrapper builds a descriptor. Two things here avoid most of that:
+allocates and clears memory, every wrapper builds a descriptor. Three things here avoid most of that:
 
 - `Workspace`: scratch arrays kept per (device, stream, thread) and grown geometrically, handed out as views of
   the size a call needs, for buffers that live within one call (sort keys, prefix sums, tile rectangles, ...).
@@ -10,6 +10,8 @@ allocates and clears memory, every wrapper builds a descriptor. Two things here 
   graph still needs it.
 - `LaunchCache`: one recorded `wp.Launch` per launch site; a call updates only the parameters that changed since
   the last one (workspace views keep their descriptor objects, so they are skipped by identity) and replays it.
+- `LaunchSequence` (with `GraphCache`): the launches up to a render's one host sync, issued together; on a GPU
+  they become one CUDA graph once the same sequence (same arrays, sizes and scalars) comes a second time.
 
 `benchmarks/micro_overhead.py` measures the pieces (CPU, this machine): `wp.launch` with 23 arguments 22 us
 against 5 us for a replay, `set_param_at_index` 0.7 us, `wp.from_torch` 4.5 us (1.8 us as a bare descriptor).
@@ -211,16 +213,6 @@ class Workspace(Buffers):
             host = self._cache["pinned_ints"] = wp.empty(size, dtype=wp.int32, device="cpu", pinned=True)
             self._cache["pinned_ints_np"] = host.numpy()
         return host, self._cache["pinned_ints_np"]
-
-    def read_int(self, a: wp.array, index: int) -> int:
-        """a[index] on the host: the one synchronisation of a render call (GPU: through a pinned buffer)."""
-        if self.device.is_cpu:
-            return int(a.numpy()[index])  # a zero-copy view of host memory
-        host = self.memo("pinned_int", lambda: wp.empty(1, dtype=wp.int32, device="cpu", pinned=True))
-        host_np = self.memo("pinned_int_np", host.numpy)
-        wp.copy(host, a, dest_offset=0, src_offset=index, count=1)
-        wp.synchronize_stream(self.device.stream)
-        return int(host_np[0])
 
 
 # CUDA graphs of fixed launch sequences (LaunchSequence.run). WARPGS_RASTER_GRAPHS=0 turns them off (benchmarks
