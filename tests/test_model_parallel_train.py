@@ -35,7 +35,7 @@ def scene(tmp_path_factory):
 
 
 def _launch(overrides, *flags):
-    cmd = [sys.executable, "-m", "warpgs.cli", "train", "--nproc", "2", "--quiet", *flags, *overrides,
+    cmd = [sys.executable, "-m", "warpgs.cli", "train", "default", "--nproc", "2", "--quiet", *flags, *overrides,
            "train.parallel=model"]
     run = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=LAUNCH_TIMEOUT)
     assert run.returncode == 0, run.stderr[-3000:]
@@ -218,7 +218,7 @@ def test_non_finite_gradients_on_one_rank_stop_both_at_that_step(scene, tmp_path
     loss.write_text(NAN_LOSS)
     overrides = _overrides(scene, tmp_path / "run", K, **SETTINGS, **{"imports": f"[{loss}]",
                                                                        "losses.test_nan_on_rank1": 1.0})
-    results = start_two_ranks([sys.executable, "-m", "warpgs.cli", "train", *overrides, "train.parallel=model"],
+    results = start_two_ranks([sys.executable, "-m", "warpgs.cli", "train", "default", *overrides, "train.parallel=model"],
                               _env(WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=_free_port()), LAUNCH_TIMEOUT)
     for rank, (code, _, err) in enumerate(results):
         assert code == 3, f"rank {rank}: {err[-2000:]}"  # EXIT_NONFINITE

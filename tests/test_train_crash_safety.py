@@ -23,7 +23,7 @@ TIMEOUT_S = 120
 
 def _train_command(out, resume=False):
     args = quick_overrides(out, STEPS, **{"train.checkpoint_every": EVERY}) + ["--quiet"]
-    return [sys.executable, "-m", "warpgs.cli", "train"] + args + (["--resume"] if resume else [])
+    return [sys.executable, "-m", "warpgs.cli", "train", "default"] + args + (["--resume"] if resume else [])
 
 
 def _run_until_stop(out, gate, kill_at, resume=False):
