@@ -91,12 +91,14 @@ def _first_line(e: BaseException) -> str:
 
 
 def _plain(obj, where: str):
-    """obj with numpy values as tensors / Python numbers and paths as str; a TypeError naming the key for
-    anything torch.load(weights_only=True) would refuse."""
+    """obj with numpy values as tensors / Python numbers, paths as str and tensors in CPU memory; a TypeError
+    naming the key for anything torch.load(weights_only=True) would refuse."""
     if isinstance(obj, np.generic) and obj.dtype.kind in "biufUS":  # before float: np.float64 is one
         return obj.item()
+    if isinstance(obj, torch.Tensor):  # in CPU memory, so the file loads anywhere (no-op for CPU tensors)
+        return obj.detach().cpu()
     if obj is None or type(obj) in (bool, int, float, str, bytes) or isinstance(
-            obj, (torch.Tensor, torch.dtype, torch.device, torch.Size)):
+            obj, (torch.dtype, torch.device, torch.Size)):
         return obj
     if isinstance(obj, dict):  # OrderedDict (state_dicts) stays one: the weights-only loader knows it
         out = {k: _plain(v, f"{where}[{k!r}]") for k, v in obj.items()}
