@@ -195,6 +195,11 @@ def test_a_share_built_in_cpu_memory_moves_to_its_device_with_its_optimizer_stat
         assert state["exp_avg"].device.type == "meta" and state["exp_avg_sq"].device.type == "meta"
         assert state["step"].device.type == "cpu"  # Adam keeps its step count on the CPU
     assert {getattr(strategy, k).device.type for k in ("grad_accum", "count", "max_radii", "max_screen")} == {"meta"}
+    assert not any(g["fused"] for g in opt.param_groups)  # "auto" off the GPU: foreach, as built
+    # optim.adam_kernel=fused (what "auto" means on a GPU): the fused kernel, its step count on the device.
+    move_training(model, opt, strategy, "meta", adam_kernel="fused")
+    assert all(g["fused"] and not g["foreach"] for g in opt.param_groups) and opt.defaults["fused"]
+    assert {st["step"].device.type for st in opt.state.values()} == {"meta"}
 
 
 NAN_LOSS = '''

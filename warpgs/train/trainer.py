@@ -177,7 +177,7 @@ class Trainer:
         self._total_primitives = self.model.num_primitives
         if self.model_parallel:  # built (or resumed) whole, alike on every rank; from here on each keeps its share
             shard_training(self.model, self.optimizer, self.strategy, self.ranks)
-            move_training(self.model, self.optimizer, self.strategy, self.device)
+            move_training(self.model, self.optimizer, self.strategy, self.device, cfg.optim.adam_kernel)
             # Split samples differ per owner (a checkpoint holds rank 0's generator, so a resume reseeds too).
             self.strategy.generator.manual_seed(self.ranks.derived_seed(cfg.strategy.seed, self.step))
         if self.ranks.enabled:
