@@ -230,3 +230,51 @@ def test_non_finite_gradients_on_one_rank_stop_both_at_that_step(scene, tmp_path
     err0 = results[0][2]
     assert "step 2" in err0 and "another rank's gradients are not finite" in err0
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+NO_GATHER = '''
+import warpgs.train.trainer as trainer
+
+def refuse(*args, **kwargs):
+    raise AssertionError("the whole training state was gathered to save a checkpoint")
+
+trainer.gathered_training = refuse
+'''
+
+
+def test_sharded_checkpoints_gather_nothing_and_the_single_file_is_written_on_request(scene, tmp_path):
+    from warpgs.train.sharded_checkpoint import shard_folder
+
+    run = tmp_path / "run"
+    refuse = tmp_path / "no_gather.py"
+    refuse.write_text(NO_GATHER)
+    # Checkpoints at steps 2 and 4, each rank its own share: nothing may gather the whole training state.
+    _launch(_overrides(scene, run, 4, **SETTINGS, **{"imports": f"[{refuse}]", "train.checkpoint_every": 2}))
+    index = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert index["step"] == 4 and index["version"] == 3 and "model" not in index
+    assert index["shards"]["files"] == ["checkpoint-shards/step-00000004/rank-0-of-2.pt",
+                                        "checkpoint-shards/step-00000004/rank-1-of-2.pt"]
+    assert index["shards"]["rows"] == [200, 200]
+    assert [p.name for p in shard_folder(run / "checkpoint.pt").iterdir()] == ["step-00000004"]  # step 2's: gone
+    for name, rows in zip(index["shards"]["files"], index["shards"]["rows"]):
+        shard = load_checkpoint(run / name)
+        assert shard["model"]["params"]["means"].shape[0] == rows and shard["step"] == 4
+    whole = load_checkpoint(run / "checkpoint.pt")  # put together: the single-file layout
+    assert whole["model"]["params"]["means"].shape[0] == 400 and whole["strategy"]["count"].shape == (400,)
+
+    # Resumed from the shards on two processes, saving one file on request: the shards make way for it.
+    _launch(_overrides(scene, run, 6, **SETTINGS, **{"output.checkpoint_shards": "false", "imports": "[]"}),
+            "--resume")
+    single = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert single["step"] == 6 and single["version"] == 2 and "shards" not in single
+    assert single["model"]["params"]["means"].shape[0] == len(single["strategy"]["count"]) >= 400
+    assert not shard_folder(run / "checkpoint.pt").exists()
+
+
+def test_a_missing_shard_is_named(tmp_path):
+    from warpgs.train.checkpoint import save_checkpoint
+    from warpgs.train.sharded_checkpoint import index_state
+
+    save_checkpoint(tmp_path / "checkpoint.pt", index_state(tmp_path / "checkpoint.pt", 7, [3, 4]))
+    with pytest.raises(FileNotFoundError, match=r"rank-0-of-2.pt of rank 0 is missing .*shared storage"):
+        load_checkpoint(tmp_path / "checkpoint.pt")

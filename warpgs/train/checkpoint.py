@@ -23,7 +23,8 @@ import torch
 from warpgs.utils.atomic_file import atomic_write_bytes
 
 FORMAT = "warpgs-checkpoint"
-VERSION = 2  # 2: plain data only (the numpy RNG key as a tensor); 1: the key as a numpy array
+VERSION = 3  # the newest this reads. 3: an index of per-rank shards (train/sharded_checkpoint.py); 2: plain data
+SINGLE_FILE_VERSION = 2  # only (the numpy RNG key as a tensor); 1: the key as a numpy array
 
 # What version-1 files hold beyond tensors and plain data: numpy's MT19937 key, a uint32 array.
 _V1_NUMPY_GLOBALS = [np.ndarray, np.dtype, type(np.dtype(np.uint32))]
@@ -39,7 +40,7 @@ class UnsafeCheckpointError(ValueError):
 
 
 def save_checkpoint(path, state: dict) -> Path:
-    payload = _plain({"format": FORMAT, "version": VERSION, **state}, "checkpoint")
+    payload = _plain({"format": FORMAT, "version": SINGLE_FILE_VERSION, **state}, "checkpoint")
     buf = io.BytesIO()
     torch.save(payload, buf)
     atomic_write_bytes(path, buf.getvalue())
@@ -67,6 +68,10 @@ def load_checkpoint(path, map_location="cpu") -> dict:
         raise ValueError(f"{path}: not a warpgs checkpoint")
     if state.get("version", 0) > VERSION:
         raise ValueError(f"{path}: checkpoint version {state['version']} is newer than this warpgs ({VERSION})")
+    if "shards" in state:  # the index of a model-parallel run's shards: put together as one file would hold it
+        from warpgs.train.sharded_checkpoint import assemble
+
+        return assemble(path, state, lambda shard: load_checkpoint(shard, map_location))
     return state
 
 

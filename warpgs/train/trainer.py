@@ -403,11 +403,16 @@ class Trainer:
         return self.checkpointer.state_dict(self.training_state())
 
     def save_checkpoint(self) -> Path:
-        """Write checkpoint.pt (rank 0 only; the other ranks wait for it at a barrier)."""
+        """Write checkpoint.pt (rank 0 only; the other ranks wait for it at a barrier). train.parallel=model:
+        each rank writes its share and checkpoint.pt is their index (output.checkpoint_shards=false: one file of
+        the whole model gathered)."""
         if not self._at_boundary:
             raise RuntimeError("save_checkpoint: only between steps")
-        with self.whole_model(with_state=True):
-            path = self.checkpointer.save(self.training_state())
+        if self.model_parallel and self.config.output.checkpoint_shards:  # each rank its share; no gather
+            path = self.checkpointer.save_sharded(self.training_state(), self.ranks)
+        else:
+            with self.whole_model(with_state=True):
+                path = self.checkpointer.save(self.training_state())
         self.ranks.barrier(f"waiting for rank 0 to write the checkpoint of step {self.step}")
         return path
 
