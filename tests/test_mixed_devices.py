@@ -65,3 +65,20 @@ def test_collectives_without_tensors_of_their_own_use_the_ranks_device(second_de
     ranks = Ranks(0, 2, backend="nccl", device=second_device)
     assert ranks.all_reduce_gradients([], [1.0, 2.0], step=3) == [1.0, 2.0]
     assert [d.type for d in seen] == [second_device.type]
+
+
+def test_a_checkpoint_from_more_gpus_resumes_on_fewer(monkeypatch):
+    # A checkpoint holds one CUDA RNG state per GPU its writer saw (two here); a process seeing one GPU sets that
+    # one (torch.cuda.set_rng_state_all would ask for the missing second GPU).
+    from warpgs.train.checkpoint import rng_state, set_rng_state
+
+    state = rng_state()
+    state["cuda"] = [torch.zeros(16, dtype=torch.uint8), torch.ones(16, dtype=torch.uint8)]
+    calls = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    monkeypatch.setattr(torch.cuda, "set_rng_state", lambda s, device="cuda": calls.append((device, int(s[0]))))
+    monkeypatch.setattr(torch.cuda, "set_rng_state_all", lambda states: calls.extend((i, int(s[0])) for i, s in
+                                                                                     enumerate(states)))
+    set_rng_state(state)
+    assert calls == [(0, 0)]

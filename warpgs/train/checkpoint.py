@@ -142,7 +142,10 @@ def set_rng_state(state: dict) -> None:
     np.random.set_state((kind, key.astype(np.uint32), int(pos), int(has_gauss), float(gauss)))
     random.setstate(_as_tuples(state["python"]))
     if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+        # One state per GPU the writer saw; a process that sees fewer (another machine, CUDA_VISIBLE_DEVICES)
+        # takes those it has.
+        for index, cuda_state in enumerate(state["cuda"][:torch.cuda.device_count()]):
+            torch.cuda.set_rng_state(cuda_state, index)
 
 
 def _as_tuples(v):
