@@ -3,6 +3,7 @@ one view of each step from both halves. The run ends where one process with the 
 moments, densification statistics, parameters), writes the single-process checkpoint format, resumes on two
 processes through a refine to the primitive count one process reaches, and on one process. The terms that read the
 model (opacity, scale, count) are the whole model's on every shard."""
+import dataclasses
 import json
 import subprocess
 import sys
@@ -278,3 +279,46 @@ def test_a_missing_shard_is_named(tmp_path):
     save_checkpoint(tmp_path / "checkpoint.pt", index_state(tmp_path / "checkpoint.pt", 7, [3, 4]))
     with pytest.raises(FileNotFoundError, match=r"rank-0-of-2.pt of rank 0 is missing .*shared storage"):
         load_checkpoint(tmp_path / "checkpoint.pt")
+
+
+class _TwoRanks:
+    """Rank `rank` of two in one process: what Checkpointer.save_sharded asks of Ranks, with the answers the two
+    ranks would give (every share finite, `rows` rows each)."""
+
+    def __init__(self, rank, rows):
+        self.rank, self.world_size, self.rows = rank, 2, rows
+        self.is_main = rank == 0
+
+    def all_gather_object(self, obj, what=""):
+        return list(self.rows) if isinstance(obj, int) else [obj, obj]
+
+
+def test_shards_put_together_are_the_single_file_checkpoint(scene, tmp_path):
+    import copy
+
+    from warpgs.train.state import Checkpointer
+
+    tr = Trainer(None, overrides=_overrides(scene, tmp_path / "one", K, **SETTINGS), quiet=True)
+    for _ in range(5):  # through the refine at step 4: moments of new rows are zero, the rest are not
+        tr.train_step()
+    whole = tr.state_dict()
+    n = tr.model.num_primitives
+    rows = [Ranks(r, 2).shard(n) for r in (0, 1)]
+    path = tmp_path / "sharded" / "checkpoint.pt"
+    for rank in (1, 0):  # rank 0 writes the index last, after every shard
+        model = GaussianModel.from_dict(tr.model.to_dict())
+        optimizer = build_optimizer(model)
+        optimizer.load_state_dict(tr.optimizer.state_dict())
+        strategy = copy.copy(tr.strategy)
+        shard_training(model, optimizer, strategy, Ranks(rank, 2))
+        parts = dataclasses.replace(tr.training_state(), model=model, optimizer=optimizer, strategy=strategy)
+        Checkpointer(path, "cpu", guard=tr.guard).save_sharded(parts, _TwoRanks(rank, [len(range(n)[s]) for s in rows]))
+    got = load_checkpoint(path)
+    for name, t in whole["model"]["params"].items():
+        assert torch.equal(got["model"]["params"][name], t), name
+    for i, st in whole["optimizer"]["state"].items():
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(got["optimizer"]["state"][i][key], st[key]), (i, key)
+    for key in ("grad_accum", "count", "max_radii", "max_screen"):
+        assert torch.equal(got["strategy"][key], whole["strategy"][key]), key
+    assert got["step"] == whole["step"] == 5 and got["optimizer"]["param_groups"] == whole["optimizer"]["param_groups"]
