@@ -16,7 +16,7 @@ def _agent(port: int, overrides: list) -> list:
     """One node's torchrun agent, as docs/distributed.md launches it on each host."""
     return [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--nproc-per-node", "1",
             "--rdzv-backend", "c10d", "--rdzv-endpoint", f"127.0.0.1:{port}", "--rdzv-id", "warpgs-test",
-            "--max-restarts", "0", "-m", "warpgs.cli", "train", "--quiet", *overrides]
+            "--max-restarts", "0", "-m", "warpgs.cli", "train", "default", "--quiet", *overrides]
 
 
 def test_two_nodes_match_one_process(scene, tmp_path):
