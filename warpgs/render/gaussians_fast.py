@@ -13,6 +13,7 @@ So two renders in flight (two forwards, then their backwards in any order) share
 """
 from __future__ import annotations
 
+import functools
 import math
 import threading
 from typing import Dict
@@ -191,6 +192,7 @@ def gradient_buffers(saved, camera_shapes, needs):
     return grads, views[3], views[5]
 
 
+@functools.lru_cache(maxsize=256)  # a handful of shapes per model; saves a loop per gradient per backward
 def _contiguous_strides(shape) -> tuple:
     strides, step = [], 1
     for d in reversed(shape):
@@ -293,8 +295,8 @@ class FastRasterizeFunction(torch.autograd.Function):
             if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
                 means2d_probe.data.copy_(state.tensor(frame.means2d).view(-1, 2))
             fast._stage(None, "outputs (torch)")
-        count = torch.tensor(frame.total)
-        ctx.mark_non_differentiable(visible, count)
+        count = frame.total  # a plain int: autograd passes it through (no tensor to make and wrap each call)
+        ctx.mark_non_differentiable(visible)
         if any_grad:
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)

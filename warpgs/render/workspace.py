@@ -44,23 +44,31 @@ class LaunchCache:
         self._entries: Dict[object, list] = {}
 
     def launch(self, key, kernel, dim: int, args, block_dim: int = 0) -> None:
-        if dim <= 0:
-            return
-        args = [_param(a) for a in args]
+        if dim > 0:
+            self.launch_params(key, kernel, dim, [a.__ctype__() if isinstance(a, _ARRAY) else a for a in args],
+                               block_dim)  # `_param`, inlined
+
+    def launch_params(self, key, kernel, dim: int, params: list, block_dim: int = 0) -> None:
+        """`launch` with the arguments already as parameters (`_param`; what LaunchSequence stores). `params` is
+        kept by a first call at `key`: the caller must not change it afterwards."""
         entry = self._entries.get(key)
         if entry is None or entry[0] is not kernel:
             with _RECORD_LOCK:
-                cmd = wp.launch(kernel, dim=dim, inputs=args, device=self.device, block_dim=block_dim or None,
+                cmd = wp.launch(kernel, dim=dim, inputs=params, device=self.device, block_dim=block_dim or None,
                                 record_cmd=True)
-            entry = self._entries[key] = [kernel, cmd, args, dim]
+            entry = self._entries[key] = [kernel, cmd, params, dim]
         else:
-            _, cmd, prev, old_dim = entry
-            for i, a in enumerate(args):
-                if _same(a, prev[i]):
+            cmd, prev = entry[1], entry[2]
+            for i, a in enumerate(params):  # runs for every argument of every launch: kept inline
+                b = prev[i]
+                if a is b:
+                    continue
+                t = type(a)
+                if (t is int or t is float) and type(b) is t and a == b:
                     continue
                 cmd.set_param_at_index(i, a)
                 prev[i] = a
-            if dim != old_dim:
+            if dim != entry[3]:
                 cmd.set_dim(dim)
                 entry[3] = dim
         entry[1].launch()
@@ -70,8 +78,8 @@ class LaunchCache:
         arrays of `args` (None where there is none, 0 for scalars)."""
         if dim <= 0:
             return
-        args = [_param(a) for a in args]
-        adj_args = [_param(a) for a in adj_args]
+        args = [a.__ctype__() if isinstance(a, _ARRAY) else a for a in args]
+        adj_args = [a.__ctype__() if isinstance(a, _ARRAY) else a for a in adj_args]
         entry = self._entries.get(key)
         if entry is None or entry[0] is not kernel:
             with _RECORD_LOCK:
@@ -79,16 +87,15 @@ class LaunchCache:
                                 block_dim=block_dim or None, record_cmd=True)
             entry = self._entries[key] = [kernel, cmd, args, dim, adj_args]
         else:
-            _, cmd, prev, old_dim, prev_adj = entry
-            for i, a in enumerate(args):
-                if not _same(a, prev[i]):
-                    cmd.set_param_at_index(i, a)
+            cmd = entry[1]
+            for adjoint, params, prev in ((False, args, entry[2]), (True, adj_args, entry[4])):
+                for i, a in enumerate(params):
+                    b = prev[i]
+                    if a is b or (type(a) in _BY_VALUE_NUMBERS and type(b) is type(a) and a == b):
+                        continue
+                    cmd.set_param_at_index(i, a, adjoint=adjoint)
                     prev[i] = a
-            for i, a in enumerate(adj_args):
-                if not _same(a, prev_adj[i]):
-                    cmd.set_param_at_index(i, a, adjoint=True)
-                    prev_adj[i] = a
-            if dim != old_dim:
+            if dim != entry[3]:
                 cmd.set_dim(dim)
                 entry[3] = dim
         entry[1].launch()
@@ -96,14 +103,13 @@ class LaunchCache:
 
 def _param(a):
     """Arrays travel as their (cached) descriptors: identity then means 'same array view'."""
-    return a.__ctype__() if isinstance(a, wp.array) else a
+    return a.__ctype__() if isinstance(a, _ARRAY) else a
 
 
-def _same(a, b) -> bool:
-    if a is b:
-        return True
-    t = type(a)
-    return (t is int or t is float) and type(b) is t and a == b
+_ARRAY = wp.array
+
+
+_BY_VALUE_NUMBERS = (int, float)  # launch parameters that match by value (the rest by identity)
 
 
 class Buffers:
@@ -321,7 +327,7 @@ class LaunchSequence:
 
     def launch(self, key, kernel, dim: int, args, block_dim: int = 0) -> None:
         if dim > 0:
-            self._add((key, kernel, dim, [_param(a) for a in args], block_dim))
+            self._add((key, kernel, dim, [a.__ctype__() if isinstance(a, _ARRAY) else a for a in args], block_dim))
 
     def sort_pairs(self, keys: wp.array, values: wp.array, count: int, begin_bit: int = 0, end_bit=None) -> None:
         self._add((_SORT, keys, values, count, begin_bit, end_bit))
@@ -380,7 +386,7 @@ class LaunchSequence:
         elif kind is _ZERO:
             op[1].zero_()
         else:
-            self.ws.launches.launch(op[0], op[1], op[2], op[3], op[4])
+            self.ws.launches.launch_params(op[0], op[1], op[2], op[3], op[4])
 
     def _key(self):
         """(key, referents): the key is everything the issued work depends on except memory contents, with arrays
