@@ -157,6 +157,30 @@ def detached_inputs(ctx, primitives, viewmat: torch.Tensor, intrinsics: torch.Te
             viewmat.reshape(1, 4, 4).contiguous(), intrinsics.reshape(1, 4).contiguous())
 
 
+class _NoAutogradContext:
+    """What a fast op's forward uses of its autograd context, for a call autograd will not differentiate."""
+
+    def __init__(self, num_args: int):
+        self.needs_input_grad = (False,) * num_args
+
+    def set_materialize_grads(self, value: bool) -> None:
+        pass
+
+    def mark_non_differentiable(self, *tensors) -> None:
+        pass
+
+
+def run_op(function, *args):
+    """function.apply(*args), or its forward alone when autograd will not differentiate the call (grad mode off,
+    or no tensor argument needs a gradient: evaluation, viewers): the outputs are the same tensors, without the
+    Function's bookkeeping, a noticeable part of a small render's fixed cost."""
+    if torch.is_grad_enabled():
+        for a in args:
+            if isinstance(a, torch.Tensor) and a.requires_grad:
+                return function.apply(*args)
+    return function.forward(_NoAutogradContext(len(args)), *args)
+
+
 _PROJECTION_DTYPES = (wp.vec3, wp.vec4, None, wp.vec3, wp.mat44, wp.vec4)  # scales: vec3 or vec2 (surfels)
 _CAMERA_VIEWS = (None, None, None, None, (1, 4, 4), (1, 4))
 
