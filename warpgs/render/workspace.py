@@ -49,14 +49,13 @@ class LaunchCache:
                                block_dim)  # `_param`, inlined
 
     def launch_params(self, key, kernel, dim: int, params: list, block_dim: int = 0) -> None:
-        """`launch` with the arguments already as parameters (`_param`; what LaunchSequence stores). `params` is
-        kept by a first call at `key`: the caller must not change it afterwards."""
+        """`launch` with the arguments already as parameters (`_param`; what LaunchSequence stores)."""
         entry = self._entries.get(key)
         if entry is None or entry[0] is not kernel:
             with _RECORD_LOCK:
                 cmd = wp.launch(kernel, dim=dim, inputs=params, device=self.device, block_dim=block_dim or None,
                                 record_cmd=True)
-            entry = self._entries[key] = [kernel, cmd, params, dim]
+            entry = self._entries[key] = [kernel, cmd, list(params), dim]  # a copy: the caller's list stays as given
         else:
             cmd, prev = entry[1], entry[2]
             for i, a in enumerate(params):  # runs for every argument of every launch: kept inline
@@ -404,23 +403,20 @@ class LaunchSequence:
         and descriptors by identity (a view or descriptor object stands for one address, shape and strides: the
         workspace and the descriptor memo hand out the same object for the same memory) and scalars by value. The
         referents keep those objects alive as long as the key is stored, so no other object can take their ids."""
-        parts, referents = [], [self._host]
+        parts = []
         for op in self.ops:
             kind = op[0]
             if kind is _SORT or kind is _SCAN or kind is _ZERO:
-                arrays = [a for a in op[1:] if isinstance(a, wp.array)]
-                referents.extend(arrays)
-                parts.append((id(kind), tuple(map(id, arrays))) + tuple(a for a in op[3:] if not isinstance(a, wp.array)))
+                parts.append((id(kind),) + tuple([a if type(a) in _BY_VALUE else id(a) for a in op[1:]]))
             else:
-                args = op[3]
-                referents.extend(args)
-                parts.append((op[0], id(op[1]), op[2], op[4],
-                              tuple([a if type(a) in _BY_VALUE else id(a) for a in args])))
+                parts.append((kind, id(op[1]), op[2], op[4],
+                              tuple([a if type(a) in _BY_VALUE else id(a) for a in op[3]])))
         for a, index, count, slot in self.reads:
-            referents.append(a)
             parts.append((id(a), index, count, slot))
         parts.append(id(self._host))
-        return tuple(parts), referents
+        # the ops and reads hold every object named by id (LaunchCache copies a launch's parameters, so these lists
+        # never change once the sequence is built)
+        return tuple(parts), [self.ops, self.reads, self._host]
 
 
 _BY_VALUE = (int, float, bool)  # launch arguments keyed by value; the rest (arrays, descriptors, structs) by identity
