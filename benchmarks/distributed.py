@@ -4,9 +4,12 @@
     python benchmarks/distributed.py --device cuda --nproc 1,2,4,8 --views-per-rank 2 --target-psnr 28
     python benchmarks/distributed.py --device cuda --nproc 1,2 --data data/phone64   # a real capture (2 MP views)
     python benchmarks/distributed.py --tiny                                     # CPU smoke test (gloo, 64x48)
+    python benchmarks/distributed.py --device cuda --nproc 2 --nodes 2         # 2 torchrun agents (multi-node)
+    python benchmarks/distributed.py --device cuda --nproc 2 train.parallel=model  # model-parallel
 
 Each run is `torchrun --standalone --nproc_per_node=N -m warpgs.cli train ...` (N=1 too, so every run starts the
-same way) on the built-in synthetic orbit scene at --size, with a global batch of N x --views-per-rank views a step.
+same way; with --nodes K, K agents on this host with c10d rendezvous, each its own GPUs, as K machines would run
+it) on the built-in synthetic orbit scene at --size, with a global batch of N x --views-per-rank views a step.
 With --scale-steps (the default) the step schedule (steps, refine_*, sh_interval, eval.every) is divided by the
 batch size, as gsplat's --steps_scaler: every run sees the same number of views, so the time to a PSNR compares
 equal work. Reported per run, from rank 0's log.jsonl and metrics.json:
@@ -30,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import socket
 import subprocess
 import sys
 import tempfile
@@ -37,6 +41,12 @@ import time
 from pathlib import Path
 
 from common import ROOT, print_table, write_json
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def scaled(value: int, factor: int, minimum: int = 1) -> int:
@@ -71,23 +81,42 @@ def run_one(nproc: int, args, out: Path) -> dict:
         "train.progress": "false", "train.checkpoint_every": 0, "train.log_every": scaled(args.eval_every, f),
         "eval.lpips": "false", "eval.save_images": "false",
     }
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
-           "-m", "warpgs.cli", "train", args.config, "--out", str(out), "--quiet",
-           *[f"{k}={v}" for k, v in overrides.items()], *args.overrides]
+    train = ["-m", "warpgs.cli", "train", args.config, "--out", str(out), "--quiet",
+             *[f"{k}={v}" for k, v in overrides.items()], *args.overrides]
     env = dict(os.environ, NCCL_NVLS_ENABLE="0")  # NVLink multicast off (docs/distributed.md)
+    nodes = args.nodes if nproc > 1 else 1
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if nodes == 1:
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}", *train]
+        procs = [subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)]
+    else:  # one torchrun agent per "node" on this host, as on several machines (docs/distributed.md)
+        if nproc % nodes:
+            raise SystemExit(f"--nodes {nodes}: {nproc} processes do not split evenly over the nodes")
+        per, port = nproc // nodes, free_port()
+        cmd = [sys.executable, "-m", "torch.distributed.run", f"--nnodes={nodes}", f"--nproc-per-node={per}",
+               "--rdzv-backend=c10d", f"--rdzv-endpoint=127.0.0.1:{port}", f"--rdzv-id=bench-{port}",
+               "--max-restarts=0", *train]
+        procs = []
+        for node in range(nodes):
+            node_env = dict(env)
+            if args.device.startswith("cuda"):  # each node its own GPUs, as separate machines have
+                node_env["CUDA_VISIBLE_DEVICES"] = ",".join(str(node * per + i) for i in range(per))
+            procs.append(subprocess.Popen(cmd, env=node_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                          text=True))
+            time.sleep(0.5)  # the first agent hosts the rendezvous store
+    outputs = [p.communicate() for p in procs]
     wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        sys.stderr.write(proc.stdout[-4000:] + proc.stderr[-4000:])
-        raise SystemExit(f"the run on {nproc} process(es) failed (exit {proc.returncode}): {' '.join(cmd)}")
+    for p, (stdout, stderr) in zip(procs, outputs):
+        if p.returncode != 0:
+            sys.stderr.write(stdout[-4000:] + stderr[-4000:])
+            raise SystemExit(f"the run on {nproc} process(es) failed (exit {p.returncode}): {' '.join(cmd)}")
     metrics = json.loads((out / "metrics.json").read_text())
     evals = [{"step": h["step"], "views_seen": h["step"] * batch, "psnr": h["psnr"],
               "train_seconds": h["train_seconds"]} for h in metrics["history"]]
     evals.append({"step": metrics["steps"], "views_seen": metrics["steps"] * batch, "psnr": metrics["psnr"],
                   "train_seconds": metrics["train_seconds"]})
     reached = next((e for e in evals if e["psnr"] >= args.target_psnr), None)
-    return {"nproc": nproc, "batch_size": batch, "steps": metrics["steps"], "views_seen": metrics["steps"] * batch,
+    return {"nproc": nproc, "nodes": nodes, "batch_size": batch, "steps": metrics["steps"], "views_seen": metrics["steps"] * batch,
             "train_seconds": metrics["train_seconds"], "wall_seconds": round(wall, 2),
             "views_per_s": metrics["steps"] * batch / max(metrics["train_seconds"], 1e-9),
             "steady_views_per_s": steady_views_per_s(evals),
@@ -106,6 +135,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--data", help="a real capture (COLMAP / LLFF / transforms.json folder) instead of the built-in "
                                     "scene; its points or triangulated points are made once, in the warm-up run")
     ap.add_argument("--downscale", type=int, default=None, help="data.downscale for --data")
+    ap.add_argument("--nodes", type=int, default=1,
+                    help="runs of several processes as this many torchrun agents on this host (c10d rendezvous, "
+                         "each with its own GPUs): the multi-node launch, tried on one machine")
     ap.add_argument("--views-per-rank", type=int, default=1, help="views each process renders a step")
     ap.add_argument("--steps", type=int, default=3000, help="steps at batch 1 (divided by the batch, see above)")
     ap.add_argument("--eval-every", type=int, default=250)
@@ -162,7 +194,7 @@ def main(argv=None) -> dict:
         import torch
 
         payload["gpu"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
-    print_table(runs, ["nproc", "batch_size", "steps", "views_per_s", "scaling_efficiency", "steady_views_per_s",
+    print_table(runs, ["nproc", "nodes", "batch_size", "steps", "views_per_s", "scaling_efficiency", "steady_views_per_s",
                        "steady_speedup", "final_psnr",
                        "time_to_target_s", "num_primitives", "peak_gpu_memory_gb"])
     name = f"distributed_{args.device.split(':')[0]}" + (f"_{args.tag}" if args.tag else "")

@@ -78,33 +78,3 @@ def test_nproc_is_checked_and_one_process_needs_no_launcher(capsys):
     check_nproc(1)
     assert train_main(["--nproc", "0", "steps=1"]) == 2
     assert "--nproc: expected a positive number of processes, got 0" in capsys.readouterr().err
-
-
-def test_cli_modules_import_no_cycle():
-    """Issue 34: cli/commands and cli/launch imported each other; no module of warpgs/cli may reach itself again
-    through the imports of warpgs.cli modules (function-level imports included)."""
-    import ast
-    from pathlib import Path
-
-    import warpgs.cli
-
-    folder = Path(warpgs.cli.__file__).parent
-    graph = {}
-    for path in folder.glob("*.py"):
-        names = set()
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module:
-                names.add(node.module)
-                names.update(f"{node.module}.{a.name}" for a in node.names)
-            elif isinstance(node, ast.Import):
-                names.update(a.name for a in node.names)
-        graph[path.stem] = {n.split(".")[2] for n in names if n.startswith("warpgs.cli.")} - {path.stem}
-
-    def reaches(start, node, seen):
-        for nxt in graph.get(node, ()):
-            if nxt == start or (nxt not in seen and reaches(start, nxt, seen | {nxt})):
-                return True
-        return False
-
-    cyclic = sorted(m for m in graph if reaches(m, m, {m}))
-    assert not cyclic, f"import cycle through {cyclic}: {({m: sorted(graph[m]) for m in cyclic})}"

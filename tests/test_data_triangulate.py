@@ -148,3 +148,16 @@ def test_noise_pixels_do_not_break_it(tmp_path):
     save_transforms(cams, tmp_path / "scene" / "transforms.json")
     _, _, source = initial_points(load_scene(tmp_path / "scene"), _config(tmp_path / "run"))
     assert source == "random" or source.startswith("triangulated")
+
+
+def test_every_run_finds_the_same_points(tmp_path):
+    """Same images and poses, two runs on several threads: the same points (COLMAP's RANSAC is seeded, and images
+    are numbered in view order, not in the order threaded feature extraction finished them)."""
+    scene = load_scene(synthetic_dir("orbit"))
+    runs = [triangulate_scene(scene, tmp_path / f"run{i}", num_threads=4, progress=False) for i in range(2)]
+    assert not any(r.cached for r in runs) and len(runs[0].points) > 300
+    a, b = (r.points for r in runs)
+    np.testing.assert_array_equal(a.xyz, b.xyz)
+    np.testing.assert_array_equal(a.rgb, b.rgb)
+    for v, (seen_a, seen_b) in enumerate(zip(a.observed_by, b.observed_by)):
+        np.testing.assert_array_equal(seen_a, seen_b, err_msg=f"view {v}")

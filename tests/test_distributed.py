@@ -91,7 +91,7 @@ def _assert_close(got: dict, want: dict, what: str) -> None:
 def test_two_processes_match_one_with_the_same_batch_and_resume_on_one(scene, tmp_path):
     # Two gloo processes, one view each, launched as `warpgs-train --nproc 2` (torch.distributed.run).
     two = tmp_path / "two"
-    cmd = [sys.executable, "-m", "warpgs.cli", "train", "--nproc", "2", *_overrides(scene, two, K)]
+    cmd = [sys.executable, "-m", "warpgs.cli", "train", "default", "--nproc", "2", *_overrides(scene, two, K)]
     run = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=LAUNCH_TIMEOUT)
     assert run.returncode == 0, run.stderr[-3000:]
 
@@ -139,7 +139,7 @@ def test_a_rank_that_dies_stops_the_other_with_a_clear_error(scene, tmp_path, ho
     overrides = _overrides(scene, tmp_path / "run", 40, **{"imports": f"[{ext}]", "extensions.test_die.step": 3,
                                                             "extensions.test_die.how": how})
     (code0, _, err0), (code1, _, err1) = start_two_ranks(
-        [sys.executable, "-m", "warpgs.cli", "train", *overrides],
+        [sys.executable, "-m", "warpgs.cli", "train", "default", *overrides],
         _env(WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=_free_port()), LAUNCH_TIMEOUT)
     assert code1 == (17 if how == "exit" else 1), err1[-2000:]
     if how == "raise":

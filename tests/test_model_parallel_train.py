@@ -3,6 +3,7 @@ one view of each step from both halves. The run ends where one process with the 
 moments, densification statistics, parameters), writes the single-process checkpoint format, resumes on two
 processes through a refine to the primitive count one process reaches, and on one process. The terms that read the
 model (opacity, scale, count) are the whole model's on every shard."""
+import dataclasses
 import json
 import subprocess
 import sys
@@ -35,7 +36,7 @@ def scene(tmp_path_factory):
 
 
 def _launch(overrides, *flags):
-    cmd = [sys.executable, "-m", "warpgs.cli", "train", "--nproc", "2", "--quiet", *flags, *overrides,
+    cmd = [sys.executable, "-m", "warpgs.cli", "train", "default", "--nproc", "2", "--quiet", *flags, *overrides,
            "train.parallel=model"]
     run = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=LAUNCH_TIMEOUT)
     assert run.returncode == 0, run.stderr[-3000:]
@@ -195,6 +196,11 @@ def test_a_share_built_in_cpu_memory_moves_to_its_device_with_its_optimizer_stat
         assert state["exp_avg"].device.type == "meta" and state["exp_avg_sq"].device.type == "meta"
         assert state["step"].device.type == "cpu"  # Adam keeps its step count on the CPU
     assert {getattr(strategy, k).device.type for k in ("grad_accum", "count", "max_radii", "max_screen")} == {"meta"}
+    assert not any(g["fused"] for g in opt.param_groups)  # "auto" off the GPU: foreach, as built
+    # optim.adam_kernel=fused (what "auto" means on a GPU): the fused kernel, its step count on the device.
+    move_training(model, opt, strategy, "meta", adam_kernel="fused")
+    assert all(g["fused"] and not g["foreach"] for g in opt.param_groups) and opt.defaults["fused"]
+    assert {st["step"].device.type for st in opt.state.values()} == {"meta"}
 
 
 NAN_LOSS = '''
@@ -218,10 +224,101 @@ def test_non_finite_gradients_on_one_rank_stop_both_at_that_step(scene, tmp_path
     loss.write_text(NAN_LOSS)
     overrides = _overrides(scene, tmp_path / "run", K, **SETTINGS, **{"imports": f"[{loss}]",
                                                                        "losses.test_nan_on_rank1": 1.0})
-    results = start_two_ranks([sys.executable, "-m", "warpgs.cli", "train", *overrides, "train.parallel=model"],
+    results = start_two_ranks([sys.executable, "-m", "warpgs.cli", "train", "default", *overrides, "train.parallel=model"],
                               _env(WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=_free_port()), LAUNCH_TIMEOUT)
     for rank, (code, _, err) in enumerate(results):
         assert code == 3, f"rank {rank}: {err[-2000:]}"  # EXIT_NONFINITE
     err0 = results[0][2]
     assert "step 2" in err0 and "another rank's gradients are not finite" in err0
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+NO_GATHER = '''
+import warpgs.train.trainer as trainer
+
+def refuse(*args, **kwargs):
+    raise AssertionError("the whole training state was gathered to save a checkpoint")
+
+trainer.gathered_training = refuse
+'''
+
+
+def test_sharded_checkpoints_gather_nothing_and_the_single_file_is_written_on_request(scene, tmp_path):
+    from warpgs.train.sharded_checkpoint import shard_folder
+
+    run = tmp_path / "run"
+    refuse = tmp_path / "no_gather.py"
+    refuse.write_text(NO_GATHER)
+    # Checkpoints at steps 2 and 4, each rank its own share: nothing may gather the whole training state.
+    _launch(_overrides(scene, run, 4, **SETTINGS, **{"imports": f"[{refuse}]", "train.checkpoint_every": 2}))
+    index = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert index["step"] == 4 and index["version"] == 3 and "model" not in index
+    assert index["shards"]["files"] == ["checkpoint-shards/step-00000004/rank-0-of-2.pt",
+                                        "checkpoint-shards/step-00000004/rank-1-of-2.pt"]
+    assert index["shards"]["rows"] == [200, 200]
+    assert [p.name for p in shard_folder(run / "checkpoint.pt").iterdir()] == ["step-00000004"]  # step 2's: gone
+    for name, rows in zip(index["shards"]["files"], index["shards"]["rows"]):
+        shard = load_checkpoint(run / name)
+        assert shard["model"]["params"]["means"].shape[0] == rows and shard["step"] == 4
+    whole = load_checkpoint(run / "checkpoint.pt")  # put together: the single-file layout
+    assert whole["model"]["params"]["means"].shape[0] == 400 and whole["strategy"]["count"].shape == (400,)
+
+    # Resumed from the shards on two processes, saving one file on request: the shards make way for it.
+    _launch(_overrides(scene, run, 6, **SETTINGS, **{"output.checkpoint_shards": "false", "imports": "[]"}),
+            "--resume")
+    single = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert single["step"] == 6 and single["version"] == 2 and "shards" not in single
+    assert single["model"]["params"]["means"].shape[0] == len(single["strategy"]["count"]) >= 400
+    assert not shard_folder(run / "checkpoint.pt").exists()
+
+
+def test_a_missing_shard_is_named(tmp_path):
+    from warpgs.train.checkpoint import save_checkpoint
+    from warpgs.train.sharded_checkpoint import index_state
+
+    save_checkpoint(tmp_path / "checkpoint.pt", index_state(tmp_path / "checkpoint.pt", 7, [3, 4]))
+    with pytest.raises(FileNotFoundError, match=r"rank-0-of-2.pt of rank 0 is missing .*shared storage"):
+        load_checkpoint(tmp_path / "checkpoint.pt")
+
+
+class _TwoRanks:
+    """Rank `rank` of two in one process: what Checkpointer.save_sharded asks of Ranks, with the answers the two
+    ranks would give (every share finite, `rows` rows each)."""
+
+    def __init__(self, rank, rows):
+        self.rank, self.world_size, self.rows = rank, 2, rows
+        self.is_main = rank == 0
+
+    def all_gather_object(self, obj, what=""):
+        return list(self.rows) if isinstance(obj, int) else [obj, obj]
+
+
+def test_shards_put_together_are_the_single_file_checkpoint(scene, tmp_path):
+    import copy
+
+    from warpgs.train.state import Checkpointer
+
+    tr = Trainer(None, overrides=_overrides(scene, tmp_path / "one", K, **SETTINGS), quiet=True)
+    for _ in range(5):  # through the refine at step 4: moments of new rows are zero, the rest are not
+        tr.train_step()
+    whole = tr.state_dict()
+    n = tr.model.num_primitives
+    rows = [Ranks(r, 2).shard(n) for r in (0, 1)]
+    path = tmp_path / "sharded" / "checkpoint.pt"
+    for rank in (1, 0):  # rank 0 writes the index last, after every shard
+        model = GaussianModel.from_dict(tr.model.to_dict())
+        optimizer = build_optimizer(model)
+        optimizer.load_state_dict(tr.optimizer.state_dict())
+        strategy = copy.copy(tr.strategy)
+        shard_training(model, optimizer, strategy, Ranks(rank, 2))
+        parts = dataclasses.replace(tr.training_state(), model=model, optimizer=optimizer, strategy=strategy)
+        Checkpointer(path, "cpu", guard=tr.guard).save_sharded(parts, _TwoRanks(rank, [len(range(n)[s]) for s in rows]))
+    got = load_checkpoint(path)
+    for name, t in whole["model"]["params"].items():
+        assert torch.equal(got["model"]["params"][name], t), name
+    for i, st in whole["optimizer"]["state"].items():
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(got["optimizer"]["state"][i][key], st[key]), (i, key)
+    for key in ("grad_accum", "count", "max_radii", "max_screen"):
+        assert torch.equal(got["strategy"][key], whole["strategy"][key]), key
+    assert got["step"] == whole["step"] == 5 and got["optimizer"]["param_groups"] == whole["optimizer"]["param_groups"]

@@ -87,6 +87,34 @@ def test_forward_only_renders_match():
         _assert_same(getattr(out, name), getattr(ref, name), name)
 
 
+@pytest.mark.parametrize("op", ["gaussians", "surfels"])
+def test_renders_nobody_differentiates_skip_autograd_and_match(op, monkeypatch):
+    """With grad mode on but no input needing a gradient (evaluation, viewers), or grad mode off, the ops run their
+    forward without the autograd Function (gaussians_fast.run_op): the same images, and nothing to differentiate."""
+    from warpgs import rasterize_surfels
+    from warpgs.render.gaussians_fast import FastRasterizeFunction
+    from warpgs.render.surfels_fast import FastSurfelsFunction
+
+    scene = random_scene(n=60, seed=7, num_features=2)
+    if op == "surfels":
+        scene = dict(scene, scales=scene["scales"][:, :2])
+    render = rasterize if op == "gaussians" else rasterize_surfels
+    outputs = ("rgb", "alpha", "depth", "features")
+    graded = _render(scene, _leaves(scene), outputs, op=render, tile_size=8)
+    function = FastRasterizeFunction if op == "gaussians" else FastSurfelsFunction
+    monkeypatch.setattr(function, "apply", None)  # from here on, entering autograd fails the test
+    plain = _render(scene, _leaves(scene, False), outputs, op=render, tile_size=8)
+    with torch.no_grad():
+        no_grad = _render(scene, _leaves(scene), outputs, op=render, tile_size=8)
+    assert graded.rgb.grad_fn is not None
+    for out in (plain, no_grad):
+        assert out.num_intersections == graded.num_intersections > 0
+        assert torch.equal(out.visible, graded.visible)
+        for name in outputs:
+            assert getattr(out, name).grad_fn is None and not getattr(out, name).requires_grad, name
+            _assert_same(getattr(out, name), getattr(graded, name).detach(), name)
+
+
 def test_interleaved_renders_keep_their_own_buffers():
     """Two forwards, then their backwards in reverse order (and a forward-only render and a render of another
     size in between, which reuse and grow the scratch memory): every gradient equals that of a render

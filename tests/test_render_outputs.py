@@ -9,7 +9,7 @@ from train_fixtures import quick_overrides
 from warpgs.cli.commands import load_run, render_main
 from warpgs.data.depth.files import read_depth, read_depth_file, read_exr_channels, write_depth_png16, write_exr
 from warpgs.data.formats.image_io import read_image
-from warpgs.model.maps import depth_colours, normal_colours, parse_maps, render_outputs
+from warpgs.model.maps import depth_colours, normal_colours, parse_maps, render_outputs, stretch_range
 
 
 def test_depth_png16_round_trip_to_its_quantum(tmp_path):
@@ -24,8 +24,9 @@ def test_depth_png16_round_trip_to_its_quantum(tmp_path):
     assert np.array_equal(ok, valid & (depth <= 65.535))
     assert np.abs(got[ok] - depth[ok]).max() <= 0.5 / 1000 + 1e-6
     assert (got[~ok] == 0).all()
-    with pytest.raises(ValueError, match="scale must be positive"):
-        write_depth_png16(tmp_path / "e.png", depth, 0.0)
+    for bad in (0.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="e.png: depth scale must be positive and finite"):
+            write_depth_png16(tmp_path / "e.png", depth, bad)
 
 
 def test_depth_and_normal_exr_round_trip_exactly(tmp_path):
@@ -53,6 +54,13 @@ def test_previews_colour_valid_pixels_only():
     normal = torch.tensor([[[0.0, 0.0, 2.0], [0.0, -1.0, 0.0]]])
     nc = normal_colours(normal, torch.tensor([[True, False]]))
     assert torch.allclose(nc[0, 0], torch.tensor([0.5, 0.5, 1.0])) and (nc[0, 1] == 0).all()
+
+
+def test_preview_stretch_takes_more_than_torch_quantiles_limit():
+    # More values than torch.quantile takes (2^24), as in the depth preview of a 6000x4000 photo.
+    inv = torch.linspace(1.0, 2.0, 2**24 + 7)
+    lo, hi = stretch_range(inv)
+    assert abs(lo - 1.02) < 1e-3 and abs(hi - 1.98) < 1e-3
 
 
 def test_output_names_and_kinds_are_checked():
@@ -118,5 +126,6 @@ def test_normals_of_gaussians_are_a_clear_error(runs, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "warpgs-render: error: --outputs: model.kind=gaussians cannot render ['normal']" in err
     assert not any(tmp_path.iterdir())
-    assert render_main(["--model", str(runs["gaussians"]), "--outputs", "depth", "--depth-scale", "0"]) == 2
-    assert "--depth-scale: expected a positive number" in capsys.readouterr().err
+    for bad in ("0", "inf"):
+        assert render_main(["--model", str(runs["gaussians"]), "--outputs", "depth", "--depth-scale", bad]) == 2
+        assert "--depth-scale: expected a positive number" in capsys.readouterr().err

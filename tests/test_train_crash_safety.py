@@ -23,7 +23,7 @@ TIMEOUT_S = 120
 
 def _train_command(out, resume=False):
     args = quick_overrides(out, STEPS, **{"train.checkpoint_every": EVERY}) + ["--quiet"]
-    return [sys.executable, "-m", "warpgs.cli", "train"] + args + (["--resume"] if resume else [])
+    return [sys.executable, "-m", "warpgs.cli", "train", "default"] + args + (["--resume"] if resume else [])
 
 
 def _run_until_stop(out, gate, kill_at, resume=False):
@@ -78,7 +78,7 @@ def test_sigkill_during_and_between_checkpoint_writes_then_resume(tmp_path):
     assert final["step"] == STEPS
 
     # ... and ends exactly where an uninterrupted run of the same command does (CPU training is deterministic).
-    assert train_main(quick_overrides(tmp_path / "straight", STEPS) + ["--quiet"]) == 0
+    assert train_main(["default"] + quick_overrides(tmp_path / "straight", STEPS) + ["--quiet"]) == 0
     straight = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
     for name, p in straight["model"]["params"].items():
         assert torch.equal(final["model"]["params"][name], p), name

@@ -95,6 +95,21 @@ def test_unreadable_and_missing_videos_name_the_file(tmp_path, capsys):
         video_to_scene(tmp_path / "nothere.mp4")
 
 
+def test_settings_that_cannot_succeed_are_refused_before_decoding(tmp_path, capsys):
+    # Settings that can never succeed (fewer than the 10 frames SfM needs, a ratio outside [0, 1)) are named
+    # before minutes of decoding, and leave no scene folder behind.
+    video = tmp_path / "clip.mp4"
+    make_video(video, 12, set())
+    assert process_main([str(video), "--frames", "5"]) == 2
+    assert "frames: expected at least 10" in capsys.readouterr().err
+    assert not (tmp_path / "clip").exists()
+    with pytest.raises(ValueError, match="frames: expected at least 4"):
+        select_frames([1.0] * 12, 3, min_frames=4)
+    assert process_main([str(video), "--blur-ratio", "1.5"]) == 2
+    assert "blur_ratio: expected a value in [0, 1), got 1.5" in capsys.readouterr().err
+    assert not (tmp_path / "clip").exists()
+
+
 def test_missing_extra_says_what_to_install(tmp_path, monkeypatch, capsys):
     video = tmp_path / "clip.mp4"
     video.write_bytes(b"x")
@@ -151,6 +166,11 @@ def test_a_foreign_folder_is_not_overwritten(tmp_path):
     with pytest.raises(SceneError, match="mine: exists and holds no video.json"):
         video_to_scene(video, mine, frames=5, min_frames=2, progress=False, sfm=_SfmStandIn())
     assert (mine / "notes.txt").read_text() == "keep"
+    # A folder that cannot be made (beside a video on a read-only card, say) is a named error, not a traceback.
+    blocked = tmp_path / "afile"
+    blocked.write_text("")
+    with pytest.raises(SceneError, match=r"afile/scene: cannot write the scene folder .*warpgs-process VIDEO --out"):
+        video_to_scene(video, blocked / "scene", frames=10, min_frames=2, progress=False, sfm=_SfmStandIn())
 
 
 def test_video_extensions():

@@ -113,8 +113,10 @@ def test_outputs_written_and_finite(stressed):
 
 
 def test_surfels_survive_the_stress_config(tmp_path):
-    """The 2DGS renderer and its strategy path under the same settings (shorter: past the first reset)."""
-    trainer, result, infos = run_stress(tmp_path, 160, **{"model.kind": "surfels", "eval.every": 0})
+    """The 2DGS renderer and its strategy path under the same settings (shorter: past the first reset, which comes
+    earlier, since a reset needs a whole reset interval of training after it)."""
+    trainer, result, infos = run_stress(tmp_path, 160, **{"model.kind": "surfels", "eval.every": 0,
+                                                          "strategy.reset_every": 60})
     assert isinstance(trainer.model, SurfelModel) and result.steps == 160
     assert any(i["densify"] and i["densify"].get("opacity_reset") for i in infos)
     assert not nonfinite(trainer.named_parameters())

@@ -290,7 +290,7 @@ def render_main(argv: Optional[List[str]] = None) -> int:
 
     try:
         maps = parse_maps(args.outputs + (",depth" if args.depth else ""))
-        if not args.depth_scale > 0:
+        if not 0 < args.depth_scale < float("inf"):
             raise ValueError(f"--depth-scale: expected a positive number, got {args.depth_scale}")
     except ValueError as e:
         return report_error("warpgs-render", str(e), EXIT_CONFIG)

@@ -8,7 +8,7 @@ from typing import List, Optional
 
 from warpgs.cli.common import EXIT_CONFIG, report_error
 from warpgs.data.video.scene import DEFAULT_FRAMES, DEFAULT_MAX_SIZE, video_scene_dir
-from warpgs.data.video.sharpness import DEFAULT_BLUR_RATIO
+from warpgs.data.video.sharpness import DEFAULT_BLUR_RATIO, MIN_SHARP_FRAMES
 
 PROG = "warpgs-process"
 
@@ -34,8 +34,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("video", help="a video file ffmpeg reads (.mp4, .mov, ...)")
     ap.add_argument("--out", help="the scene folder to write (default: beside the video, named after it)")
     ap.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
-                    help=f"how many frames to aim for (default {DEFAULT_FRAMES}); fewer when the video is shorter "
-                         f"or whole stretches are blurred")
+                    help=f"how many frames to aim for (default {DEFAULT_FRAMES}, at least {MIN_SHARP_FRAMES}); fewer "
+                         f"when the video is shorter or whole stretches are blurred")
     ap.add_argument("--max-size", type=int, default=DEFAULT_MAX_SIZE, metavar="PX",
                     help=f"longest side of the written frames (default {DEFAULT_MAX_SIZE}; 0 keeps the video's)")
     ap.add_argument("--blur-ratio", type=float, default=DEFAULT_BLUR_RATIO, metavar="R",

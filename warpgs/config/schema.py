@@ -120,6 +120,9 @@ class OutputConfig:
     dir: Optional[str] = None  # None: outputs/<scene name>
     ply: str = "point_cloud.ply"
     checkpoint: str = "checkpoint.pt"
+    # train.parallel=model: each rank writes its own share beside checkpoint.pt, then an index (no rank gathers the
+    # whole model); false: one file, the whole model gathered in every rank's CPU memory. Either resumes on any N.
+    checkpoint_shards: bool = True
     metrics: str = "metrics.json"
 
 

@@ -16,6 +16,7 @@ from warpgs.model.rendering import check_outputs
 
 MAPS = ("rgb", "depth", "normal", "alpha")
 VALID_ALPHA = 0.5
+_QUANTILE_SAMPLE = 1 << 20
 # Our own ramp for depth previews, near to far: light yellow, orange, red, purple, dark blue.
 _RAMP = torch.tensor([[1.00, 0.95, 0.60], [0.98, 0.65, 0.20], [0.85, 0.25, 0.20], [0.50, 0.10, 0.45],
                       [0.10, 0.08, 0.30]])
@@ -60,7 +61,7 @@ def depth_colours(depth: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     if not ok.any():
         return out
     inv = 1.0 / depth[ok]
-    lo, hi = torch.quantile(inv, torch.tensor([0.02, 0.98], device=inv.device)).tolist()
+    lo, hi = stretch_range(inv)
     t = ((hi - inv) / max(hi - lo, 1e-12)).clamp(0, 1)  # 0 near, 1 far
     ramp = _RAMP.to(depth.device)
     x = t * (len(ramp) - 1)
@@ -68,6 +69,15 @@ def depth_colours(depth: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     f = (x - i)[:, None]
     out[ok] = ramp[i] * (1 - f) + ramp[i + 1] * f
     return out
+
+
+def stretch_range(values: torch.Tensor) -> Tuple[float, float]:
+    """The 2nd and 98th percentiles of a 1-D tensor, from at most _QUANTILE_SAMPLE evenly strided values (enough
+    for a colour ramp; torch.quantile refuses more than 2^24 values, fewer than a 6000x4000 photo's pixels)."""
+    step = -(-values.numel() // _QUANTILE_SAMPLE)
+    qs = torch.tensor([0.02, 0.98], dtype=values.dtype, device=values.device)
+    lo, hi = torch.quantile(values[::step], qs).tolist()
+    return lo, hi
 
 
 def normal_colours(normal: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,7 @@ from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAUL
                                     LOWEST_TRANSMITTANCE_MIN, alpha_clamp_problem, choose_tile_size,
                                     current_raster_options)
 from warpgs.render.empty_scene import EmptySceneFunction
-from warpgs.render.gaussians_fast import FastRasterizeFunction
+from warpgs.render.gaussians_fast import FastRasterizeFunction, run_op
 from warpgs.render.validation import check_finite, check_same_device, check_tensor
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
@@ -222,8 +222,9 @@ def rasterize(
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1])
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
-        color, alpha, zacc, inv, fout, visible, count = FastRasterizeFunction.apply(
-            settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
+        color, alpha, zacc, inv, fout, visible, count = run_op(
+            FastRasterizeFunction, settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat,
+            _intrinsics_vector(K),
             probe, (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width

@@ -13,6 +13,7 @@ So two renders in flight (two forwards, then their backwards in any order) share
 """
 from __future__ import annotations
 
+import functools
 import math
 import threading
 from typing import Dict
@@ -156,6 +157,30 @@ def detached_inputs(ctx, primitives, viewmat: torch.Tensor, intrinsics: torch.Te
             viewmat.reshape(1, 4, 4).contiguous(), intrinsics.reshape(1, 4).contiguous())
 
 
+class _NoAutogradContext:
+    """What a fast op's forward uses of its autograd context, for a call autograd will not differentiate."""
+
+    def __init__(self, num_args: int):
+        self.needs_input_grad = (False,) * num_args
+
+    def set_materialize_grads(self, value: bool) -> None:
+        pass
+
+    def mark_non_differentiable(self, *tensors) -> None:
+        pass
+
+
+def run_op(function, *args):
+    """function.apply(*args), or its forward alone when autograd will not differentiate the call (grad mode off,
+    or no tensor argument needs a gradient: evaluation, viewers): the outputs are the same tensors, without the
+    Function's bookkeeping, a noticeable part of a small render's fixed cost."""
+    if torch.is_grad_enabled():
+        for a in args:
+            if isinstance(a, torch.Tensor) and a.requires_grad:
+                return function.apply(*args)
+    return function.forward(_NoAutogradContext(len(args)), *args)
+
+
 _PROJECTION_DTYPES = (wp.vec3, wp.vec4, None, wp.vec3, wp.mat44, wp.vec4)  # scales: vec3 or vec2 (surfels)
 _CAMERA_VIEWS = (None, None, None, None, (1, 4, 4), (1, 4))
 
@@ -191,6 +216,7 @@ def gradient_buffers(saved, camera_shapes, needs):
     return grads, views[3], views[5]
 
 
+@functools.lru_cache(maxsize=256)  # a handful of shapes per model; saves a loop per gradient per backward
 def _contiguous_strides(shape) -> tuple:
     strides, step = [], 1
     for d in reversed(shape):
@@ -293,8 +319,8 @@ class FastRasterizeFunction(torch.autograd.Function):
             if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
                 means2d_probe.data.copy_(state.tensor(frame.means2d).view(-1, 2))
             fast._stage(None, "outputs (torch)")
-        count = torch.tensor(frame.total)
-        ctx.mark_non_differentiable(visible, count)
+        count = frame.total  # a plain int: autograd passes it through (no tensor to make and wrap each call)
+        ctx.mark_non_differentiable(visible)
         if any_grad:
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)

@@ -15,7 +15,9 @@ from typing import List, Tuple
 import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING  # no banner or per-module load messages
-if os.environ.get("WARPGS_CPU_COOPERATIVE") == "1":
+# Read once: Warp's CPU blocks are switched on here, at import, so the choice cannot change later in the process.
+_CPU_COOPERATIVE = os.environ.get("WARPGS_CPU_COOPERATIVE") == "1"
+if _CPU_COOPERATIVE:
     wp.config.enable_cpu_blocks = True
 
 from warpgs.render.cpu_threads import cpu_threads, run_threads, tile_ranges_per_thread  # noqa: E402
@@ -185,7 +187,7 @@ def _tile_launches(s: Settings, device) -> List[List[Tuple[int, int]]]:
 def _cooperative(device) -> bool:
     """Block-cooperative kernels (blend_gpu.py) on GPUs. WARPGS_CPU_COOPERATIVE=1 runs them on the CPU too,
     with Warp's CPU blocks (fibers), so their maths can be tested without a GPU."""
-    return not device.is_cpu or os.environ.get("WARPGS_CPU_COOPERATIVE") == "1"
+    return _CPU_COOPERATIVE or not device.is_cpu
 
 
 def _block_dims(s: Settings) -> Tuple[int, int]:

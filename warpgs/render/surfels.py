@@ -20,7 +20,7 @@ from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, checked_call,
                                      checks_before_render, raster_settings, set_image_outputs)
-from warpgs.render.gaussians_fast import _features_arg, device_state
+from warpgs.render.gaussians_fast import _features_arg, device_state, run_op
 from warpgs.render.pipeline_gaussians import Settings
 from warpgs.render.surfels_fast import FastSurfelsFunction
 
@@ -93,8 +93,9 @@ def rasterize_surfels(
         normal="normal" in outputs, median="median_depth" in outputs, distortion="distortion" in outputs,
         num_features=feats.shape[1], distortion_scale=DISTORTION_SCALE)
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
-        color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = FastSurfelsFunction.apply(
-            settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
+        color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = run_op(
+            FastSurfelsFunction, settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat,
+            _intrinsics_vector(K),
             (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width

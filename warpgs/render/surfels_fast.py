@@ -59,8 +59,8 @@ class FastSurfelsFunction(torch.autograd.Function):
             if wanted.depth:
                 normalize_depth(ws, zacc, outputs[ALPHA], depth_out, npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
-        count = torch.tensor(frame.total)
-        ctx.mark_non_differentiable(visible, count)
+        count = frame.total  # a plain int: autograd passes it through (no tensor to make and wrap each call)
+        ctx.mark_non_differentiable(visible)
         if any_grad:
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)

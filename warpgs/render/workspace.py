@@ -1,7 +1,7 @@
 """What a render call keeps between calls, to cut its fixed host cost (torch-free).
 
 At 100k Gaussians a GPU render is mostly host work: every `wp.launch` re-packs its arguments, every `wp.zeros`
-allocates and clears memory, every wrapper builds a descriptor. Two things here avoid most of that:
+allocates and clears memory, every wrapper builds a descriptor. Three things here avoid most of that:
 
 - `Workspace`: scratch arrays kept per (device, stream, thread) and grown geometrically, handed out as views of
   the size a call needs, for buffers that live within one call (sort keys, prefix sums, tile rectangles, ...).
@@ -10,6 +10,8 @@ allocates and clears memory, every wrapper builds a descriptor. Two things here 
   graph still needs it.
 - `LaunchCache`: one recorded `wp.Launch` per launch site; a call updates only the parameters that changed since
   the last one (workspace views keep their descriptor objects, so they are skipped by identity) and replays it.
+- `LaunchSequence` (with `GraphCache`): the launches up to a render's one host sync, issued together; on a GPU
+  they become one CUDA graph once the same sequence (same arrays, sizes and scalars) comes a second time.
 
 `benchmarks/micro_overhead.py` measures the pieces (CPU, this machine): `wp.launch` with 23 arguments 22 us
 against 5 us for a replay, `set_param_at_index` 0.7 us, `wp.from_torch` 4.5 us (1.8 us as a bare descriptor).
@@ -44,23 +46,30 @@ class LaunchCache:
         self._entries: Dict[object, list] = {}
 
     def launch(self, key, kernel, dim: int, args, block_dim: int = 0) -> None:
-        if dim <= 0:
-            return
-        args = [_param(a) for a in args]
+        if dim > 0:
+            self.launch_params(key, kernel, dim, [a.__ctype__() if isinstance(a, _ARRAY) else a for a in args],
+                               block_dim)  # `_param`, inlined
+
+    def launch_params(self, key, kernel, dim: int, params: list, block_dim: int = 0) -> None:
+        """`launch` with the arguments already as parameters (`_param`; what LaunchSequence stores)."""
         entry = self._entries.get(key)
         if entry is None or entry[0] is not kernel:
             with _RECORD_LOCK:
-                cmd = wp.launch(kernel, dim=dim, inputs=args, device=self.device, block_dim=block_dim or None,
+                cmd = wp.launch(kernel, dim=dim, inputs=params, device=self.device, block_dim=block_dim or None,
                                 record_cmd=True)
-            entry = self._entries[key] = [kernel, cmd, args, dim]
+            entry = self._entries[key] = [kernel, cmd, list(params), dim]  # a copy: the caller's list stays as given
         else:
-            _, cmd, prev, old_dim = entry
-            for i, a in enumerate(args):
-                if _same(a, prev[i]):
+            cmd, prev = entry[1], entry[2]
+            for i, a in enumerate(params):  # runs for every argument of every launch: kept inline
+                b = prev[i]
+                if a is b:
+                    continue
+                t = type(a)
+                if (t is int or t is float) and type(b) is t and a == b:
                     continue
                 cmd.set_param_at_index(i, a)
                 prev[i] = a
-            if dim != old_dim:
+            if dim != entry[3]:
                 cmd.set_dim(dim)
                 entry[3] = dim
         entry[1].launch()
@@ -70,8 +79,8 @@ class LaunchCache:
         arrays of `args` (None where there is none, 0 for scalars)."""
         if dim <= 0:
             return
-        args = [_param(a) for a in args]
-        adj_args = [_param(a) for a in adj_args]
+        args = [a.__ctype__() if isinstance(a, _ARRAY) else a for a in args]
+        adj_args = [a.__ctype__() if isinstance(a, _ARRAY) else a for a in adj_args]
         entry = self._entries.get(key)
         if entry is None or entry[0] is not kernel:
             with _RECORD_LOCK:
@@ -79,16 +88,15 @@ class LaunchCache:
                                 block_dim=block_dim or None, record_cmd=True)
             entry = self._entries[key] = [kernel, cmd, args, dim, adj_args]
         else:
-            _, cmd, prev, old_dim, prev_adj = entry
-            for i, a in enumerate(args):
-                if not _same(a, prev[i]):
-                    cmd.set_param_at_index(i, a)
+            cmd = entry[1]
+            for adjoint, params, prev in ((False, args, entry[2]), (True, adj_args, entry[4])):
+                for i, a in enumerate(params):
+                    b = prev[i]
+                    if a is b or (type(a) in _BY_VALUE_NUMBERS and type(b) is type(a) and a == b):
+                        continue
+                    cmd.set_param_at_index(i, a, adjoint=adjoint)
                     prev[i] = a
-            for i, a in enumerate(adj_args):
-                if not _same(a, prev_adj[i]):
-                    cmd.set_param_at_index(i, a, adjoint=True)
-                    prev_adj[i] = a
-            if dim != old_dim:
+            if dim != entry[3]:
                 cmd.set_dim(dim)
                 entry[3] = dim
         entry[1].launch()
@@ -96,14 +104,13 @@ class LaunchCache:
 
 def _param(a):
     """Arrays travel as their (cached) descriptors: identity then means 'same array view'."""
-    return a.__ctype__() if isinstance(a, wp.array) else a
+    return a.__ctype__() if isinstance(a, _ARRAY) else a
 
 
-def _same(a, b) -> bool:
-    if a is b:
-        return True
-    t = type(a)
-    return (t is int or t is float) and type(b) is t and a == b
+_ARRAY = wp.array
+
+
+_BY_VALUE_NUMBERS = (int, float)  # launch parameters that match by value (the rest by identity)
 
 
 class Buffers:
@@ -174,6 +181,7 @@ class Workspace(Buffers):
         self.launches = LaunchCache(self.device)
         self._cache: Dict[object, object] = {}  # small per-workspace memo (structs, dummies, host buffers)
         self._free_frames: list = []
+        self._host_views: Dict[int, tuple] = {}
         self.graphs = GraphCache(self.device)
 
     def sequence(self, immediate: bool = False) -> "LaunchSequence":
@@ -203,6 +211,16 @@ class Workspace(Buffers):
         return self.memo(("dummy", dtype, ndim),
                          lambda: wp.zeros((1,) * ndim, dtype=dtype, device=self.device))
 
+    def host_view(self, a: wp.array):
+        """a.numpy() of a host array, kept while the same array object comes back (a workspace view does)."""
+        views = self._host_views
+        hit = views.get(id(a))
+        if hit is None or hit[0] is not a:  # holding `a` keeps its id from naming another array
+            if len(views) > 16:
+                views.clear()
+            hit = views[id(a)] = (a, a.numpy())
+        return hit[1]
+
     def pinned_ints(self, count: int):
         """A pinned host int32 buffer of at least `count` entries and its numpy view (GPU reads land there)."""
         size = max(16, count)
@@ -211,16 +229,6 @@ class Workspace(Buffers):
             host = self._cache["pinned_ints"] = wp.empty(size, dtype=wp.int32, device="cpu", pinned=True)
             self._cache["pinned_ints_np"] = host.numpy()
         return host, self._cache["pinned_ints_np"]
-
-    def read_int(self, a: wp.array, index: int) -> int:
-        """a[index] on the host: the one synchronisation of a render call (GPU: through a pinned buffer)."""
-        if self.device.is_cpu:
-            return int(a.numpy()[index])  # a zero-copy view of host memory
-        host = self.memo("pinned_int", lambda: wp.empty(1, dtype=wp.int32, device="cpu", pinned=True))
-        host_np = self.memo("pinned_int_np", host.numpy)
-        wp.copy(host, a, dest_offset=0, src_offset=index, count=1)
-        wp.synchronize_stream(self.device.stream)
-        return int(host_np[0])
 
 
 # CUDA graphs of fixed launch sequences (LaunchSequence.run). WARPGS_RASTER_GRAPHS=0 turns them off (benchmarks
@@ -321,7 +329,7 @@ class LaunchSequence:
 
     def launch(self, key, kernel, dim: int, args, block_dim: int = 0) -> None:
         if dim > 0:
-            self._add((key, kernel, dim, [_param(a) for a in args], block_dim))
+            self._add((key, kernel, dim, [a.__ctype__() if isinstance(a, _ARRAY) else a for a in args], block_dim))
 
     def sort_pairs(self, keys: wp.array, values: wp.array, count: int, begin_bit: int = 0, end_bit=None) -> None:
         self._add((_SORT, keys, values, count, begin_bit, end_bit))
@@ -350,7 +358,7 @@ class LaunchSequence:
             self._issue()
             values = []
             for a, index, count, _ in self.reads:  # zero-copy views of host memory
-                values.extend(int(v) for v in a.numpy()[index: index + count])
+                values.extend(ws.host_view(a)[index: index + count].tolist())
         else:
             self._host, host_np = ws.pinned_ints(self._read_size)
             if not self.immediate and ws.graphs.enabled():
@@ -359,7 +367,7 @@ class LaunchSequence:
                 self._issue()
             if self.reads:
                 wp.synchronize_stream(ws.device.stream)
-            values = [int(v) for v in host_np[: self._read_size]]
+            values = host_np[: self._read_size].tolist()  # Python ints
         for check in self._checks:
             check(values)
         return values
@@ -380,30 +388,27 @@ class LaunchSequence:
         elif kind is _ZERO:
             op[1].zero_()
         else:
-            self.ws.launches.launch(op[0], op[1], op[2], op[3], op[4])
+            self.ws.launches.launch_params(op[0], op[1], op[2], op[3], op[4])
 
     def _key(self):
         """(key, referents): the key is everything the issued work depends on except memory contents, with arrays
         and descriptors by identity (a view or descriptor object stands for one address, shape and strides: the
         workspace and the descriptor memo hand out the same object for the same memory) and scalars by value. The
         referents keep those objects alive as long as the key is stored, so no other object can take their ids."""
-        parts, referents = [], [self._host]
+        parts = []
         for op in self.ops:
             kind = op[0]
             if kind is _SORT or kind is _SCAN or kind is _ZERO:
-                arrays = [a for a in op[1:] if isinstance(a, wp.array)]
-                referents.extend(arrays)
-                parts.append((id(kind), tuple(map(id, arrays))) + tuple(a for a in op[3:] if not isinstance(a, wp.array)))
+                parts.append((id(kind),) + tuple([a if type(a) in _BY_VALUE else id(a) for a in op[1:]]))
             else:
-                args = op[3]
-                referents.extend(args)
-                parts.append((op[0], id(op[1]), op[2], op[4],
-                              tuple([a if type(a) in _BY_VALUE else id(a) for a in args])))
+                parts.append((kind, id(op[1]), op[2], op[4],
+                              tuple([a if type(a) in _BY_VALUE else id(a) for a in op[3]])))
         for a, index, count, slot in self.reads:
-            referents.append(a)
             parts.append((id(a), index, count, slot))
         parts.append(id(self._host))
-        return tuple(parts), referents
+        # the ops and reads hold every object named by id (LaunchCache copies a launch's parameters, so these lists
+        # never change once the sequence is built)
+        return tuple(parts), [self.ops, self.reads, self._host]
 
 
 _BY_VALUE = (int, float, bool)  # launch arguments keyed by value; the rest (arrays, descriptors, structs) by identity

@@ -23,7 +23,8 @@ import torch
 from warpgs.utils.atomic_file import atomic_write_bytes
 
 FORMAT = "warpgs-checkpoint"
-VERSION = 2  # 2: plain data only (the numpy RNG key as a tensor); 1: the key as a numpy array
+VERSION = 3  # the newest this reads. 3: an index of per-rank shards (train/sharded_checkpoint.py); 2: plain data
+SINGLE_FILE_VERSION = 2  # only (the numpy RNG key as a tensor); 1: the key as a numpy array
 
 # What version-1 files hold beyond tensors and plain data: numpy's MT19937 key, a uint32 array.
 _V1_NUMPY_GLOBALS = [np.ndarray, np.dtype, type(np.dtype(np.uint32))]
@@ -39,7 +40,7 @@ class UnsafeCheckpointError(ValueError):
 
 
 def save_checkpoint(path, state: dict) -> Path:
-    payload = _plain({"format": FORMAT, "version": VERSION, **state}, "checkpoint")
+    payload = _plain({"format": FORMAT, "version": SINGLE_FILE_VERSION, **state}, "checkpoint")
     buf = io.BytesIO()
     torch.save(payload, buf)
     atomic_write_bytes(path, buf.getvalue())
@@ -67,6 +68,10 @@ def load_checkpoint(path, map_location="cpu") -> dict:
         raise ValueError(f"{path}: not a warpgs checkpoint")
     if state.get("version", 0) > VERSION:
         raise ValueError(f"{path}: checkpoint version {state['version']} is newer than this warpgs ({VERSION})")
+    if "shards" in state:  # the index of a model-parallel run's shards: put together as one file would hold it
+        from warpgs.train.sharded_checkpoint import assemble
+
+        return assemble(path, state, lambda shard: load_checkpoint(shard, map_location))
     return state
 
 
@@ -91,12 +96,14 @@ def _first_line(e: BaseException) -> str:
 
 
 def _plain(obj, where: str):
-    """obj with numpy values as tensors / Python numbers and paths as str; a TypeError naming the key for
-    anything torch.load(weights_only=True) would refuse."""
+    """obj with numpy values as tensors / Python numbers, paths as str and tensors in CPU memory; a TypeError
+    naming the key for anything torch.load(weights_only=True) would refuse."""
     if isinstance(obj, np.generic) and obj.dtype.kind in "biufUS":  # before float: np.float64 is one
         return obj.item()
+    if isinstance(obj, torch.Tensor):  # in CPU memory, so the file loads anywhere (no-op for CPU tensors)
+        return obj.detach().cpu()
     if obj is None or type(obj) in (bool, int, float, str, bytes) or isinstance(
-            obj, (torch.Tensor, torch.dtype, torch.device, torch.Size)):
+            obj, (torch.dtype, torch.device, torch.Size)):
         return obj
     if isinstance(obj, dict):  # OrderedDict (state_dicts) stays one: the weights-only loader knows it
         out = {k: _plain(v, f"{where}[{k!r}]") for k, v in obj.items()}
@@ -135,7 +142,10 @@ def set_rng_state(state: dict) -> None:
     np.random.set_state((kind, key.astype(np.uint32), int(pos), int(has_gauss), float(gauss)))
     random.setstate(_as_tuples(state["python"]))
     if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+        # One state per GPU the writer saw; a process that sees fewer (another machine, CUDA_VISIBLE_DEVICES)
+        # takes those it has.
+        for index, cuda_state in enumerate(state["cuda"][:torch.cuda.device_count()]):
+            torch.cuda.set_rng_state(cuda_state, index)
 
 
 def _as_tuples(v):

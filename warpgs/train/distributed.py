@@ -58,9 +58,11 @@ class Ranks:
     runs exactly the code it ran before distributed training existed."""
 
     def __init__(self, rank: int = 0, world_size: int = 1, local_rank: int = 0, backend: Optional[str] = None,
-                 timeout: float = 900.0, owns_group: bool = False):
+                 timeout: float = 900.0, owns_group: bool = False, device="cpu"):
         self.rank, self.world_size, self.local_rank = int(rank), int(world_size), int(local_rank)
         self.backend, self.timeout, self.owns_group = backend, float(timeout), owns_group
+        # Where tensors that carry no device of their own (scalars, counts) travel: NCCL takes only GPU tensors.
+        self.device = torch.device(device)
 
     @property
     def enabled(self) -> bool:
@@ -205,7 +207,7 @@ class Ranks:
         small = [p for p in params if p.numel() < _SMALL]
         for p in large:
             self.all_reduce_(p.grad, what=f"all_reduce of step {step}'s gradients")
-        device = params[0].device if params else torch.device("cpu")
+        device = params[0].device if params else self.device  # none: a model-parallel run without modules
         head = torch.tensor(list(scalars) + [float(f) for f in present], dtype=torch.float64, device=device)
         flat = torch.cat([head] + [p.grad.reshape(-1).to(torch.float64) for p in small])
         self.all_reduce_(flat, what=f"all_reduce of step {step}'s losses and module gradients")
@@ -303,7 +305,9 @@ def setup_ranks(device, *, backend: str = "auto", timeout: float = 900.0) -> tup
             raise ValueError("train.dist_backend: 'nccl' needs CUDA devices (use gloo on the CPU)")
         dist.init_process_group(chosen, timeout=datetime.timedelta(seconds=timeout))
         owns = True
-    ranks = Ranks(dist.get_rank(), dist.get_world_size(), local_rank, dist.get_backend(), timeout, owns)
+    chosen = dist.get_backend()
+    ranks = Ranks(dist.get_rank(), dist.get_world_size(), local_rank, chosen, timeout, owns,
+                  device=device if chosen == "nccl" else "cpu")
     return ranks, device
 
 

@@ -2,7 +2,7 @@
 parameter among the tensors it is given."""
 from __future__ import annotations
 
-from typing import Callable, Iterable, Optional, Tuple
+from typing import Callable, Iterable, Optional, Sequence, Tuple
 
 import torch
 
@@ -28,15 +28,17 @@ class NonFiniteGuard:
 
     def check(self, step: int, result=None) -> None:
         """Raise NonFiniteError unless the loss (`result.total`, a LossResult), every gradient and every parameter
-        are finite. Cheap on the good path: one sum per tensor (NaN and Inf propagate through it) and one device
-        sync; the names come from a second, exact pass only when a sum is not finite. Parameters are checked too
-        because an invisible NaN primitive has zero gradient and would otherwise reach a checkpoint unnoticed."""
+        are finite. Cheap on the good path: one sum per tensor (NaN and Inf propagate through it) and one sync per
+        device; the names come from a second, exact pass only when a sum is not finite. Parameters are checked too
+        because an invisible NaN primitive has zero gradient and would otherwise reach a checkpoint unnoticed.
+        The tensors may live on several devices (a model-parallel checkpoint: the model gathered in CPU memory,
+        the modules on the GPU): each device's sums are combined there."""
         named = list(self.named_parameters())
         sums = [p.detach().sum().float() for _, p in named if p.numel()]
         sums += [p.grad.sum().float() for _, p in named if p.grad is not None and p.grad.numel()]
         if result is not None:
             sums.append(result.total.detach().reshape(()).float())
-        if not sums or bool(torch.isfinite(torch.stack(sums)).all()):
+        if all_finite(sums):
             return
         name = self.first_nonfinite(grads=False)
         if name is not None:
@@ -58,3 +60,11 @@ class NonFiniteGuard:
             if t is not None and not bool(torch.isfinite(t).all()):
                 return name
         return None
+
+
+def all_finite(scalars: Sequence[torch.Tensor]) -> bool:
+    """Whether every 0-d tensor is finite: one stack and one read-back per device they are on."""
+    by_device = {}
+    for s in scalars:
+        by_device.setdefault(s.device, []).append(s)
+    return all(bool(torch.isfinite(torch.stack(group)).all()) for group in by_device.values())

@@ -83,12 +83,23 @@ def shard_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strat
     return rows
 
 
-def move_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strategy, device) -> None:
+def move_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strategy, device,
+                  adam_kernel: str = "auto") -> None:
     """Put the model's parameters, their optimizer moments and the strategy's statistics on `device`, in place
-    (a model-parallel rank's share, built in CPU memory, onto its GPU)."""
+    (a model-parallel rank's share, built in CPU memory, onto its GPU). The optimizer then takes the Adam kernel
+    `adam_kernel` (optim.adam_kernel) picks for `device`: built over CPU tensors it chose foreach, and on a GPU
+    "auto" means fused, as it does for a model built there."""
+    device = torch.device(device)
     move_parameters(model, optimizer, device)
     for key in ("grad_accum", "count", "max_radii", "max_screen"):
         setattr(strategy, key, getattr(strategy, key).to(device))
+    if adam_kernel == "fused" or (adam_kernel == "auto" and device.type == "cuda"):
+        for group in optimizer.param_groups:
+            group["fused"], group["foreach"] = True, None
+        optimizer.defaults.update(fused=True, foreach=None)
+        for state in optimizer.state.values():  # the fused kernel reads its step count on the device
+            if torch.is_tensor(state.get("step")):
+                state["step"] = state["step"].to(device, torch.float32)
 
 
 def gathered_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strategy, ranks: Ranks, *,

@@ -204,7 +204,9 @@ def background_points(scene, points: torch.Tensor, n: int, radius: float, seed: 
     centre = centres.mean(0)
     reach = float((centres - centre).norm(dim=1).max())
     if len(points):
-        reach = max(reach, float(torch.quantile((points - centre).norm(dim=1), 0.99)))
+        dist = (points - centre).norm(dim=1)
+        dist = dist[::-(-len(dist) // 2**24)]  # torch.quantile refuses more than 2^24 values: an even subsample
+        reach = max(reach, float(torch.quantile(dist, 0.99)))
     gen = torch.Generator().manual_seed(int(seed) + 1)
     d = torch.randn(int(n), 3, generator=gen)
     d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)

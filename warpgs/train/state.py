@@ -10,6 +10,8 @@ import torch
 from torch import nn
 
 from warpgs.train import checkpoint as ckpt
+from warpgs.train import sharded_checkpoint as sharded
+from warpgs.train.guard import NonFiniteError
 from warpgs.model.gaussians import GaussianModel
 
 
@@ -68,6 +70,34 @@ class Checkpointer:
             self.guard.check(step)
         if self.write:
             ckpt.save_checkpoint(self.path, self.state_dict(parts))
+            sharded.remove_other_steps(self.path, None)  # the shards of an earlier sharded save, if any
+        self.last_step = step
+        return self.path
+
+    def save_sharded(self, parts: TrainingState, ranks) -> Path:
+        """train.parallel=model: this rank's share (parts hold it) into its own shard file, then rank 0's index in
+        place of checkpoint.pt (train/sharded_checkpoint.py). A collective: every rank calls it. A non-finite
+        share stops every rank (naming it there), so no rank is left waiting for a shard that never comes."""
+        step = parts.counters.step
+        problem = None
+        if self.guard is not None:
+            try:
+                self.guard.check(step)
+            except NonFiniteError as e:
+                problem = e
+        problems = ranks.all_gather_object(None if problem is None else (problem.name, str(problem)),
+                                           what=f"checking the shares of step {step} before saving")
+        if problem is not None:
+            raise problem
+        other = next((p for p in problems if p is not None), None)
+        if other is not None:
+            raise NonFiniteError(step, other[0], f"another rank's share is not finite ({other[1]})")
+        ckpt.save_checkpoint(sharded.shard_file(self.path, step, ranks.rank, ranks.world_size), self.state_dict(parts))
+        # Returns once every rank has written its shard: only then may the index name them.
+        rows = ranks.all_gather_object(parts.model.num_primitives, what=f"writing the shards of step {step}")
+        if ranks.is_main:
+            ckpt.save_checkpoint(self.path, sharded.index_state(self.path, step, rows))
+            sharded.remove_other_steps(self.path, step)
         self.last_step = step
         return self.path
 

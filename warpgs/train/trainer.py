@@ -187,7 +187,7 @@ class Trainer:
         self._total_primitives = self.model.num_primitives
         if self.model_parallel:  # built (or resumed) whole, alike on every rank; from here on each keeps its share
             shard_training(self.model, self.optimizer, self.strategy, self.ranks)
-            move_training(self.model, self.optimizer, self.strategy, self.device)
+            move_training(self.model, self.optimizer, self.strategy, self.device, cfg.optim.adam_kernel)
             # Split samples differ per owner (a checkpoint holds rank 0's generator, so a resume reseeds too).
             self.strategy.generator.manual_seed(self.ranks.derived_seed(cfg.strategy.seed, self.step))
         if self.ranks.enabled:
@@ -410,11 +410,16 @@ class Trainer:
         return self.checkpointer.state_dict(self.training_state())
 
     def save_checkpoint(self) -> Path:
-        """Write checkpoint.pt (rank 0 only; the other ranks wait for it at a barrier)."""
+        """Write checkpoint.pt (rank 0 only; the other ranks wait for it at a barrier). train.parallel=model:
+        each rank writes its share and checkpoint.pt is their index (output.checkpoint_shards=false: one file of
+        the whole model gathered)."""
         if not self._at_boundary:
             raise RuntimeError("save_checkpoint: only between steps")
-        with self.whole_model(with_state=True):
-            path = self.checkpointer.save(self.training_state())
+        if self.model_parallel and self.config.output.checkpoint_shards:  # each rank its share; no gather
+            path = self.checkpointer.save_sharded(self.training_state(), self.ranks)
+        else:
+            with self.whole_model(with_state=True):
+                path = self.checkpointer.save(self.training_state())
         self.ranks.barrier(f"waiting for rank 0 to write the checkpoint of step {self.step}")
         return path
 

@@ -180,8 +180,8 @@ def write_depth_png16(path: PathLike, depth: np.ndarray, scale: float, valid: Op
     Returns how many valid pixels were beyond the range (and written as 0)."""
     from warpgs.utils.atomic_file import atomic_write_bytes
 
-    if not scale > 0:
-        raise ValueError(f"{path}: depth scale must be positive, got {scale}")
+    if not 0 < scale < float("inf"):  # inf would write every pixel as "no depth"
+        raise ValueError(f"{path}: depth scale must be positive and finite, got {scale}")
     depth = np.asarray(depth, dtype=np.float64)
     if depth.ndim != 2:
         raise ValueError(f"{path}: depth map must be 2-D, got shape {depth.shape}")

@@ -17,7 +17,8 @@ from PIL import Image
 
 from warpgs.data.errors import MissingSceneFile, PathLike, SceneError, read_json
 from warpgs.data.video.decode import iter_frames, require_video_support
-from warpgs.data.video.sharpness import DEFAULT_BLUR_RATIO, MIN_SHARP_FRAMES, select_frames, sharpness
+from warpgs.data.video.sharpness import (DEFAULT_BLUR_RATIO, MIN_SHARP_FRAMES, check_selection, select_frames,
+                                        sharpness)
 from warpgs.utils.atomic_file import atomic_write_bytes
 from warpgs.utils.progress import Stages
 
@@ -26,6 +27,7 @@ DEFAULT_MAX_SIZE = 1600  # longest side of the written frames (SfM extracts feat
 RECORD = "video.json"
 STAGES = ("score", "extract", "sfm")
 JPEG_QUALITY = 95
+ELSEWHERE = "make the scene in another folder: warpgs-process VIDEO --out DIR, then warpgs-train --data DIR"
 
 
 def video_scene_dir(video: PathLike) -> Path:
@@ -70,15 +72,17 @@ def _claim(out: Path, settings: dict) -> dict:
         if old != settings:
             diff = sorted(k for k in settings if not isinstance(old, dict) or old.get(k) != settings[k])
             raise SceneError(out, f"made from another video or other settings (differs in {diff}: "
-                                  f"{ {k: (old or {}).get(k) for k in diff} }); give another output folder, "
-                                  f"or delete this one to redo it")
+                                  f"{ {k: (old or {}).get(k) for k in diff} }); delete it to redo it, or "
+                                  f"{ELSEWHERE}")
         return record
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise SceneError(out, f"exists and holds no {RECORD} (not a folder made from a video); give another "
-                              f"output folder")
-    out.mkdir(parents=True, exist_ok=True)
+        raise SceneError(out, f"exists and holds no {RECORD} (not a folder made from a video); {ELSEWHERE}")
     record = {"settings": settings}
-    _write_record(out, record)
+    try:  # beside the video by default, which may be read-only (a card, a share)
+        out.mkdir(parents=True, exist_ok=True)
+        _write_record(out, record)
+    except OSError as exc:
+        raise SceneError(out, f"cannot write the scene folder ({exc.strerror or exc}); {ELSEWHERE}") from exc
     return record
 
 
@@ -110,8 +114,7 @@ def video_to_scene(video: PathLike, out: Optional[PathLike] = None, *, frames: i
     video = Path(video)
     if not video.is_file():
         raise MissingSceneFile(video, "video file")
-    if frames < 1:
-        raise ValueError(f"frames: expected a positive number of frames, got {frames}")
+    check_selection(frames, blur_ratio, min_frames)  # before decoding: bad settings could never succeed
     if max_size < 0:
         raise ValueError(f"max_size: expected 0 (keep) or a positive number of pixels, got {max_size}")
     require_video_support()

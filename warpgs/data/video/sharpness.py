@@ -42,6 +42,16 @@ def sharpness(frame: np.ndarray, max_side: int = SHARPNESS_SIDE) -> float:
     return float(lap.var())
 
 
+def check_selection(target: int, blur_ratio: float, min_frames: int = MIN_SHARP_FRAMES) -> None:
+    """ValueError naming the setting when select_frames could never succeed with it (callers check before
+    decoding a whole video)."""
+    if target < max(1, min_frames):
+        raise ValueError(f"frames: expected at least {max(1, min_frames)} (fewer leave SfM too little to work "
+                         f"with), got {target}")
+    if not 0 <= blur_ratio < 1:
+        raise ValueError(f"blur_ratio: expected a value in [0, 1), got {blur_ratio}")
+
+
 @dataclass
 class FrameSelection:
     indices: List[int]  # frames kept, in video order
@@ -56,10 +66,7 @@ def select_frames(scores: Sequence[float], target: int, *, blur_ratio: float = D
     """Choose up to `target` frames from per-frame sharpness `scores` (see the module doc). Raises
     TooFewSharpFrames, naming `source`, when fewer than `min_frames` remain."""
     scores = np.asarray(scores, dtype=np.float64)
-    if target < 1:
-        raise ValueError(f"frames: expected a positive number of frames, got {target}")
-    if not 0 <= blur_ratio < 1:
-        raise ValueError(f"blur_ratio: expected a value in [0, 1), got {blur_ratio}")
+    check_selection(target, blur_ratio, min_frames)
     n = len(scores)
     windows = min(int(target), n)
     if n == 0:
