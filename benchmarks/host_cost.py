@@ -59,7 +59,9 @@ def measure(n: int, size: int, calls: int, repeats: int, stub: bool) -> dict:
     import torch
 
     from warpgs import rasterize, rasterize_surfels
-    from warpgs.render import gaussians
+    from warpgs.render import gaussians, validation
+
+    policy = validation if hasattr(validation, "PIPELINE_CHECK_DEVICES") else gaussians  # older trees: in gaussians
 
     g = torch.Generator().manual_seed(0)
     means = torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 4.0])
@@ -84,9 +86,9 @@ def measure(n: int, size: int, calls: int, repeats: int, stub: bool) -> dict:
             (out.rgb.sum() + out.depth.sum()).backward()
 
         fn = forward if mode == "forward" else forward_backward
-        added = checks == "pipeline" and "cpu" not in gaussians.PIPELINE_CHECK_DEVICES
+        added = checks == "pipeline" and "cpu" not in policy.PIPELINE_CHECK_DEVICES
         if added:
-            gaussians.PIPELINE_CHECK_DEVICES.add("cpu")
+            policy.PIPELINE_CHECK_DEVICES.add("cpu")
         try:
             for _ in range(30):
                 fn()
@@ -99,7 +101,7 @@ def measure(n: int, size: int, calls: int, repeats: int, stub: bool) -> dict:
                     best = min(best, (time.perf_counter() - t0) / calls * 1e6)
         finally:
             if added:
-                gaussians.PIPELINE_CHECK_DEVICES.discard("cpu")
+                policy.PIPELINE_CHECK_DEVICES.discard("cpu")
         results[f"{kind} {mode}, {checks} checks{', kernels stubbed' if stub else ''}"] = best
     return results
 

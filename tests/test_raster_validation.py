@@ -112,8 +112,8 @@ def test_transposed_inputs_that_need_gradients_work():
 def checks_in_pipeline(monkeypatch):
     """Runs the finite-value checks as GPU renders do (kernels/input_checks.py's flags, read at the pipeline's
     tile-pair sync), here on the CPU."""
-    from warpgs.render import gaussians
-    monkeypatch.setattr(gaussians, "PIPELINE_CHECK_DEVICES", {"cpu", "cuda"})
+    from warpgs.render import validation
+    monkeypatch.setattr(validation, "PIPELINE_CHECK_DEVICES", {"cpu", "cuda"})
 
 
 @pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmat", "K", "background",

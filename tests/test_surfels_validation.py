@@ -60,8 +60,8 @@ def test_bad_arguments(over, match):
 @pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmat", "K", "background"])
 def test_pipeline_checks_name_the_argument(monkeypatch, name):
     """As GPU renders check (kernels/input_checks.py's flags, read at the pipeline's sync), here on the CPU."""
-    from warpgs.render import gaussians
-    monkeypatch.setattr(gaussians, "PIPELINE_CHECK_DEVICES", {"cpu", "cuda"})
+    from warpgs.render import validation
+    monkeypatch.setattr(validation, "PIPELINE_CHECK_DEVICES", {"cpu", "cuda"})
     s = {k: (v.float() if isinstance(v, torch.Tensor) else v) for k, v in random_surfel_scene(n=8, seed=0).items()}
     bad = torch.zeros(3) if name == "background" else s[name].clone()
     bad.view(-1)[-1] = float("inf")

@@ -18,10 +18,11 @@ from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAUL
 from warpgs.render.empty_scene import EmptySceneFunction
 from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted
-from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, checked_call,
-                                     checks_before_render, raster_settings, set_image_outputs)
+from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, checked_call, raster_settings,
+                                     set_image_outputs)
 from warpgs.render.gaussians_fast import _features_arg, device_state, run_op
 from warpgs.render.pipeline_gaussians import Settings
+from warpgs.render.validation import checks_before_render
 from warpgs.render.surfels_fast import FastSurfelsFunction
 
 OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "normal", "median_depth", "distortion", "features")

@@ -65,3 +65,32 @@ def raise_flagged(flags) -> None:
         if flag:
             raise nonfinite_error(name)
     raise ValueError(OPACITY_RANGE_ERROR)
+
+
+def named_inputs(means, quats, scales, opacities, colors, features, viewmat, K, background) -> dict:
+    """The tensors the finite-value checks look at, by the names their errors give (validation.CHECKED_NAMES)."""
+    return {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+            "features": features, "viewmat": viewmat, "K": K, "background": background}
+
+
+# Device types whose renders run the finite-value checks inside the pipeline (GPUs: no host sync of their own).
+# The CPU keeps the torch checks (a sync costs nothing there); tests add "cpu" to run the kernel's checks.
+PIPELINE_CHECK_DEVICES = {"cuda"}
+
+
+def checks_before_render(check_inputs: bool, pipeline_checks: bool, means, quats, scales, opacities, colors, features,
+                         viewmat, K, background) -> bool:
+    """Both ops' finite-value checks: run here (one host sync) when the render's pipeline cannot run them, else
+    left to it (a kernel's flags, raised at the sync it makes anyway). Returns whether the pipeline must check
+    (check_inputs, or `pipeline_checks`: a batched call asking each camera's render to)."""
+    in_pipeline = value_checks_in_pipeline(means)
+    if check_inputs and not in_pipeline:
+        check_finite(named_inputs(means, quats, scales, opacities, colors, features, viewmat, K, background),
+                     opacities)
+    return (check_inputs or pipeline_checks) and in_pipeline
+
+
+def value_checks_in_pipeline(means: torch.Tensor) -> bool:
+    """Whether a render of `means` runs its finite-value checks in the fast pipeline (a kernel's flags, read with
+    the tile-pair count) rather than in torch before it."""
+    return means.device.type in PIPELINE_CHECK_DEVICES and means.shape[0] > 0
