@@ -177,3 +177,12 @@ def test_broken_transforms(tmp_path):
     with pytest.raises(SceneError, match="focal length") as exc:
         load_transforms(tmp_path)
     _names(exc, tmp_path / "transforms.json")
+
+
+def test_a_video_given_as_a_scene_path_says_how_to_use_it(tmp_path):
+    video = tmp_path / "clip.mp4"
+    video.write_bytes(b"not decoded: the suffix decides")
+    with pytest.raises(SceneError, match=r"clip\.mp4: a video, not a scene folder: .*--data .*warpgs-process"):
+        load_scene(video)
+    with pytest.raises(SceneError, match="a scene is a folder, not a file"):
+        load_scene(tmp_path / "clip.txt" if (tmp_path / "clip.txt").write_text("x") else None)

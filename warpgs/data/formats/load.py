@@ -28,6 +28,11 @@ def detect_format(root: PathLike) -> str:
     if not root.exists():
         raise MissingSceneFile(root, "scene folder")
     if not root.is_dir():
+        from warpgs.data.video.decode import is_video  # suffixes only: no imageio needed
+
+        if is_video(root):  # data.path=clip.mp4: the video step runs only for --data
+            raise SceneError(root, f"a video, not a scene folder: give it as `warpgs-train --data {root}` (frames "
+                                   f"and SfM first), or make its scene with `warpgs-process {root} --out DIR`")
         raise SceneError(root, "a scene is a folder, not a file")
     if (root / lightfield.LIGHTFIELD_FILE).is_file():
         return "lightfield"
