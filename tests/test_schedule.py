@@ -271,3 +271,20 @@ def test_the_position_lr_anneals_once_densification_stops():
     span = CFG.patience + CFG.polish
     assert rule.means_lr(4500 + span // 2, bounded) == pytest.approx((bounded(4500) * 1e-6) ** 0.5)
     assert rule.means_lr(4500 + span, bounded) == pytest.approx(1e-6) == rule.means_lr(20_000, bounded)
+
+
+def test_an_auto_checkpoint_resumed_with_a_step_count_draws_every_training_view():
+    from test_train_parts import FakeScene
+    from warpgs.train.views import TrainViews
+
+    scene = FakeScene(n=12, test=(0, 8))
+    auto = TrainViews(scene, "cpu", seed=3)
+    auto.hold_out(validation_split(scene.train, 8)[1])
+    auto.draw(3)  # mid-epoch: the queue holds positions in the kept list
+    fixed = TrainViews(scene, "cpu", seed=3)  # train.steps=N resuming it: nothing held out
+    fixed.load_state_dict(auto.state_dict())
+    assert fixed.held_out == [] and set(fixed.draw(len(scene.train) * 3)) == set(scene.train)
+    again = TrainViews(scene, "cpu", seed=3)  # and its own checkpoints keep that order
+    state = fixed.state_dict()
+    again.load_state_dict(state)
+    assert again.draw(9) == fixed.draw(9)

@@ -95,9 +95,12 @@ class TrainViews:
     def load_state_dict(self, state: dict) -> None:
         self.generator.set_state(state["view_generator"])
         self.queue = list(state["view_queue"])
+        split = self._split  # this run holds views out (train.steps=auto)
         if self._split and "view_indices" not in state:
             raise ValueError("train.steps=auto: the checkpoint was written by a run that drew every training view "
                              "(a step count); resume it with that step count, or start the auto run afresh")
         if "view_indices" in state:  # older checkpoints: every training view was drawn
             self.indices = list(state["view_indices"])
             self.held_out, self._split = list(state.get("view_held_out", [])), True
+            if not split:  # an auto run's checkpoint resumed with a step count: no validation, so every view
+                self.restore_held_out()  # is drawn (appended: the queue's positions stay valid)
