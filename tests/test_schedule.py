@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -288,3 +289,9 @@ def test_an_auto_checkpoint_resumed_with_a_step_count_draws_every_training_view(
     state = fixed.state_dict()
     again.load_state_dict(state)
     assert again.draw(9) == fixed.draw(9)
+
+
+def test_resuming_a_fixed_run_as_auto_names_the_checkpoint(tmp_path):
+    Trainer(None, overrides=quick_overrides(tmp_path, steps=1), quiet=True).fit()
+    with pytest.raises(ValueError, match=re.escape(f"{tmp_path / 'checkpoint.pt'}: train.steps=auto: the checkpoint was")):
+        Trainer(None, overrides=quick_overrides(tmp_path, **AUTO), quiet=True, resume=True)

@@ -127,7 +127,10 @@ class Checkpointer:
         for ext, saved in zip(parts.extensions, state.get("extensions", {}).values()):
             ext.load_state_dict(saved)
         ckpt.set_rng_state(state["rng"])
-        parts.views.load_state_dict(state)
+        try:
+            parts.views.load_state_dict(state)
+        except ValueError as e:  # a checkpoint this run cannot continue: name it
+            raise ValueError(f"{self.path}: {e}") from e
         parts.counters.train_seconds = float(state.get("train_seconds", 0.0))
         parts.evaluator.load_state_dict(state)
         parts.counters.last_loss = state.get("last_loss")
