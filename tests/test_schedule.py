@@ -229,17 +229,20 @@ def test_auto_run_logs_its_decisions_and_resumes_to_the_same_end(tmp_path):
     assert [e["step"] for e in log if e["type"] == "schedule"] == steps
     assert [e["step"] for e in log if e["type"] == "validation"] == [s["step"] for s in sched["validation"]]
 
-    # Interrupted between the two decisions (densification stopped, training goes on), then resumed.
-    at = steps[0] + 10
-    part = Trainer(None, overrides=quick_overrides(tmp_path / "part", **AUTO), quiet=True, callbacks=[Interrupt(at)])
-    with pytest.raises(KeyboardInterrupt):
-        part.fit()
-    resumed = Trainer(None, overrides=quick_overrides(tmp_path / "part", **AUTO), quiet=True, resume=True)
-    assert resumed.step == at and resumed.strategy.auto.phase == TRAIN
-    assert resumed.views.held_out == validation_split(full.scene.train, 8)[1]  # not yet back for the polish
-    again = resumed.fit()
-    assert again.metrics["schedule"] == sched and again.steps == result.steps
-    assert again.metrics["psnr"] == pytest.approx(result.metrics["psnr"], abs=1e-4)
+    # Interrupted between the two decisions (densification stopped, training goes on), then resumed; and
+    # interrupted after the step of the first decision but before the rule saw it (a step's hook, or a second
+    # Ctrl-C during the validation renders): the resumed run takes that step's validation and decision.
+    for at, phase in ((steps[0] + 10, TRAIN), (steps[0], DENSIFY)):
+        out = tmp_path / f"part{at}"
+        part = Trainer(None, overrides=quick_overrides(out, **AUTO), quiet=True, callbacks=[Interrupt(at)])
+        with pytest.raises(KeyboardInterrupt):
+            part.fit()
+        resumed = Trainer(None, overrides=quick_overrides(out, **AUTO), quiet=True, resume=True)
+        assert resumed.step == at and resumed.strategy.auto.phase == phase
+        assert resumed.views.held_out == validation_split(full.scene.train, 8)[1]  # not yet back for the polish
+        again = resumed.fit()
+        assert again.metrics["schedule"] == sched and again.steps == result.steps
+        assert again.metrics["psnr"] == pytest.approx(result.metrics["psnr"], abs=1e-4)
 
 
 def test_views_held_out_come_back_and_resume():

@@ -88,6 +88,9 @@ class TrainingLoop:
         loaded = tr.views.load_all()  # outside the steps' clock, as gsplat's and 3DGS's loaders do
         if loaded:
             self.say(f"warpgs: {loaded} training views loaded onto {tr.device} in {time.perf_counter() - t0:.1f} s")
+        if tr.strategy.auto is not None and tr.step > 0:  # a checkpoint written before the rule saw its step
+            with tr.lock:  # (a step's hook or a second Ctrl-C stopped it): that step's validation and decisions
+                self._auto_schedule()
         try:
             with StopOnSigint(self.say) as sigint:
                 while tr.step < self.end():
@@ -152,7 +155,7 @@ class TrainingLoop:
         tr = self.trainer
         auto, strategy, step = tr.strategy.auto, tr.strategy, tr.step
         decisions = []
-        if auto.due(step):
+        if auto.due(step) and not (auto.scores and auto.scores[-1]["step"] >= step):  # once a step (resumes)
             psnr = self._validation_psnr()
             tr.log.event("validation", step, {"psnr": psnr, "num_views": len(tr.views.held_out)},
                          train_seconds=tr.train_seconds)
