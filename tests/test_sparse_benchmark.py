@@ -51,6 +51,24 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     assert "1 runs (1 done, 0 to do)" in capsys.readouterr().out
 
 
+def test_a_run_file_made_with_other_steps_is_not_reused(tmp_path):
+    """Run files are named without the steps, budget and downscale: resuming into the same --out with other ones
+    must not count (or tabulate) the old runs as done."""
+    scene = synthetic_dir("orbit")
+    out = tmp_path / "out"
+    (out / "runs").mkdir(parents=True)
+    old = {"id": "m360_24_orbit_baseline_s0", "scene": "orbit", "setting": "baseline", "seed": 0, "steps": 8,
+           "budget": 1000, "downscale": 1, "psnr": 10.0}
+    (out / "runs" / "m360_24_orbit_baseline_s0.json").write_text(json.dumps(old))
+    common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--budget", "1000",
+              "--out", str(out)]
+    for extra in (["--dry-run"], ["--table"]):
+        with pytest.raises(SystemExit, match="made with steps 8; this plan asks for steps 300"):
+            sparse.main(common + extra)
+    with pytest.raises(SystemExit, match="made with budget 1000; this plan asks for budget 2000"):
+        sparse.main(common[:-4] + ["--budget", "2000", "--steps", "8", "--out", str(out), "--dry-run"])
+
+
 def _result(scene, setting, seed, psnr):
     return {"scene": scene, "setting": setting, "seed": seed, "psnr": psnr, "ssim": 0.5, "lpips": None,
             "depth_order": None, "abs_rel": None, "coverage": None, "num_primitives": 10, "train_seconds": 1.0}
