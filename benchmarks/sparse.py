@@ -155,8 +155,22 @@ def make_prior(args, scene: SceneSpec) -> dict:
     _, report = compute_depth_priors(loaded, plane_sweep(None), out_dir=folder)
     report["seconds_total"] = round(time.perf_counter() - start, 1)
     report["device"] = args.device
+    report["downscale"] = scene.downscale  # the folder's name leaves it out: prior_done checks it
     atomic_write_bytes(folder / "prior.json", json.dumps(report, indent=1, default=str).encode())
     return report
+
+
+def prior_done(out: Path, protocol: str, scene: SceneSpec) -> bool:
+    """Whether the scene's prior is made. One made at another downscale (the folder is named by protocol and scene
+    only, and the loader would silently resize it) is an error."""
+    f = prior_folder(out, protocol, scene) / "prior.json"
+    if not f.is_file():
+        return False
+    made = json.loads(f.read_text()).get("downscale", scene.downscale)  # files from before it was recorded
+    if made != scene.downscale:
+        raise SystemExit(f"{f}: the prior was made at downscale {made}, this plan reads {scene.name} at "
+                         f"{scene.downscale}: give another --out, or delete {f.parent}")
+    return True
 
 
 def reference_depth(scene: SceneSpec, loaded) -> tuple[Optional[dict], str]:
@@ -432,7 +446,7 @@ def dry_run(args, runs: list[Run], scenes: list[SceneSpec]) -> None:
         loaded = load(sc, args.proto)
         ref = ("reference_depth.npz" if (sc.path / REFERENCE_FILE).is_file() else
                "sparse/0" if (sc.path / "sparse" / "0" / "points3D.bin").is_file() else "none (image metrics only)")
-        prior = "done" if (prior_folder(out, args.tag, sc) / "prior.json").is_file() else "to do"
+        prior = "done" if prior_done(out, args.tag, sc) else "to do"
         print(f"{sc.name} ({sc.path}, downscale {sc.downscale}, {loaded.cameras[0].width}x{loaded.cameras[0].height}"
               f", {len(loaded)} views): train {loaded.train} {[loaded.names[v] for v in loaded.train]}, test "
               f"{loaded.test}; depth reference: {ref}; prior: {prior}")
@@ -467,7 +481,7 @@ def main(argv=None):
     groups = [str(g) for g in gpus] or [""]
     env = lambda i: {"CUDA_VISIBLE_DEVICES": groups[i % len(groups)]} if gpus else {}  # noqa: E731
     priors = [sc for sc in {r.scene: None for r in todo if needs_prior(r, args.overrides)}
-              if not (prior_folder(out, args.tag, sc) / "prior.json").is_file()]
+              if not prior_done(out, args.tag, sc)]
     start = time.perf_counter()
     logs = out / "logs"
     if priors:

@@ -69,6 +69,19 @@ def test_a_run_file_made_with_other_steps_is_not_reused(tmp_path):
         sparse.main(common[:-4] + ["--budget", "2000", "--steps", "8", "--out", str(out), "--dry-run"])
 
 
+def test_a_prior_made_at_another_downscale_is_not_reused(tmp_path):
+    scene = synthetic_dir("orbit")
+    out = tmp_path / "out"
+    folder = out / "priors" / "m360_24_orbit"
+    folder.mkdir(parents=True)
+    (folder / "prior.json").write_text(json.dumps({"downscale": 2}))
+    common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "full", "--out", str(out), "--dry-run"]
+    with pytest.raises(SystemExit, match="made at downscale 2, this plan reads orbit at 1"):
+        sparse.main(common)
+    (folder / "prior.json").write_text(json.dumps({"downscale": 1}))
+    sparse.main(common)  # the same downscale: done
+
+
 def _result(scene, setting, seed, psnr):
     return {"scene": scene, "setting": setting, "seed": seed, "psnr": psnr, "ssim": 0.5, "lpips": None,
             "depth_order": None, "abs_rel": None, "coverage": None, "num_primitives": 10, "train_seconds": 1.0}
