@@ -28,7 +28,8 @@ given when its weights are on disk.
 
 Runs shorter than the preset's 10k steps scale its step schedule as ablation.py does; on the CPU the primitive budget
 is 10k (prior points scaled with it) unless --budget says otherwise. Run files: <out>/runs/<protocol>_<scene>_<setting>
-_s<seed>.json; a run whose file exists is skipped (so a cut wave resumes). The tables go to
+_s<seed>.json; a run whose file exists is skipped (so a cut wave resumes), one made with other steps, budget or
+downscale is an error. The tables go to
 benchmarks/results/sparse_<name>.json (or $OUT). On a device, $OUT is emptied between commands: give --out a folder of
 your own and copy the table there at the end.
 """
@@ -154,8 +155,22 @@ def make_prior(args, scene: SceneSpec) -> dict:
     _, report = compute_depth_priors(loaded, plane_sweep(None), out_dir=folder)
     report["seconds_total"] = round(time.perf_counter() - start, 1)
     report["device"] = args.device
+    report["downscale"] = scene.downscale  # the folder's name leaves it out: prior_done checks it
     atomic_write_bytes(folder / "prior.json", json.dumps(report, indent=1, default=str).encode())
     return report
+
+
+def prior_done(out: Path, protocol: str, scene: SceneSpec) -> bool:
+    """Whether the scene's prior is made. One made at another downscale (the folder is named by protocol and scene
+    only, and the loader would silently resize it) is an error."""
+    f = prior_folder(out, protocol, scene) / "prior.json"
+    if not f.is_file():
+        return False
+    made = json.loads(f.read_text()).get("downscale", scene.downscale)  # files from before it was recorded
+    if made != scene.downscale:
+        raise SystemExit(f"{f}: the prior was made at downscale {made}, this plan reads {scene.name} at "
+                         f"{scene.downscale}: give another --out, or delete {f.parent}")
+    return True
 
 
 def reference_depth(scene: SceneSpec, loaded) -> tuple[Optional[dict], str]:
@@ -218,6 +233,22 @@ def run_budget(args) -> Optional[int]:
 
 def run_file(out: Path, run: Run) -> Path:
     return out / "runs" / f"{run.id}.json"
+
+
+def run_done(args, run: Run) -> bool:
+    """Whether the run's file exists. Its name leaves out the steps, the budget and the downscale, so a file made
+    with others (a CPU smoke wave, then the real one into the same --out) is an error, never reused or tabulated."""
+    f = run_file(Path(args.out), run)
+    if not f.is_file():
+        return False
+    recorded = json.loads(f.read_text())
+    wanted = {"steps": run_steps(args), "budget": run_budget(args), "downscale": run.scene.downscale}
+    differ = {k: (recorded.get(k), v) for k, v in wanted.items() if recorded.get(k) != v}
+    if differ:
+        raise SystemExit(f"{f}: made with " + ", ".join(f"{k} {a}" for k, (a, _) in differ.items())
+                         + "; this plan asks for " + ", ".join(f"{k} {b}" for k, (_, b) in differ.items())
+                         + ": give another --out (or the same --steps/--budget/--device/@downscale), or delete it")
+    return True
 
 
 # --- tables --------------------------------------------------------------------------------------------------------
@@ -324,7 +355,7 @@ def tables(args, runs: list[Run]) -> dict:
     results, missing = [], []
     for run in runs:
         f = run_file(Path(args.out), run)
-        (results.append(json.loads(f.read_text())) if f.is_file() else missing.append(run.id))
+        (results.append(json.loads(f.read_text())) if run_done(args, run) else missing.append(run.id))
     if not results:
         raise SystemExit(f"no run files under {Path(args.out) / 'runs'} for this plan")
     settings = [k for k in SETTINGS if k in {r.setting for r in runs}]
@@ -415,15 +446,15 @@ def dry_run(args, runs: list[Run], scenes: list[SceneSpec]) -> None:
         loaded = load(sc, args.proto)
         ref = ("reference_depth.npz" if (sc.path / REFERENCE_FILE).is_file() else
                "sparse/0" if (sc.path / "sparse" / "0" / "points3D.bin").is_file() else "none (image metrics only)")
-        prior = "done" if (prior_folder(out, args.tag, sc) / "prior.json").is_file() else "to do"
+        prior = "done" if prior_done(out, args.tag, sc) else "to do"
         print(f"{sc.name} ({sc.path}, downscale {sc.downscale}, {loaded.cameras[0].width}x{loaded.cameras[0].height}"
               f", {len(loaded)} views): train {loaded.train} {[loaded.names[v] for v in loaded.train]}, test "
               f"{loaded.test}; depth reference: {ref}; prior: {prior}")
-    done = sum(run_file(out, r).is_file() for r in runs)
+    done = sum(run_done(args, r) for r in runs)
     print(f"\n{len(runs)} runs ({done} done, {len(runs) - done} to do), {run_steps(args)} steps on {args.device}, "
           f"budget {run_budget(args) or 'preset'}, out {out}:")
     for r in runs:
-        print(f"  {'done ' if run_file(out, r).is_file() else 'to do'}  {r.id}  ({SETTINGS[r.setting][1]})")
+        print(f"  {'done ' if run_done(args, r) else 'to do'}  {r.id}  ({SETTINGS[r.setting][1]})")
 
 
 def main(argv=None):
@@ -446,11 +477,11 @@ def main(argv=None):
         pid = detach(cmd, out / f"{args.name}_jobs.log")
         print(f"detached: pid {pid}, output in {out / f'{args.name}_jobs.log'} (pid beside it)")
         return None
-    todo = [r for r in runs if not run_file(out, r).is_file()]
+    todo = [r for r in runs if not run_done(args, r)]
     groups = [str(g) for g in gpus] or [""]
     env = lambda i: {"CUDA_VISIBLE_DEVICES": groups[i % len(groups)]} if gpus else {}  # noqa: E731
     priors = [sc for sc in {r.scene: None for r in todo if needs_prior(r, args.overrides)}
-              if not (prior_folder(out, args.tag, sc) / "prior.json").is_file()]
+              if not prior_done(out, args.tag, sc)]
     start = time.perf_counter()
     logs = out / "logs"
     if priors:

@@ -66,6 +66,24 @@ def test_ply_round_trip(tmp_path):
     assert any("tetrahedron" in c for c in ply.comments)
 
 
+def test_ply_comment_with_non_ascii_characters(tmp_path):
+    """The comment names the run folder, which may be any name; the PLY header must stay ASCII."""
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    path = tmp_path / "tri.ply"
+    write_mesh_ply(path, Mesh(verts, np.array([[0, 1, 2]], np.int32), np.zeros((3, 3), np.float32)),
+                   comment="warpgs-mesh of café: surfels")
+    ply = plyfile.PlyData.read(str(path))
+    assert len(ply["face"]) == 1 and any("caf" in c and "surfels" in c for c in ply.comments)
+
+
+def test_unwritable_output_names_the_argument(surfel_run, tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    assert main(["--model", str(surfel_run), "--voxel", "0.1", "--radius", "2",
+                 "--out", str(blocker / "mesh.ply")]) == 2
+    assert "--out: cannot write" in capsys.readouterr().err
+
+
 def _error_of(argv, capsys) -> str:
     assert main(argv) == 2
     return capsys.readouterr().err

@@ -115,6 +115,25 @@ def test_renders_nobody_differentiates_skip_autograd_and_match(op, monkeypatch):
             _assert_same(getattr(out, name), getattr(graded, name).detach(), name)
 
 
+@pytest.mark.parametrize("op", ["gaussians", "surfels"])
+@pytest.mark.parametrize("leaf", ["features", "K", "background"])
+def test_a_render_where_one_input_needs_a_gradient_still_gets_it(op, leaf):
+    """run_op skips autograd only when no tensor argument needs a gradient: an input that alone needs one (the
+    features, the camera, or the background, which is blended outside the op) still gets it."""
+    from warpgs import rasterize_surfels
+
+    scene = random_scene(n=60, seed=7, num_features=2)
+    if op == "surfels":
+        scene = dict(scene, scales=scene["scales"][:, :2])
+    render = rasterize if op == "gaussians" else rasterize_surfels
+    leaves = _leaves(scene, False)
+    background = torch.full((3,), 0.3, device=DEVICE)
+    wanted = {"features": leaves["features"], "K": leaves["K"], "background": background}[leaf].requires_grad_(True)
+    out = _render(scene, leaves, ("rgb", "features"), op=render, tile_size=8, background=background)
+    (out.rgb.sum() + out.features.sum()).backward()
+    assert wanted.grad is not None and wanted.grad.abs().sum() > 0 and torch.isfinite(wanted.grad).all()
+
+
 def test_interleaved_renders_keep_their_own_buffers():
     """Two forwards, then their backwards in reverse order (and a forward-only render and a render of another
     size in between, which reuse and grow the scratch memory): every gradient equals that of a render

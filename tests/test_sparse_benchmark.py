@@ -51,6 +51,37 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     assert "1 runs (1 done, 0 to do)" in capsys.readouterr().out
 
 
+def test_a_run_file_made_with_other_steps_is_not_reused(tmp_path):
+    """Run files are named without the steps, budget and downscale: resuming into the same --out with other ones
+    must not count (or tabulate) the old runs as done."""
+    scene = synthetic_dir("orbit")
+    out = tmp_path / "out"
+    (out / "runs").mkdir(parents=True)
+    old = {"id": "m360_24_orbit_baseline_s0", "scene": "orbit", "setting": "baseline", "seed": 0, "steps": 8,
+           "budget": 1000, "downscale": 1, "psnr": 10.0}
+    (out / "runs" / "m360_24_orbit_baseline_s0.json").write_text(json.dumps(old))
+    common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--budget", "1000",
+              "--out", str(out)]
+    for extra in (["--dry-run"], ["--table"]):
+        with pytest.raises(SystemExit, match="made with steps 8; this plan asks for steps 300"):
+            sparse.main(common + extra)
+    with pytest.raises(SystemExit, match="made with budget 1000; this plan asks for budget 2000"):
+        sparse.main(common[:-4] + ["--budget", "2000", "--steps", "8", "--out", str(out), "--dry-run"])
+
+
+def test_a_prior_made_at_another_downscale_is_not_reused(tmp_path):
+    scene = synthetic_dir("orbit")
+    out = tmp_path / "out"
+    folder = out / "priors" / "m360_24_orbit"
+    folder.mkdir(parents=True)
+    (folder / "prior.json").write_text(json.dumps({"downscale": 2}))
+    common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "full", "--out", str(out), "--dry-run"]
+    with pytest.raises(SystemExit, match="made at downscale 2, this plan reads orbit at 1"):
+        sparse.main(common)
+    (folder / "prior.json").write_text(json.dumps({"downscale": 1}))
+    sparse.main(common)  # the same downscale: done
+
+
 def _result(scene, setting, seed, psnr):
     return {"scene": scene, "setting": setting, "seed": seed, "psnr": psnr, "ssim": 0.5, "lpips": None,
             "depth_order": None, "abs_rel": None, "coverage": None, "num_primitives": 10, "train_seconds": 1.0}

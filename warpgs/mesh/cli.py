@@ -91,7 +91,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         return _error("no surface found: no voxel was seen from both sides of a depth sample; try a larger "
                       "--voxel or --depth-trunc, or --unbounded")
     t = settings.timings
-    write_mesh_ply(out, mesh, comment=f"warpgs-mesh of {run.name}: {kind}, {t['depth']}, voxel {t['voxel']:.6g}")
+    try:
+        write_mesh_ply(out, mesh, comment=f"warpgs-mesh of {run.name}: {kind}, {t['depth']}, voxel {t['voxel']:.6g}")
+    except OSError as e:  # e.g. a file where a folder of the path should be, no permission, a full disk
+        return _error(f"--out: cannot write {out}: {e}")
     print(f"mesh: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces from {t['views']} views of "
           f"{trainer.model.num_primitives} {kind} (voxel {t['voxel']:.4g}, trunc {t['trunc']:.4g}, "
           f"radius {t['radius']:.4g}{', unbounded' if settings.unbounded else ''}); render {t['render_s']:.1f} s, "

@@ -26,7 +26,9 @@ def write_mesh_ply(path, mesh: Mesh, comment: str = "") -> None:
     f["count"] = 3
     f["vertex_indices"] = mesh.faces
     lines = ["ply", "format binary_little_endian 1.0"]
-    lines += [f"comment {line}" for line in comment.splitlines() if line.strip()]
+    # the header is ASCII: a comment naming a run folder like "café" keeps its other characters as \xe9 escapes
+    lines += [f"comment {line.encode('ascii', 'backslashreplace').decode('ascii')}"
+              for line in comment.splitlines() if line.strip()]
     lines += [f"element vertex {len(v)}"]
     lines += [f"property float {n}" for n in ("x", "y", "z", "nx", "ny", "nz")]
     lines += [f"property uchar {n}" for n in ("red", "green", "blue")]
