@@ -48,7 +48,7 @@ from typing import Optional
 
 import ablation
 from common import ROOT, write_json
-from job_pool import Job, detach, run_jobs
+from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
 from sparse_data import REFERENCE_FILE, read_reference_depth
 from sparse_tables import PAPER_TABLE2, SETTINGS, TERMS, print_tables, summarise  # statistics and tables
 
@@ -305,13 +305,7 @@ def parse(argv):
     scenes = [parse_scene(s, protocol) for s in args.scenes.split(",") if s]
     if len({s.name for s in scenes}) != len(scenes):
         raise SystemExit("--scenes: two scenes share a folder name (it names their run files)")
-    try:
-        seeds = [int(s) for s in args.seeds.split(",")]
-        gpus = [int(g) for g in args.gpus.split(",")] if args.gpus else []
-    except ValueError as e:
-        raise SystemExit(f"--seeds / --gpus: comma-separated integers expected ({e})")
-    if args.per_gpu < 1:
-        raise SystemExit(f"--per-gpu: expected at least 1, got {args.per_gpu}")
+    seeds, gpus = parse_seeds_gpus(args.seeds, args.gpus, args.per_gpu)
     if args.gpus and not args.device.startswith("cuda"):
         raise SystemExit("--gpus: give --device cuda too")
     if any("=" not in o for o in args.overrides):
@@ -370,19 +364,17 @@ def main(argv=None):
         print(f"detached: pid {pid}, output in {out / f'{args.name}_jobs.log'} (pid beside it)")
         return None
     todo = [r for r in runs if not run_done(args, r)]
-    groups = [str(g) for g in gpus] or [""]
-    env = lambda i: {"CUDA_VISIBLE_DEVICES": groups[i % len(groups)]} if gpus else {}  # noqa: E731
     priors = [sc for sc in {r.scene: None for r in todo if needs_prior(r, args.overrides)}
               if not prior_done(out, args.tag, sc)]
     start = time.perf_counter()
     logs = out / "logs"
     if priors:
         print(f"priors: {', '.join(sc.name for sc in priors)}", file=sys.stderr, flush=True)
-        run_jobs([Job(f"prior_{args.tag}_{sc.name}", worker_cmd(args, "prior", sc), groups[i % len(groups)],
-                      env(i)) for i, sc in enumerate(priors)], args.per_gpu, logs)
+        run_jobs([Job(f"prior_{args.tag}_{sc.name}", worker_cmd(args, "prior", sc), *gpu_slot(gpus, i))
+                  for i, sc in enumerate(priors)], args.per_gpu, logs)
     print(f"runs: {len(todo)} to do of {len(runs)}", file=sys.stderr, flush=True)
-    run_jobs([Job(r.id, worker_cmd(args, "run", r.scene, r), groups[i % len(groups)], env(i))
-              for i, r in enumerate(todo)], args.per_gpu, logs, summary=lambda job, log: _summary(out, job))
+    run_jobs([Job(r.id, worker_cmd(args, "run", r.scene, r), *gpu_slot(gpus, i)) for i, r in enumerate(todo)],
+             args.per_gpu, logs, summary=lambda job, log: _summary(out, job))
     print(f"all runs done in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     return tables(args, runs)
 
