@@ -33,213 +33,26 @@ downscale is an error. The tables go to
 benchmarks/results/sparse_<name>.json (or $OUT). On a device, $OUT is emptied between commands: give --out a folder of
 your own and copy the table there at the end.
 """
+# This file is the driver (arguments, dry run, waves of worker processes, the table file); sparse_runs.py holds the
+# plan and the run files, sparse_worker.py the two worker processes, sparse_tables.py the statistics and tables.
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import platform
 import sys
-import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import ablation
 from common import ROOT, write_json
 from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
-from sparse_data import REFERENCE_FILE, read_reference_depth
-from sparse_tables import PAPER_TABLE2, SETTINGS, TERMS, print_tables, summarise  # statistics and tables
-
-from warpgs.utils.atomic_file import atomic_write_bytes
-
-HERE = Path(__file__).resolve().parent
-GROUPS = {"main": ["baseline", "full"], "terms": TERMS, "paper": ["baseline", *TERMS, "full"], "all": list(SETTINGS)}
-FULL_STEPS = ablation.FULL_STEPS["real"]  # the presets' train.steps
-CPU_STEPS = 300
-
-
-@dataclass(frozen=True)
-class Protocol:
-    n_train: int
-    downscale: int  # default data.downscale of its scenes
-    about: str
-
-
-PROTOCOLS = {"llff3": Protocol(3, 8, "LLFF, 3 training views, 1/8 resolution (FSGS / DNGaussian)"),
-             "m360_24": Protocol(24, 1, "360°, 24 training views (FSGS's Mip-NeRF 360 protocol)"),
-             "m360_3": Protocol(3, 1, "360°, 3 training views")}
-
-
-@dataclass(frozen=True)
-class SceneSpec:
-    path: Path
-    downscale: int
-
-    @property
-    def name(self) -> str:
-        return self.path.name
-
-
-@dataclass(frozen=True)
-class Run:
-    protocol: str
-    scene: SceneSpec
-    setting: str
-    seed: int
-
-    @property
-    def id(self) -> str:
-        return f"{self.protocol}_{self.scene.name}_{self.setting}_s{self.seed}"
-
-
-def parse_scene(spec: str, protocol: Protocol) -> SceneSpec:
-    path, _, ds = spec.partition("@")
-    if not ds.isdigit() and ds:
-        raise SystemExit(f"--scenes: {spec!r}: expected PATH or PATH@DOWNSCALE")
-    if not Path(path).is_dir():
-        raise SystemExit(f"--scenes: {path} is not a folder")
-    return SceneSpec(Path(path).resolve(), int(ds) if ds else protocol.downscale)
-
-
-def expand_settings(text: str) -> list[str]:
-    keys = []
-    for part in text.split(","):
-        for key in GROUPS.get(part, [part]):
-            if key not in SETTINGS:
-                raise SystemExit(f"--settings: {key!r} is neither a setting ({', '.join(SETTINGS)}) nor a group "
-                                 f"({', '.join(GROUPS)})")
-            if key not in keys:
-                keys.append(key)
-    return keys
-
-
-def plan(protocol: str, scenes: list[SceneSpec], settings: list[str], seeds: list[int]) -> list[Run]:
-    return [Run(protocol, sc, key, seed) for sc in scenes for key in settings for seed in seeds]
-
-
-def load(scene: SceneSpec, protocol: Protocol):
-    from warpgs.data import load_scene
-
-    return load_scene(scene.path, split="llff", n_train=protocol.n_train, downscale=scene.downscale)
-
-
-def prior_folder(out: Path, protocol: str, scene: SceneSpec) -> Path:
-    return out / "priors" / f"{protocol}_{scene.name}"
-
-
-def needs_prior(run: Run, user_overrides=()) -> bool:
-    _, preset, overrides, _ = SETTINGS[run.setting]
-    return ablation.uses_prior(preset, [*user_overrides, *overrides])
-
-
-# --- the two kinds of worker process -------------------------------------------------------------------------------
-def make_prior(args, scene: SceneSpec) -> dict:
-    """The prior of one scene's training views, written to <out>/priors/...; prior.json (last) marks it done."""
-    from warpgs.data import compute_depth_priors
-    from warpgs.train.setup import plane_sweep
-
-    folder = prior_folder(Path(args.out), args.tag, scene)
-    loaded = load(scene, args.proto)
-    start = time.perf_counter()
-    _, report = compute_depth_priors(loaded, plane_sweep(None), out_dir=folder)
-    report["seconds_total"] = round(time.perf_counter() - start, 1)
-    report["device"] = args.device
-    report["downscale"] = scene.downscale  # the folder's name leaves it out: prior_done checks it
-    atomic_write_bytes(folder / "prior.json", json.dumps(report, indent=1, default=str).encode())
-    return report
-
-
-def prior_done(out: Path, protocol: str, scene: SceneSpec) -> bool:
-    """Whether the scene's prior is made. One made at another downscale (the folder is named by protocol and scene
-    only, and the loader would silently resize it) is an error."""
-    f = prior_folder(out, protocol, scene) / "prior.json"
-    if not f.is_file():
-        return False
-    made = json.loads(f.read_text()).get("downscale", scene.downscale)  # files from before it was recorded
-    if made != scene.downscale:
-        raise SystemExit(f"{f}: the prior was made at downscale {made}, this plan reads {scene.name} at "
-                         f"{scene.downscale}: give another --out, or delete {f.parent}")
-    return True
-
-
-def reference_depth(scene: SceneSpec, loaded) -> tuple[Optional[dict], str]:
-    """({test view name: [H, W] sparse depth}, where it came from) or (None, why not)."""
-    names = [loaded.names[v] for v in loaded.test]
-    w, h = loaded.cameras[0].width, loaded.cameras[0].height
-    if (scene.path / REFERENCE_FILE).is_file():
-        return read_reference_depth(scene.path, names, w, h), REFERENCE_FILE
-    if (scene.path / "sparse" / "0" / "points3D.bin").is_file():
-        from warpgs.data.depth.reference_points import sparse_depth_map, view_reference_points
-        from warpgs.data.errors import SceneError
-
-        try:
-            points, per_view = view_reference_points(loaded)
-        except SceneError as e:
-            return None, f"sparse/0 unusable: {e}"
-        return {loaded.names[v]: sparse_depth_map(loaded.cameras[v], points.xyz[per_view[v]])
-                for v in loaded.test}, "sparse/0"
-    return None, "no SfM model"
-
-
-def train_one(args, run: Run) -> dict:
-    """One training run, scored on the protocol's test views; its JSON is written atomically."""
-    import torch
-
-    label, preset, setting_overrides, marr = SETTINGS[run.setting]
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    loaded = load(run.scene, args.proto)
-    reference, reference_from = reference_depth(run.scene, loaded)
-    steps, budget = run_steps(args), run_budget(args)
-    base = [f"data.path={run.scene.path}", "data.split=llff", f"data.n_train={args.proto.n_train}",
-            f"data.downscale={run.scene.downscale}"] + ([f"strategy.max_primitives={budget}"] if budget else [])
-    extra = (ablation.setting_overrides_for_run(preset, setting_overrides, budget, base + list(args.overrides))
-             + ([f"data.depth_priors={prior_folder(Path(args.out), run.protocol, run.scene)}"]
-                if needs_prior(run, args.overrides) else []))
-    with tempfile.TemporaryDirectory(prefix="warpgs-sparse-") as tmp:
-        result = ablation.run_setting(run.setting, preset, steps, run.seed, args.device, extra, Path(tmp), args.pairs,
-                                      FULL_STEPS, marr, reference)
-    payload = {"id": run.id, "protocol": run.protocol, "scene": run.scene.name, "scene_path": str(run.scene.path),
-               "downscale": run.scene.downscale, "n_train": args.proto.n_train, "setting": run.setting,
-               "label": label, "size": [loaded.cameras[0].width, loaded.cameras[0].height],
-               "train": [loaded.names[v] for v in loaded.train], "train_index": loaded.train,
-               "test": [loaded.names[v] for v in loaded.test], "test_index": loaded.test,
-               "reference": reference_from, "device": args.device, "budget": budget,
-               "schedule_overrides": ablation.schedule_overrides(steps, FULL_STEPS),
-               "torch_threads": torch.get_num_threads(), "machine": platform.node(),
-               "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None, **result}
-    atomic_write_bytes(run_file(Path(args.out), run), json.dumps(payload, indent=1).encode())
-    return payload
-
-
-def run_steps(args) -> int:
-    return args.steps or (FULL_STEPS if args.device.startswith("cuda") else CPU_STEPS)
-
-
-def run_budget(args) -> Optional[int]:
-    return args.budget or (None if args.device.startswith("cuda") else ablation.CPU_BUDGET)
-
-
-def run_file(out: Path, run: Run) -> Path:
-    return out / "runs" / f"{run.id}.json"
-
-
-def run_done(args, run: Run) -> bool:
-    """Whether the run's file exists. Its name leaves out the steps, the budget and the downscale, so a file made
-    with others (a CPU smoke wave, then the real one into the same --out) is an error, never reused or tabulated."""
-    f = run_file(Path(args.out), run)
-    if not f.is_file():
-        return False
-    recorded = json.loads(f.read_text())
-    wanted = {"steps": run_steps(args), "budget": run_budget(args), "downscale": run.scene.downscale}
-    differ = {k: (recorded.get(k), v) for k, v in wanted.items() if recorded.get(k) != v}
-    if differ:
-        raise SystemExit(f"{f}: made with " + ", ".join(f"{k} {a}" for k, (a, _) in differ.items())
-                         + "; this plan asks for " + ", ".join(f"{k} {b}" for k, (_, b) in differ.items())
-                         + ": give another --out (or the same --steps/--budget/--device/@downscale), or delete it")
-    return True
+from sparse_data import REFERENCE_FILE
+from sparse_runs import (CPU_STEPS, FULL_STEPS, PROTOCOLS, Protocol, Run, SceneSpec, expand_settings, load,  # the plan
+                         needs_prior, parse_scene, plan, prior_done, run_budget, run_done, run_file, run_steps)
+from sparse_tables import PAPER_TABLE2, SETTINGS, print_tables, summarise  # statistics and tables
+from sparse_worker import make_prior, train_one  # the worker processes
 
 
 # --- the run files' tables ------------------------------------------------------------------------------------------

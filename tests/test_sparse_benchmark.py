@@ -18,6 +18,7 @@ sys.path.insert(0, str(BENCH))
 
 import sparse  # noqa: E402
 import sparse_data  # noqa: E402
+import sparse_runs  # noqa: E402
 import sparse_tables  # noqa: E402
 
 
@@ -111,12 +112,12 @@ def test_tables_pair_seeds_and_average_scenes(capsys):
 
 
 def test_settings_groups_and_bad_input():
-    assert sparse.expand_settings("main") == ["baseline", "full"]
-    assert sparse.expand_settings("paper")[1:-1] == [f"wo_{t}" for t in ("depth", "depth_grad", "depth_local",
+    assert sparse_runs.expand_settings("main") == ["baseline", "full"]
+    assert sparse_runs.expand_settings("paper")[1:-1] == [f"wo_{t}" for t in ("depth", "depth_grad", "depth_local",
                                                                           "opacity", "scale", "count")]
-    assert set(sparse_tables.PAPER_TABLE2) == set(sparse.expand_settings("paper"))
+    assert set(sparse_tables.PAPER_TABLE2) == set(sparse_runs.expand_settings("paper"))
     with pytest.raises(SystemExit, match="--settings: 'wo_nothing'"):
-        sparse.expand_settings("baseline,wo_nothing")
+        sparse_runs.expand_settings("baseline,wo_nothing")
     with pytest.raises(SystemExit, match="is not a folder"):
         sparse.main(["--scenes", "/no/such/scene", "--dry-run"])
 
