@@ -50,7 +50,7 @@ from common import ROOT, write_json
 from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
 from sparse_data import REFERENCE_FILE
 from sparse_runs import (CPU_STEPS, FULL_STEPS, PROTOCOLS, Protocol, Run, SceneSpec, expand_settings, load,  # the plan
-                         needs_prior, parse_scene, plan, prior_done, run_budget, run_done, run_file, run_steps)
+                         needs_prior, parse_scene, plan, prior_done, read_run, run_budget, run_done, run_steps)
 from sparse_tables import PAPER_TABLE2, SETTINGS, print_tables, summarise  # statistics and tables
 from sparse_worker import make_prior, train_one  # the worker processes
 
@@ -59,8 +59,8 @@ from sparse_worker import make_prior, train_one  # the worker processes
 def tables(args, runs: list[Run]) -> dict:
     results, missing = [], []
     for run in runs:
-        f = run_file(Path(args.out), run)
-        (results.append(json.loads(f.read_text())) if run_done(args, run) else missing.append(run.id))
+        recorded = read_run(args, run)
+        (results.append(recorded) if recorded is not None else missing.append(run.id))
     if not results:
         raise SystemExit(f"no run files under {Path(args.out) / 'runs'} for this plan")
     settings = [k for k in SETTINGS if k in {r.setting for r in runs}]
@@ -149,11 +149,11 @@ def dry_run(args, runs: list[Run], scenes: list[SceneSpec]) -> None:
         print(f"{sc.name} ({sc.path}, downscale {sc.downscale}, {loaded.cameras[0].width}x{loaded.cameras[0].height}"
               f", {len(loaded)} views): train {loaded.train} {[loaded.names[v] for v in loaded.train]}, test "
               f"{loaded.test}; depth reference: {ref}; prior: {prior}")
-    done = sum(run_done(args, r) for r in runs)
-    print(f"\n{len(runs)} runs ({done} done, {len(runs) - done} to do), {run_steps(args)} steps on {args.device}, "
-          f"budget {run_budget(args) or 'preset'}, out {out}:")
-    for r in runs:
-        print(f"  {'done ' if run_done(args, r) else 'to do'}  {r.id}  ({SETTINGS[r.setting][1]})")
+    done = [run_done(args, r) for r in runs]
+    print(f"\n{len(runs)} runs ({sum(done)} done, {len(runs) - sum(done)} to do), {run_steps(args)} steps on "
+          f"{args.device}, budget {run_budget(args) or 'preset'}, out {out}:")
+    for r, d in zip(runs, done):
+        print(f"  {'done ' if d else 'to do'}  {r.id}  ({SETTINGS[r.setting][1]})")
 
 
 def main(argv=None):

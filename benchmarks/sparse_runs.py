@@ -115,11 +115,17 @@ def run_file(out: Path, run: Run) -> Path:
 
 
 def run_done(args, run: Run) -> bool:
-    """Whether the run's file exists. Its name leaves out the steps, the budget and the downscale, so a file made
-    with others (a CPU smoke wave, then the real one into the same --out) is an error, never reused or tabulated."""
+    """Whether the run's file exists (made with this plan's settings, see read_run)."""
+    return read_run(args, run) is not None
+
+
+def read_run(args, run: Run) -> Optional[dict]:
+    """The run's file (None when there is none). Its name leaves out the steps, the budget and the downscale, so a
+    file made with others (a CPU smoke wave, then the real one into the same --out) is an error, never reused or
+    tabulated."""
     f = run_file(Path(args.out), run)
     if not f.is_file():
-        return False
+        return None
     recorded = json.loads(f.read_text())
     wanted = {"steps": run_steps(args), "budget": run_budget(args), "downscale": run.scene.downscale}
     differ = {k: (recorded.get(k), v) for k, v in wanted.items() if recorded.get(k) != v}
@@ -127,4 +133,4 @@ def run_done(args, run: Run) -> bool:
         raise SystemExit(f"{f}: made with " + ", ".join(f"{k} {a}" for k, (a, _) in differ.items())
                          + "; this plan asks for " + ", ".join(f"{k} {b}" for k, (_, b) in differ.items())
                          + ": give another --out (or the same --steps/--budget/--device/@downscale), or delete it")
-    return True
+    return recorded
