@@ -48,11 +48,10 @@ from typing import Optional
 import ablation
 from common import ROOT, write_json
 from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
-from sparse_data import REFERENCE_FILE
 from sparse_runs import (CPU_STEPS, FULL_STEPS, PROTOCOLS, Protocol, Run, SceneSpec, expand_settings, load,  # the plan
                          needs_prior, parse_scene, plan, prior_done, read_run, run_budget, run_done, run_steps)
 from sparse_tables import PAPER_TABLE2, SETTINGS, print_tables, summarise  # statistics and tables
-from sparse_worker import make_prior, train_one  # the worker processes
+from sparse_worker import make_prior, reference_source, train_one  # the worker processes
 
 
 # --- the run files' tables ------------------------------------------------------------------------------------------
@@ -143,8 +142,7 @@ def dry_run(args, runs: list[Run], scenes: list[SceneSpec]) -> None:
     out = Path(args.out)
     for sc in scenes:
         loaded = load(sc, args.proto)
-        ref = ("reference_depth.npz" if (sc.path / REFERENCE_FILE).is_file() else
-               "sparse/0" if (sc.path / "sparse" / "0" / "points3D.bin").is_file() else "none (image metrics only)")
+        ref = reference_source(sc) or "none (image metrics only)"
         prior = "done" if prior_done(out, args.tag, sc) else "to do"
         print(f"{sc.name} ({sc.path}, downscale {sc.downscale}, {loaded.cameras[0].width}x{loaded.cameras[0].height}"
               f", {len(loaded)} views): train {loaded.train} {[loaded.names[v] for v in loaded.train]}, test "

@@ -33,13 +33,24 @@ def make_prior(args, scene: SceneSpec) -> dict:
     return report
 
 
+def reference_source(scene: SceneSpec) -> Optional[str]:
+    """Where the test views' depth reference comes from: sparse_data.py's file, else the capture's sparse/0, else
+    None."""
+    if (scene.path / REFERENCE_FILE).is_file():
+        return REFERENCE_FILE
+    if (scene.path / "sparse" / "0" / "points3D.bin").is_file():
+        return "sparse/0"
+    return None
+
+
 def reference_depth(scene: SceneSpec, loaded) -> tuple[Optional[dict], str]:
     """({test view name: [H, W] sparse depth}, where it came from) or (None, why not)."""
     names = [loaded.names[v] for v in loaded.test]
     w, h = loaded.cameras[0].width, loaded.cameras[0].height
-    if (scene.path / REFERENCE_FILE).is_file():
+    source = reference_source(scene)
+    if source == REFERENCE_FILE:
         return read_reference_depth(scene.path, names, w, h), REFERENCE_FILE
-    if (scene.path / "sparse" / "0" / "points3D.bin").is_file():
+    if source == "sparse/0":
         from warpgs.data.depth.reference_points import sparse_depth_map, view_reference_points
         from warpgs.data.errors import SceneError
 
