@@ -1,8 +1,8 @@
 """Run benchmark processes side by side: at most `at_once` per group (a GPU, or one group for all), each with its
 own log, reported as each one ends. The first failure stops the others and shows the end of its log.
 
-Used by ablation_jobs.py and real_capture_jobs.py (few-view and real-capture runs leave a GPU mostly idle, so
-several share one)."""
+Used by ablation_jobs.py, real_capture_jobs.py and sparse.py (few-view and real-capture runs leave a GPU mostly
+idle, so several share one)."""
 from __future__ import annotations
 
 import os
@@ -11,7 +11,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
 
 @dataclass
@@ -20,6 +20,27 @@ class Job:
     cmd: List[str]
     group: str = ""  # jobs of one group share its `at_once` slots (e.g. one GPU)
     env: Dict[str, str] = field(default_factory=dict)  # added to the environment
+
+
+def parse_seeds_gpus(seeds: str, gpus: str, per_gpu: int) -> Tuple[List[int], List[int]]:
+    """A wave driver's --seeds, --gpus (comma-separated integers; none: one group) and --per-gpu (at least 1)."""
+    try:
+        seed_list = [int(s) for s in seeds.split(",")]
+        gpu_list = [int(g) for g in gpus.split(",")] if gpus else []
+    except ValueError as e:
+        raise SystemExit(f"--seeds / --gpus: comma-separated integers expected ({e})")
+    if per_gpu < 1:
+        raise SystemExit(f"--per-gpu: expected at least 1, got {per_gpu}")
+    return seed_list, gpu_list
+
+
+def gpu_slot(gpus: List[int], i: int) -> Tuple[str, Dict[str, str]]:
+    """The i-th job's group and environment: round-robin over `gpus`, or one group that leaves
+    CUDA_VISIBLE_DEVICES alone when there are none."""
+    if not gpus:
+        return "", {}
+    group = str(gpus[i % len(gpus)])
+    return group, {"CUDA_VISIBLE_DEVICES": group}
 
 
 def run_jobs(jobs: List[Job], at_once: int, log_dir: Path, *, env: Optional[dict] = None,

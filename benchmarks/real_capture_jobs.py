@@ -32,7 +32,7 @@ from pathlib import Path
 
 import real_capture_seeds
 from common import RESULTS
-from job_pool import Job, detach, run_jobs
+from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
 
 HERE = Path(__file__).resolve().parent
 SYSTEMS = ("warpgs", "gsplat")
@@ -66,16 +66,10 @@ def parse(argv):
             raise SystemExit(f"{flag}: real_capture_jobs.py sets it for each process; leave it out after `--`")
     if "--gsplat" not in rest:
         raise SystemExit("give --gsplat after `--`: the runs compare warpgs with gsplat's loop")
-    try:
-        seeds = [int(s) for s in args.seeds.split(",")]
-        gpus = [int(g) for g in args.gpus.split(",")] if args.gpus else []
-    except ValueError as e:
-        raise SystemExit(f"--seeds / --gpus: comma-separated integers expected ({e})")
+    seeds, gpus = parse_seeds_gpus(args.seeds, args.gpus, args.per_gpu)
     if args.detach and not args.out and os.environ.get("OUT"):
         raise SystemExit("--detach: give --out with a folder of your own: the wave outlives this command, and a "
                          "device empties $OUT before its next command, results included (copy them there at the end)")
-    if args.per_gpu < 1:
-        raise SystemExit(f"--per-gpu: expected at least 1, got {args.per_gpu}")
     variants = {}
     for name, *overrides in args.variant:
         if not name.isalnum() or name in variants:
@@ -92,8 +86,7 @@ def plan(data: str, seeds, gpus, rest, name: str, variants=None):
     round-robin over the GPUs."""
     jobs = []
     for i, seed in enumerate(seeds):
-        group = str(gpus[i % len(gpus)]) if gpus else ""
-        env = {"CUDA_VISIBLE_DEVICES": group} if gpus else {}
+        group, env = gpu_slot(gpus, i)
         runs = [(system, system, [], name) for system in SYSTEMS]
         runs += [(f"warpgs_{v}", "warpgs", overrides, f"{name}_{v}") for v, overrides in (variants or {}).items()]
         for label, system, overrides, tag in runs:

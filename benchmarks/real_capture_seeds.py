@@ -54,17 +54,22 @@ def paired(table: dict, marks: list[int]) -> list[dict]:
     return rows
 
 
+def delta_stats(d: list[float]) -> dict:
+    """Mean, sd and the mean's standard error of per-seed differences (sd and se None for one seed)."""
+    sd = statistics.stdev(d) if len(d) > 1 else None
+    # the mean's standard error: a target closer to the mean than about two of these is not resolved
+    se = sd / len(d) ** 0.5 if sd is not None else None
+    return {"delta_mean": statistics.fmean(d), "delta_sd": sd, "delta_se": se}
+
+
 def summary(rows: list[dict]) -> list[dict]:
     out = []
     for capture, step in sorted({(r["capture"], r["step"]) for r in rows}):
         d = [r["delta"] for r in rows if r["capture"] == capture and r["step"] == step]
         mean_w = statistics.fmean(r["warpgs"] for r in rows if r["capture"] == capture and r["step"] == step)
         mean_g = statistics.fmean(r["gsplat"] for r in rows if r["capture"] == capture and r["step"] == step)
-        sd = statistics.stdev(d) if len(d) > 1 else None
-        # the mean's standard error: a target closer to the mean than about two of these is not resolved
-        se = sd / len(d) ** 0.5 if sd is not None else None
         out.append({"capture": capture, "step": step, "seeds": len(d), "warpgs_mean": mean_w, "gsplat_mean": mean_g,
-                    "delta_mean": statistics.fmean(d), "delta_sd": sd, "delta_se": se, "delta_min": min(d)})
+                    **delta_stats(d), "delta_min": min(d)})
     return out
 
 
@@ -94,9 +99,7 @@ def best_summary(rows: list[dict]) -> list[dict]:
     for capture in sorted({r["capture"] for r in rows}):
         mine = [r for r in rows if r["capture"] == capture]
         d = [r["delta"] for r in mine]
-        sd = statistics.stdev(d) if len(d) > 1 else None
-        out.append({"capture": capture, "seeds": len(d), "delta_mean": statistics.fmean(d), "delta_sd": sd,
-                    "delta_se": sd / len(d) ** 0.5 if sd is not None else None,
+        out.append({"capture": capture, "seeds": len(d), **delta_stats(d),
                     "time_ratio_mean": statistics.fmean(r["time_ratio"] for r in mine)})
     return out
 

@@ -33,329 +33,33 @@ downscale is an error. The tables go to
 benchmarks/results/sparse_<name>.json (or $OUT). On a device, $OUT is emptied between commands: give --out a folder of
 your own and copy the table there at the end.
 """
+# This file is the driver (arguments, dry run, waves of worker processes, the table file); sparse_runs.py holds the
+# plan and the run files, sparse_worker.py the two worker processes, sparse_tables.py the statistics and tables.
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
-import platform
-import statistics
 import sys
-import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import ablation
 from common import ROOT, write_json
-from job_pool import Job, detach, run_jobs
-from sparse_data import REFERENCE_FILE, read_reference_depth
-
-from warpgs.utils.atomic_file import atomic_write_bytes
-
-HERE = Path(__file__).resolve().parent
-SETTINGS = {key: (label, preset, overrides, marr) for key, label, preset, overrides, marr in ablation.REAL_SETTINGS}
-TERMS = [f"wo_{t}" for t in ablation.REAL_TERMS]
-GROUPS = {"main": ["baseline", "full"], "terms": TERMS, "paper": ["baseline", *TERMS, "full"], "all": list(SETTINGS)}
-# The paper's Table 2 (its 3x3 light-field protocol, 30k steps): PSNR, SSIM, LPIPS. Its abbreviations: DR depth,
-# DGR depth gradient, LDR local depth, GOR opacity, GSR scale, GCR count.
-PAPER_TABLE2 = {"baseline": ("3DGS", 21.13, 0.695, 0.248), "wo_depth": ("w/o DR", 21.79, 0.722, 0.228),
-                "wo_depth_grad": ("w/o DGR", 22.00, 0.728, 0.222), "wo_depth_local": ("w/o LDR", 21.98, 0.728, 0.223),
-                "wo_opacity": ("w/o GOR", 21.75, 0.723, 0.221), "wo_scale": ("w/o GSR", 22.03, 0.729, 0.221),
-                "wo_count": ("w/o GCR", 21.97, 0.720, 0.224), "full": ("Ours", 22.11, 0.732, 0.218)}
-FULL_STEPS = ablation.FULL_STEPS["real"]  # the presets' train.steps
-CPU_STEPS = 300
+from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
+from sparse_runs import (CPU_STEPS, FULL_STEPS, PROTOCOLS, Protocol, Run, SceneSpec, expand_settings, load,  # the plan
+                         needs_prior, parse_scene, plan, prior_done, read_run, run_budget, run_done, run_steps)
+from sparse_tables import PAPER_TABLE2, SETTINGS, print_tables, summarise  # statistics and tables
+from sparse_worker import make_prior, reference_source, train_one  # the worker processes
 
 
-@dataclass(frozen=True)
-class Protocol:
-    n_train: int
-    downscale: int  # default data.downscale of its scenes
-    about: str
-
-
-PROTOCOLS = {"llff3": Protocol(3, 8, "LLFF, 3 training views, 1/8 resolution (FSGS / DNGaussian)"),
-             "m360_24": Protocol(24, 1, "360°, 24 training views (FSGS's Mip-NeRF 360 protocol)"),
-             "m360_3": Protocol(3, 1, "360°, 3 training views")}
-
-
-@dataclass(frozen=True)
-class SceneSpec:
-    path: Path
-    downscale: int
-
-    @property
-    def name(self) -> str:
-        return self.path.name
-
-
-@dataclass(frozen=True)
-class Run:
-    protocol: str
-    scene: SceneSpec
-    setting: str
-    seed: int
-
-    @property
-    def id(self) -> str:
-        return f"{self.protocol}_{self.scene.name}_{self.setting}_s{self.seed}"
-
-
-def parse_scene(spec: str, protocol: Protocol) -> SceneSpec:
-    path, _, ds = spec.partition("@")
-    if not ds.isdigit() and ds:
-        raise SystemExit(f"--scenes: {spec!r}: expected PATH or PATH@DOWNSCALE")
-    if not Path(path).is_dir():
-        raise SystemExit(f"--scenes: {path} is not a folder")
-    return SceneSpec(Path(path).resolve(), int(ds) if ds else protocol.downscale)
-
-
-def expand_settings(text: str) -> list[str]:
-    keys = []
-    for part in text.split(","):
-        for key in GROUPS.get(part, [part]):
-            if key not in SETTINGS:
-                raise SystemExit(f"--settings: {key!r} is neither a setting ({', '.join(SETTINGS)}) nor a group "
-                                 f"({', '.join(GROUPS)})")
-            if key not in keys:
-                keys.append(key)
-    return keys
-
-
-def plan(protocol: str, scenes: list[SceneSpec], settings: list[str], seeds: list[int]) -> list[Run]:
-    return [Run(protocol, sc, key, seed) for sc in scenes for key in settings for seed in seeds]
-
-
-def load(scene: SceneSpec, protocol: Protocol):
-    from warpgs.data import load_scene
-
-    return load_scene(scene.path, split="llff", n_train=protocol.n_train, downscale=scene.downscale)
-
-
-def prior_folder(out: Path, protocol: str, scene: SceneSpec) -> Path:
-    return out / "priors" / f"{protocol}_{scene.name}"
-
-
-def needs_prior(run: Run, user_overrides=()) -> bool:
-    _, preset, overrides, _ = SETTINGS[run.setting]
-    return ablation.uses_prior(preset, [*user_overrides, *overrides])
-
-
-# --- the two kinds of worker process -------------------------------------------------------------------------------
-def make_prior(args, scene: SceneSpec) -> dict:
-    """The prior of one scene's training views, written to <out>/priors/...; prior.json (last) marks it done."""
-    from warpgs.data import compute_depth_priors
-    from warpgs.train.setup import plane_sweep
-
-    folder = prior_folder(Path(args.out), args.tag, scene)
-    loaded = load(scene, args.proto)
-    start = time.perf_counter()
-    _, report = compute_depth_priors(loaded, plane_sweep(None), out_dir=folder)
-    report["seconds_total"] = round(time.perf_counter() - start, 1)
-    report["device"] = args.device
-    report["downscale"] = scene.downscale  # the folder's name leaves it out: prior_done checks it
-    atomic_write_bytes(folder / "prior.json", json.dumps(report, indent=1, default=str).encode())
-    return report
-
-
-def prior_done(out: Path, protocol: str, scene: SceneSpec) -> bool:
-    """Whether the scene's prior is made. One made at another downscale (the folder is named by protocol and scene
-    only, and the loader would silently resize it) is an error."""
-    f = prior_folder(out, protocol, scene) / "prior.json"
-    if not f.is_file():
-        return False
-    made = json.loads(f.read_text()).get("downscale", scene.downscale)  # files from before it was recorded
-    if made != scene.downscale:
-        raise SystemExit(f"{f}: the prior was made at downscale {made}, this plan reads {scene.name} at "
-                         f"{scene.downscale}: give another --out, or delete {f.parent}")
-    return True
-
-
-def reference_depth(scene: SceneSpec, loaded) -> tuple[Optional[dict], str]:
-    """({test view name: [H, W] sparse depth}, where it came from) or (None, why not)."""
-    names = [loaded.names[v] for v in loaded.test]
-    w, h = loaded.cameras[0].width, loaded.cameras[0].height
-    if (scene.path / REFERENCE_FILE).is_file():
-        return read_reference_depth(scene.path, names, w, h), REFERENCE_FILE
-    if (scene.path / "sparse" / "0" / "points3D.bin").is_file():
-        from warpgs.data.depth.reference_points import sparse_depth_map, view_reference_points
-        from warpgs.data.errors import SceneError
-
-        try:
-            points, per_view = view_reference_points(loaded)
-        except SceneError as e:
-            return None, f"sparse/0 unusable: {e}"
-        return {loaded.names[v]: sparse_depth_map(loaded.cameras[v], points.xyz[per_view[v]])
-                for v in loaded.test}, "sparse/0"
-    return None, "no SfM model"
-
-
-def train_one(args, run: Run) -> dict:
-    """One training run, scored on the protocol's test views; its JSON is written atomically."""
-    import torch
-
-    label, preset, setting_overrides, marr = SETTINGS[run.setting]
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    loaded = load(run.scene, args.proto)
-    reference, reference_from = reference_depth(run.scene, loaded)
-    steps, budget = run_steps(args), run_budget(args)
-    base = [f"data.path={run.scene.path}", "data.split=llff", f"data.n_train={args.proto.n_train}",
-            f"data.downscale={run.scene.downscale}"] + ([f"strategy.max_primitives={budget}"] if budget else [])
-    extra = (ablation.setting_overrides_for_run(preset, setting_overrides, budget, base + list(args.overrides))
-             + ([f"data.depth_priors={prior_folder(Path(args.out), run.protocol, run.scene)}"]
-                if needs_prior(run, args.overrides) else []))
-    with tempfile.TemporaryDirectory(prefix="warpgs-sparse-") as tmp:
-        result = ablation.run_setting(run.setting, preset, steps, run.seed, args.device, extra, Path(tmp), args.pairs,
-                                      FULL_STEPS, marr, reference)
-    payload = {"id": run.id, "protocol": run.protocol, "scene": run.scene.name, "scene_path": str(run.scene.path),
-               "downscale": run.scene.downscale, "n_train": args.proto.n_train, "setting": run.setting,
-               "label": label, "size": [loaded.cameras[0].width, loaded.cameras[0].height],
-               "train": [loaded.names[v] for v in loaded.train], "train_index": loaded.train,
-               "test": [loaded.names[v] for v in loaded.test], "test_index": loaded.test,
-               "reference": reference_from, "device": args.device, "budget": budget,
-               "schedule_overrides": ablation.schedule_overrides(steps, FULL_STEPS),
-               "torch_threads": torch.get_num_threads(), "machine": platform.node(),
-               "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None, **result}
-    atomic_write_bytes(run_file(Path(args.out), run), json.dumps(payload, indent=1).encode())
-    return payload
-
-
-def run_steps(args) -> int:
-    return args.steps or (FULL_STEPS if args.device.startswith("cuda") else CPU_STEPS)
-
-
-def run_budget(args) -> Optional[int]:
-    return args.budget or (None if args.device.startswith("cuda") else ablation.CPU_BUDGET)
-
-
-def run_file(out: Path, run: Run) -> Path:
-    return out / "runs" / f"{run.id}.json"
-
-
-def run_done(args, run: Run) -> bool:
-    """Whether the run's file exists. Its name leaves out the steps, the budget and the downscale, so a file made
-    with others (a CPU smoke wave, then the real one into the same --out) is an error, never reused or tabulated."""
-    f = run_file(Path(args.out), run)
-    if not f.is_file():
-        return False
-    recorded = json.loads(f.read_text())
-    wanted = {"steps": run_steps(args), "budget": run_budget(args), "downscale": run.scene.downscale}
-    differ = {k: (recorded.get(k), v) for k, v in wanted.items() if recorded.get(k) != v}
-    if differ:
-        raise SystemExit(f"{f}: made with " + ", ".join(f"{k} {a}" for k, (a, _) in differ.items())
-                         + "; this plan asks for " + ", ".join(f"{k} {b}" for k, (_, b) in differ.items())
-                         + ": give another --out (or the same --steps/--budget/--device/@downscale), or delete it")
-    return True
-
-
-# --- tables --------------------------------------------------------------------------------------------------------
-def mean_se(values: list) -> tuple[Optional[float], Optional[float]]:
-    vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
-    if not vals:
-        return None, None
-    return statistics.fmean(vals), (statistics.stdev(vals) / math.sqrt(len(vals)) if len(vals) > 1 else None)
-
-
-def fmt(m: Optional[float], se: Optional[float], digits: int, sign: bool = False) -> str:
-    if m is None:
-        return "n/a"
-    return f"{m:{'+' if sign else ''}.{digits}f}" + (f" ± {se:.{digits}f}" if se is not None else "")
-
-
-def paired(runs: dict, key: str, ref: str, metric: str = "psnr") -> list[float]:
-    """Per seed, `key`'s metric minus `ref`'s (the seeds both have)."""
-    a, b = runs.get(key, {}), runs.get(ref, {})
-    return [a[s][metric] - b[s][metric] for s in sorted(a) if s in b]
-
-
-def summarise(results: list[dict], settings: list[str]) -> dict:
-    """{scene: {setting: {metric: (mean, se)}, ...}} plus the mean over scenes, and the printed rows."""
-    by_scene: dict = {}
-    for r in results:
-        by_scene.setdefault(r["scene"], {}).setdefault(r["setting"], {})[r["seed"]] = r
-    metrics = (("psnr", 2), ("ssim", 4), ("lpips", 3), ("depth_order", 3), ("abs_rel", 4), ("coverage", 3),
-               ("num_primitives", 0), ("train_seconds", 0))
-    scenes = {}
-    for scene, runs in sorted(by_scene.items()):
-        rows = {}
-        for key in settings:
-            if key not in runs:
-                continue
-            seeds = runs[key]
-            row = {m: mean_se([seeds[s][m] for s in seeds]) for m, _ in metrics}
-            row["seeds"] = sorted(seeds)
-            row["d_psnr_vs_baseline"] = mean_se(paired(runs, key, "baseline")) if key != "baseline" else (None, None)
-            row["d_psnr_vs_full"] = mean_se(paired(runs, key, "full")) if key != "full" else (None, None)
-            rows[key] = row
-        scenes[scene] = rows
-    # Mean over the scenes that have the setting: the scene means averaged, their standard errors combined.
-    overall = {}
-    for key in settings:
-        have = [scenes[s][key] for s in scenes if key in scenes[s]]
-        if not have:
-            continue
-        row = {}
-        for m in [m for m, _ in metrics] + ["d_psnr_vs_baseline", "d_psnr_vs_full"]:
-            pairs = [r[m] for r in have if r[m][0] is not None]
-            if not pairs:
-                row[m] = (None, None)
-                continue
-            ses = [se for _, se in pairs if se is not None]
-            row[m] = (statistics.fmean(v for v, _ in pairs),
-                      math.sqrt(sum(se * se for se in ses)) / len(pairs) if len(ses) == len(pairs) else None)
-        row["scenes"] = len(have)
-        overall[key] = row
-    return {"scenes": scenes, "mean": overall, "digits": dict(metrics)}
-
-
-def print_tables(summary: dict, header: str) -> None:
-    digits = summary["digits"]
-    cols = [("PSNR ↑", "psnr"), ("Δ PSNR vs 3DGS", "d_psnr_vs_baseline"), ("SSIM ↑", "ssim"), ("LPIPS ↓", "lpips"),
-            ("AbsRel ↓", "abs_rel"), ("Depth order ↑", "depth_order"), ("Coverage", "coverage"),
-            ("#Primitives", "num_primitives"), ("Train s", "train_seconds")]
-
-    def table(title: str, rows: dict) -> None:
-        used = [(h, k) for h, k in cols if any(r[k][0] is not None for r in rows.values())]
-        print(f"\n{title}\n")
-        print("| Setting | " + " | ".join(h for h, _ in used) + " |")
-        print("|---|" + "---|" * len(used))
-        for key, r in rows.items():
-            cells = ["—" if (key, k) == ("baseline", "d_psnr_vs_baseline") else
-                     fmt(*r[k], digits.get(k, 2), sign=k.startswith("d_")) for _, k in used]
-            print(f"| {SETTINGS[key][0]} | " + " | ".join(cells) + " |")
-
-    print(header)
-    for scene, rows in summary["scenes"].items():
-        seeds = sorted({s for r in rows.values() for s in r["seeds"]})
-        table(f"{scene} (seeds {','.join(map(str, seeds))}; mean ± standard error over seeds)", rows)
-    if len(summary["scenes"]) > 1:
-        table(f"Mean over scenes ({len(summary['scenes'])}; a setting's mean covers the scenes that ran it)",
-              summary["mean"])
-    mean = summary["mean"]
-    if "full" in mean and any(k in mean for k in TERMS):
-        print("\nPer-term ablation beside the paper's Table 2 (paper: 3x3 light fields, 30k steps; ours: the mean "
-              "above; Δ = the row minus Ours (full), ours paired by seed)\n")
-        print("| Paper row | paper PSNR | paper Δ | paper SSIM | paper LPIPS | ours PSNR | ours Δ | ours SSIM | "
-              "ours LPIPS |")
-        print("|---|---|---|---|---|---|---|---|---|")
-        paper_full = PAPER_TABLE2["full"][1]
-        for key, (row, psnr, ssim, lp) in PAPER_TABLE2.items():
-            ours = mean.get(key)
-            cells = ([fmt(*ours["psnr"], 2), fmt(*ours["d_psnr_vs_full"], 2, sign=True) if key != "full" else "—",
-                      fmt(*ours["ssim"], 3), fmt(*ours["lpips"], 3)] if ours else ["not run"] * 4)
-            paper_delta = "—" if key == "full" else f"{psnr - paper_full:+.2f}"
-            print(f"| {row} | {psnr:.2f} | {paper_delta} | {ssim:.3f} | {lp:.3f} | " + " | ".join(cells)
-                  + " |")
-
-
+# --- the run files' tables ------------------------------------------------------------------------------------------
 def tables(args, runs: list[Run]) -> dict:
     results, missing = [], []
     for run in runs:
-        f = run_file(Path(args.out), run)
-        (results.append(json.loads(f.read_text())) if run_done(args, run) else missing.append(run.id))
+        recorded = read_run(args, run)
+        (results.append(recorded) if recorded is not None else missing.append(run.id))
     if not results:
         raise SystemExit(f"no run files under {Path(args.out) / 'runs'} for this plan")
     settings = [k for k in SETTINGS if k in {r.setting for r in runs}]
@@ -413,13 +117,7 @@ def parse(argv):
     scenes = [parse_scene(s, protocol) for s in args.scenes.split(",") if s]
     if len({s.name for s in scenes}) != len(scenes):
         raise SystemExit("--scenes: two scenes share a folder name (it names their run files)")
-    try:
-        seeds = [int(s) for s in args.seeds.split(",")]
-        gpus = [int(g) for g in args.gpus.split(",")] if args.gpus else []
-    except ValueError as e:
-        raise SystemExit(f"--seeds / --gpus: comma-separated integers expected ({e})")
-    if args.per_gpu < 1:
-        raise SystemExit(f"--per-gpu: expected at least 1, got {args.per_gpu}")
+    seeds, gpus = parse_seeds_gpus(args.seeds, args.gpus, args.per_gpu)
     if args.gpus and not args.device.startswith("cuda"):
         raise SystemExit("--gpus: give --device cuda too")
     if any("=" not in o for o in args.overrides):
@@ -444,17 +142,16 @@ def dry_run(args, runs: list[Run], scenes: list[SceneSpec]) -> None:
     out = Path(args.out)
     for sc in scenes:
         loaded = load(sc, args.proto)
-        ref = ("reference_depth.npz" if (sc.path / REFERENCE_FILE).is_file() else
-               "sparse/0" if (sc.path / "sparse" / "0" / "points3D.bin").is_file() else "none (image metrics only)")
+        ref = reference_source(sc) or "none (image metrics only)"
         prior = "done" if prior_done(out, args.tag, sc) else "to do"
         print(f"{sc.name} ({sc.path}, downscale {sc.downscale}, {loaded.cameras[0].width}x{loaded.cameras[0].height}"
               f", {len(loaded)} views): train {loaded.train} {[loaded.names[v] for v in loaded.train]}, test "
               f"{loaded.test}; depth reference: {ref}; prior: {prior}")
-    done = sum(run_done(args, r) for r in runs)
-    print(f"\n{len(runs)} runs ({done} done, {len(runs) - done} to do), {run_steps(args)} steps on {args.device}, "
-          f"budget {run_budget(args) or 'preset'}, out {out}:")
-    for r in runs:
-        print(f"  {'done ' if run_done(args, r) else 'to do'}  {r.id}  ({SETTINGS[r.setting][1]})")
+    done = [run_done(args, r) for r in runs]
+    print(f"\n{len(runs)} runs ({sum(done)} done, {len(runs) - sum(done)} to do), {run_steps(args)} steps on "
+          f"{args.device}, budget {run_budget(args) or 'preset'}, out {out}:")
+    for r, d in zip(runs, done):
+        print(f"  {'done ' if d else 'to do'}  {r.id}  ({SETTINGS[r.setting][1]})")
 
 
 def main(argv=None):
@@ -478,19 +175,17 @@ def main(argv=None):
         print(f"detached: pid {pid}, output in {out / f'{args.name}_jobs.log'} (pid beside it)")
         return None
     todo = [r for r in runs if not run_done(args, r)]
-    groups = [str(g) for g in gpus] or [""]
-    env = lambda i: {"CUDA_VISIBLE_DEVICES": groups[i % len(groups)]} if gpus else {}  # noqa: E731
     priors = [sc for sc in {r.scene: None for r in todo if needs_prior(r, args.overrides)}
               if not prior_done(out, args.tag, sc)]
     start = time.perf_counter()
     logs = out / "logs"
     if priors:
         print(f"priors: {', '.join(sc.name for sc in priors)}", file=sys.stderr, flush=True)
-        run_jobs([Job(f"prior_{args.tag}_{sc.name}", worker_cmd(args, "prior", sc), groups[i % len(groups)],
-                      env(i)) for i, sc in enumerate(priors)], args.per_gpu, logs)
+        run_jobs([Job(f"prior_{args.tag}_{sc.name}", worker_cmd(args, "prior", sc), *gpu_slot(gpus, i))
+                  for i, sc in enumerate(priors)], args.per_gpu, logs)
     print(f"runs: {len(todo)} to do of {len(runs)}", file=sys.stderr, flush=True)
-    run_jobs([Job(r.id, worker_cmd(args, "run", r.scene, r), groups[i % len(groups)], env(i))
-              for i, r in enumerate(todo)], args.per_gpu, logs, summary=lambda job, log: _summary(out, job))
+    run_jobs([Job(r.id, worker_cmd(args, "run", r.scene, r), *gpu_slot(gpus, i)) for i, r in enumerate(todo)],
+             args.per_gpu, logs, summary=lambda job, log: _summary(out, job))
     print(f"all runs done in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     return tables(args, runs)
 

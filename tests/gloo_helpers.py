@@ -34,7 +34,12 @@ def start_two_ranks(argv: list, env: dict, timeout: float) -> list:
     fails the test instead of stalling CI). Returns [(returncode, stdout, stderr)] per rank."""
     procs = [subprocess.Popen(argv, env=dict(env, RANK=str(r), LOCAL_RANK=str(r)), stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for r in (0, 1)]
-    deadline = time.monotonic() + timeout
+    return wait_all(procs, time.monotonic() + timeout)
+
+
+def wait_all(procs: list, deadline: float) -> list:
+    """Waits for every process (started with text pipes) until `deadline` (time.monotonic()), killing what is still
+    running then. Returns [(returncode, stdout, stderr)] per process."""
     try:
         outputs = [p.communicate(timeout=max(1.0, deadline - time.monotonic())) for p in procs]
     finally:

@@ -6,6 +6,7 @@ import subprocess
 import sys
 import time
 
+from gloo_helpers import wait_all
 from test_distributed import (K, LAUNCH_TIMEOUT, _assert_close, _env, _free_port, _overrides, _snapshot,  # noqa: F401
                               scene)
 from warpgs.train.checkpoint import load_checkpoint
@@ -26,15 +27,8 @@ def test_two_nodes_match_one_process(scene, tmp_path):
     for node in range(2):
         agents.append(subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
         time.sleep(0.5 * (node == 0))  # the first agent hosts the rendezvous store; the second joins it
-    deadline = time.monotonic() + LAUNCH_TIMEOUT
-    try:
-        outputs = [a.communicate(timeout=max(1.0, deadline - time.monotonic())) for a in agents]
-    finally:
-        for a in agents:
-            if a.poll() is None:
-                a.kill()
-    for node, (a, (_, err)) in enumerate(zip(agents, outputs)):
-        assert a.returncode == 0, f"agent {node}: {err[-3000:]}"
+    for node, (code, _, err) in enumerate(wait_all(agents, time.monotonic() + LAUNCH_TIMEOUT)):
+        assert code == 0, f"agent {node}: {err[-3000:]}"
 
     one = Trainer(None, overrides=_overrides(scene, tmp_path / "one", K), quiet=True)
     for _ in range(K):

@@ -18,6 +18,8 @@ sys.path.insert(0, str(BENCH))
 
 import sparse  # noqa: E402
 import sparse_data  # noqa: E402
+import sparse_runs  # noqa: E402
+import sparse_tables  # noqa: E402
 
 
 def _runs(out: Path) -> dict:
@@ -92,7 +94,7 @@ def test_tables_pair_seeds_and_average_scenes(capsys):
                _result("a", "full", 0, 17.0), _result("a", "full", 1, 19.0),
                _result("a", "wo_depth", 0, 16.0), _result("a", "wo_depth", 1, 18.0),
                _result("b", "baseline", 0, 20.0), _result("b", "full", 0, 21.0)]
-    summary = sparse.summarise(results, ["baseline", "wo_depth", "full"])
+    summary = sparse_tables.summarise(results, ["baseline", "wo_depth", "full"])
     a = summary["scenes"]["a"]
     assert a["full"]["psnr"] == pytest.approx((18.0, 1.0))  # mean, stdev / sqrt(2)
     assert a["full"]["d_psnr_vs_baseline"] == pytest.approx((2.5, 0.5))  # paired: +2, +3
@@ -102,7 +104,7 @@ def test_tables_pair_seeds_and_average_scenes(capsys):
     assert mean["full"]["psnr"][0] == pytest.approx((18.0 + 21.0) / 2)
     assert mean["full"]["psnr"][1] is None  # scene b has a single seed
     assert mean["wo_depth"]["scenes"] == 1
-    sparse.print_tables(summary, "header")
+    sparse_tables.print_tables(summary, "header")
     printed = capsys.readouterr().out
     # The paper's rows beside ours: w/o DR (the depth term) is 0.32 dB under the paper's full method, ours -1.00.
     assert "| w/o DR | 21.79 | -0.32 | 0.722 | 0.228 | 17.00 ± 1.00 | -1.00 ± 0.00 |" in printed
@@ -110,12 +112,12 @@ def test_tables_pair_seeds_and_average_scenes(capsys):
 
 
 def test_settings_groups_and_bad_input():
-    assert sparse.expand_settings("main") == ["baseline", "full"]
-    assert sparse.expand_settings("paper")[1:-1] == [f"wo_{t}" for t in ("depth", "depth_grad", "depth_local",
+    assert sparse_runs.expand_settings("main") == ["baseline", "full"]
+    assert sparse_runs.expand_settings("paper")[1:-1] == [f"wo_{t}" for t in ("depth", "depth_grad", "depth_local",
                                                                           "opacity", "scale", "count")]
-    assert set(sparse.PAPER_TABLE2) == set(sparse.expand_settings("paper"))
+    assert set(sparse_tables.PAPER_TABLE2) == set(sparse_runs.expand_settings("paper"))
     with pytest.raises(SystemExit, match="--settings: 'wo_nothing'"):
-        sparse.expand_settings("baseline,wo_nothing")
+        sparse_runs.expand_settings("baseline,wo_nothing")
     with pytest.raises(SystemExit, match="is not a folder"):
         sparse.main(["--scenes", "/no/such/scene", "--dry-run"])
 

@@ -43,8 +43,7 @@ def remove_small_components(mesh: Mesh, min_fraction: float = 0.01, min_faces: i
 def drop_degenerate_faces(mesh: Mesh, eps: float = 1e-12) -> Mesh:
     """Faces with a repeated vertex or (numerically) zero area."""
     f = mesh.faces
-    v = mesh.vertices.astype(np.float64)
-    area2 = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    area2 = np.linalg.norm(face_cross(mesh), axis=1)
     ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]) & (area2 > eps)
     return Mesh(mesh.vertices, f[ok], mesh.colors)
 
@@ -59,10 +58,9 @@ def compact(mesh: Mesh) -> Mesh:
 
 def vertex_normals(mesh: Mesh) -> np.ndarray:
     """Area-weighted mean of the adjacent faces' normals, unit length ([0, 0, 0] for a vertex of no face)."""
-    v = mesh.vertices.astype(np.float64)
     f = mesh.faces
-    face_n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2 area: the weighting
-    n = np.zeros_like(v)
+    face_n = face_cross(mesh)  # length = 2 area: the weighting
+    n = np.zeros((len(mesh.vertices), 3))
     for k in range(3):
         np.add.at(n, f[:, k], face_n)
     length = np.linalg.norm(n, axis=1, keepdims=True)
@@ -70,6 +68,12 @@ def vertex_normals(mesh: Mesh) -> np.ndarray:
 
 
 def surface_area(mesh: Mesh) -> float:
+    return float(0.5 * np.linalg.norm(face_cross(mesh), axis=1).sum())
+
+
+def face_cross(mesh: Mesh) -> np.ndarray:
+    """[F, 3] float64 cross product of each face's two edges from its first vertex: the face normal, with length
+    twice the face's area."""
     v = mesh.vertices.astype(np.float64)
     f = mesh.faces
-    return float(0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum())
+    return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])

@@ -16,12 +16,13 @@ import time
 from pathlib import Path
 from typing import List, Optional
 
-EXIT_CONFIG = 2
+from warpgs.cli.common import EXIT_CONFIG, report_error
+
+PROG = "warpgs-mesh"
 
 
 def _error(message: str) -> int:
-    print(f"warpgs-mesh: error: {message}", file=sys.stderr)
-    return EXIT_CONFIG
+    return report_error(PROG, message, EXIT_CONFIG)
 
 
 def _triple(text: str):

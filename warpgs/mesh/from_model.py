@@ -83,6 +83,7 @@ def mesh_trainer(trainer, settings: MeshSettings, device: Optional[str] = None,
     import torch
 
     from warpgs.cli.commands import _CameraView
+    from warpgs.model.maps import depth_output
 
     scene = trainer.scene
     cams = [scene.cameras[i] for i in scene.train] or list(scene.cameras)
@@ -90,7 +91,7 @@ def mesh_trainer(trainer, settings: MeshSettings, device: Optional[str] = None,
     device = device or str(trainer.device)
     volume = make_volume(settings, centre, scene.camera_extent(), device)
     kind = trainer.model.kind
-    depth_name = "median_depth" if kind == "surfels" else "depth"
+    depth_name = depth_output(kind)
     render_s = fuse_s = 0.0
     with torch.no_grad():
         for k, cam in enumerate(cams):

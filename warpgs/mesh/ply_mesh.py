@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from warpgs.data.formats.image_io import to_uint8
 from warpgs.mesh.clean import vertex_normals
 from warpgs.mesh.volume import Mesh
 from warpgs.utils.atomic_file import atomic_write_bytes
@@ -19,7 +20,7 @@ def write_mesh_ply(path, mesh: Mesh, comment: str = "") -> None:
     for k, axis in enumerate("xyz"):
         v[axis] = mesh.vertices[:, k]
         v["n" + axis] = normals[:, k]
-    rgb = np.clip(np.round(np.asarray(mesh.colors, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8)
+    rgb = to_uint8(mesh.colors)
     for k, name in enumerate(("red", "green", "blue")):
         v[name] = rgb[:, k]
     f = np.empty(len(mesh.faces), dtype=FACE_DTYPE)

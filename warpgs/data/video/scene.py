@@ -52,10 +52,19 @@ def finished_scene(video: PathLike, out: Optional[PathLike] = None) -> bool:
         mine = _settings(video, 1, 0, 0.0)
         made = record["settings"]
         same = all(made[k] == mine[k] for k in ("video", "bytes", "mtime_ns"))
-        frames = all((out / "images" / _frame_name(i)).is_file() for i in record["extracted"]["indices"])
-        return bool(same and frames and record.get("sfm") and (out / "sparse" / "0").is_dir())
+        return bool(same and _frames_written(out, record) and _sfm_done(out, record))
     except (OSError, ValueError, KeyError, TypeError):
         return False
+
+
+def _frames_written(out: Path, record: dict) -> bool:
+    """Whether the record's extract stage finished and its frames are all still in out/images."""
+    done = record.get("extracted")
+    return done is not None and all((out / "images" / _frame_name(i)).is_file() for i in done["indices"])
+
+
+def _sfm_done(out: Path, record: dict) -> bool:
+    return bool(record.get("sfm")) and (out / "sparse" / "0").is_dir()
 
 
 def _write_record(out: Path, record: dict) -> None:
@@ -123,8 +132,7 @@ def video_to_scene(video: PathLike, out: Optional[PathLike] = None, *, frames: i
     stages = Stages(STAGES, prefix="video", enabled=progress)
     images = out / "images"
 
-    done = record.get("extracted")
-    if done is None or not all((images / _frame_name(i)).is_file() for i in done["indices"]):
+    if not _frames_written(out, record):
         with stages.run("score", f"{video.name}: sharpness of every frame"):
             scores = []
             for frame in iter_frames(video):
@@ -149,7 +157,7 @@ def video_to_scene(video: PathLike, out: Optional[PathLike] = None, *, frames: i
     else:
         stages.report(f"reusing {len(record['extracted']['indices'])} frames in {images}")
 
-    if not (record.get("sfm") and (out / "sparse" / "0").is_dir()):
+    if not _sfm_done(out, record):
         if sfm is None:
             from warpgs.data.sfm.run import run_sfm as sfm
         with stages.run("sfm", f"{len(record['extracted']['indices'])} frames, {mapper} mapping"):
