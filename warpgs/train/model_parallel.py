@@ -19,7 +19,7 @@ from warpgs.model.gaussians import GaussianModel
 from warpgs.render.gaussians import RenderOutput
 from warpgs.render.sharded import render_sharded
 from warpgs.train.distributed import Ranks
-from warpgs.train.optim import move_parameters, update_rows
+from warpgs.train.optim import fused_adam, move_parameters, update_rows
 
 MOMENTS = ("exp_avg", "exp_avg_sq")  # Adam's per-row state; "step" is a scalar, the same on every rank
 
@@ -93,7 +93,7 @@ def move_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strate
     move_parameters(model, optimizer, device)
     for key in ("grad_accum", "count", "max_radii", "max_screen"):
         setattr(strategy, key, getattr(strategy, key).to(device))
-    if adam_kernel == "fused" or (adam_kernel == "auto" and device.type == "cuda"):
+    if fused_adam(adam_kernel, on_cuda=device.type == "cuda"):
         for group in optimizer.param_groups:
             group["fused"], group["foreach"] = True, None
         optimizer.defaults.update(fused=True, foreach=None)

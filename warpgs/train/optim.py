@@ -66,6 +66,11 @@ def _check_extent(scene_extent: float) -> float:
     return float(scene_extent)
 
 
+def fused_adam(adam_kernel: str, *, on_cuda: bool) -> bool:
+    """Whether optim.adam_kernel picks Adam's fused kernel for parameters on CUDA (on_cuda) or not."""
+    return adam_kernel == "fused" or (adam_kernel == "auto" and on_cuda)
+
+
 def build_optimizer(model: GaussianModel, config: Optional[OptimConfig] = None,
                     scene_extent: float = 1.0) -> torch.optim.Adam:
     """One Adam, one named group per parameter (group["name"] is the key in model.params)."""
@@ -75,8 +80,7 @@ def build_optimizer(model: GaussianModel, config: Optional[OptimConfig] = None,
     if unknown:
         raise ValueError(f"extras_lr: no such model parameters {unknown}; have {list(model.params)}")
     groups = [{"params": [p], "lr": config.lr_for(name, extent), "name": name} for name, p in model.params.items()]
-    fused = config.adam_kernel == "fused" or (config.adam_kernel == "auto" and
-                                              all(p.is_cuda for p in model.params.values()))
+    fused = fused_adam(config.adam_kernel, on_cuda=all(p.is_cuda for p in model.params.values()))
     return torch.optim.Adam(groups, lr=0.0, eps=config.eps, betas=(config.beta1, config.beta2), fused=fused or None)
 
 
