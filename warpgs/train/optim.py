@@ -105,10 +105,11 @@ def means_lr_at(step: int, config: OptimConfig, scene_extent: float, max_steps: 
 
 
 def update_learning_rates(optimizer: torch.optim.Optimizer, step: int, config: OptimConfig, scene_extent: float,
-                          max_steps: int, lr_scale: float = 1.0) -> float:
+                          max_steps: int, lr_scale: float = 1.0, means_lr: Optional[float] = None) -> float:
     """Set the `means` group's lr for this step (call once per step before optimizer.step()); returns it.
-    lr_scale: the batch's multiplier (train/scaling.py), applied on top of the schedule."""
-    lr = means_lr_at(step, config, scene_extent, max_steps)
+    lr_scale: the batch's multiplier (train/scaling.py), applied on top of the schedule. means_lr: this step's lr
+    in place of the schedule's (train.steps=auto's anneal, train/schedule.py), before lr_scale."""
+    lr = means_lr_at(step, config, scene_extent, max_steps) if means_lr is None else means_lr
     if lr_scale != 1.0:
         lr *= lr_scale
     hit = False
