@@ -17,6 +17,7 @@ from torch import nn
 from warpgs.model.gaussians import GaussianModel
 
 Optimizers = Union[torch.optim.Optimizer, Iterable[torch.optim.Optimizer]]
+MOMENTS = ("exp_avg", "exp_avg_sq")  # Adam's per-row state; "step" is a scalar
 
 
 @dataclass

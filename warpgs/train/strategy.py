@@ -68,6 +68,7 @@ from warpgs.train.schedule import DensifySchedule
 from warpgs.train.screen_geometry import screen_grads_from_means_grad, screen_radii
 
 WARN_PRUNED_FRACTION = 0.5  # a refine removing more than this share of the primitives warns
+STATISTICS = ("grad_accum", "count", "max_radii", "max_screen")  # DensifyStrategy's rows, one per primitive
 
 
 class PruningWarning(UserWarning):
