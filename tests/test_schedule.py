@@ -21,11 +21,11 @@ def preset_strategy(run_steps):
 
 def refine_steps(s, run_steps):
     every, start = s.config.refine_every, s.config.refine_start
-    return [t for t in range(run_steps) if s.densifying(t) and t > start and t % every == 0]
+    return [t for t in range(run_steps) if s.schedule.densifying(t) and t > start and t % every == 0]
 
 
 def reset_steps(s, run_steps):
-    return [t for t in range(run_steps) if s.densifying(t) and s.resets_at(t)]
+    return [t for t in range(run_steps) if s.schedule.densifying(t) and s.schedule.resets_at(t)]
 
 
 # ----- fixed step counts: the tail ------------------------------------------------------------------------------
@@ -38,7 +38,7 @@ def test_the_preset_at_30k_is_3dgs_schedule():
 
 def test_a_short_run_leaves_its_last_half_alone():
     s = preset_strategy(3000)  # warpgs-train gaussians steps=3000
-    assert refine_steps(s, 3000)[-1] == 1400 and not s.densifying(1500)
+    assert refine_steps(s, 3000)[-1] == 1400 and not s.schedule.densifying(1500)
     assert reset_steps(s, 3000) == []
     s = preset_strategy(7000)
     assert reset_steps(s, 7000) == [3000] and refine_steps(s, 7000)[-1] == 3400
@@ -57,12 +57,12 @@ def test_no_refine_or_reset_in_the_tail(run, every, fraction):
     cfg = StrategyConfig(refine_start=100, refine_every=100, refine_stop=15_000, reset_every=every,
                          refine_stop_fraction=fraction)
     s = DensifyStrategy(cfg, run_steps=run)
-    stop = s.refine_stop_at()
+    stop = s.schedule.refine_stop_at()
     assert stop <= fraction * run
-    changed = [t for t in range(0, run, 50) if s.densifying(t)]
+    changed = [t for t in range(0, run, 50) if s.schedule.densifying(t)]
     assert all(t < fraction * run for t in changed)
     # Every reset comes while densifying, with a whole interval of training after it.
-    assert all(t < stop and t + every <= run for t in range(every, run, every) if s.resets_at(t))
+    assert all(t < stop and t + every <= run for t in range(every, run, every) if s.schedule.resets_at(t))
 
 
 def _short_run(tmp_path, callbacks=()):
@@ -238,7 +238,7 @@ def test_auto_run_logs_its_decisions_and_resumes_to_the_same_end(tmp_path):
         with pytest.raises(KeyboardInterrupt):
             part.fit()
         resumed = Trainer(None, overrides=quick_overrides(out, **AUTO), quiet=True, resume=True)
-        assert resumed.step == at and resumed.strategy.auto.phase == phase
+        assert resumed.step == at and resumed.strategy.schedule.auto.phase == phase
         assert resumed.views.held_out == validation_split(full.scene.train, 8)[1]  # not yet back for the polish
         again = resumed.fit()
         assert again.metrics["schedule"] == sched and again.steps == result.steps

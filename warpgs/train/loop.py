@@ -88,7 +88,7 @@ class TrainingLoop:
         loaded = tr.views.load_all()  # outside the steps' clock, as gsplat's and 3DGS's loaders do
         if loaded:
             self.say(f"warpgs: {loaded} training views loaded onto {tr.device} in {time.perf_counter() - t0:.1f} s")
-        if tr.strategy.auto is not None and tr.step > 0:  # a checkpoint written before the rule saw its step
+        if tr.strategy.schedule.auto is not None and tr.step > 0:  # a checkpoint written before the rule saw its step
             with tr.lock:  # (a step's hook or a second Ctrl-C stopped it): that step's validation and decisions
                 self._auto_schedule()
         try:
@@ -125,7 +125,7 @@ class TrainingLoop:
         self.progress.update(tr.step, loss=self.loss_mean.update(info["loss"]),
                              psnr=self.psnr_mean.update(info["psnr"]), n=tr.num_primitives,
                              test=last.get("psnr"))
-        if tr.strategy.auto is not None:  # before the log line, so a run that ends here logs its last step
+        if tr.strategy.schedule.auto is not None:  # before the log line, so a run that ends here logs its last step
             self._auto_schedule()
         end = self.end()
         if tr.log.due(tr.step, end):
@@ -139,28 +139,29 @@ class TrainingLoop:
 
     def _length(self) -> str:
         tr = self.trainer
-        if tr.strategy.auto is None:
+        if tr.strategy.schedule.auto is None:
             return f"{tr.max_steps} steps"
         return (f"steps=auto (at most {tr.max_steps}; validation on {len(tr.views.held_out)} held-out training "
                 f"views every {tr.config.schedule.val_every} steps)")
 
     def end(self) -> int:
         """The step count the run stops at: max_steps, or train.steps=auto's decided end."""
-        auto = self.trainer.strategy.auto
+        auto = self.trainer.strategy.schedule.auto
         return auto.end if auto is not None and auto.end is not None else self.trainer.max_steps
 
     def _auto_schedule(self) -> None:
         """train.steps=auto (train/schedule.py): score the validation views when due, apply the rule's decisions
         (stop densifying; put the validation views back for the polish and fix the end), log them."""
         tr = self.trainer
-        auto, strategy, step = tr.strategy.auto, tr.strategy, tr.step
+        schedule, step = tr.strategy.schedule, tr.step
+        auto = schedule.auto
         decisions = []
         if auto.due(step) and not (auto.scores and auto.scores[-1]["step"] >= step):  # once a step (resumes)
             psnr = self._validation_psnr()
             tr.log.event("validation", step, {"psnr": psnr, "num_views": len(tr.views.held_out)},
                          train_seconds=tr.train_seconds)
-            decisions += auto.observe(step, psnr, last_reset=strategy.last_reset(step - 1),
-                                      scheduled_stop=strategy.scheduled_stop())
+            decisions += auto.observe(step, psnr, last_reset=schedule.last_reset(step - 1),
+                                      scheduled_stop=schedule.scheduled_stop())
         decisions += auto.check_bound(step)
         for d in decisions:
             if d["decision"] == "stop" and auto.end > step:
@@ -224,8 +225,8 @@ class TrainingLoop:
         metrics = {"split": m["split"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"]}
         if "lpips_unavailable" in m:
             metrics["lpips_unavailable"] = m["lpips_unavailable"]
-        if tr.strategy.auto is not None:
-            metrics["schedule"] = tr.strategy.auto.summary()
+        if tr.strategy.schedule.auto is not None:
+            metrics["schedule"] = tr.strategy.schedule.auto.summary()
         if tr.device.type == "cuda":  # rank 0's peak (with train.parallel=model: one share's)
             metrics["peak_gpu_memory_bytes"] = int(torch.cuda.max_memory_allocated(tr.device))
         metrics.update({"num_primitives": tr.num_primitives, "steps": tr.step,

@@ -19,9 +19,8 @@ from warpgs.model.gaussians import GaussianModel
 from warpgs.render.gaussians import RenderOutput
 from warpgs.render.sharded import render_sharded
 from warpgs.train.distributed import Ranks
-from warpgs.train.optim import move_parameters, update_rows
-
-MOMENTS = ("exp_avg", "exp_avg_sq")  # Adam's per-row state; "step" is a scalar, the same on every rank
+from warpgs.train.optim import MOMENTS, fused_adam, move_parameters, update_rows  # "step": the same on every rank
+from warpgs.train.strategy import STATISTICS
 
 
 def shard_model(model: GaussianModel, ranks: Ranks) -> GaussianModel:
@@ -91,9 +90,9 @@ def move_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strate
     "auto" means fused, as it does for a model built there."""
     device = torch.device(device)
     move_parameters(model, optimizer, device)
-    for key in ("grad_accum", "count", "max_radii", "max_screen"):
+    for key in STATISTICS:
         setattr(strategy, key, getattr(strategy, key).to(device))
-    if adam_kernel == "fused" or (adam_kernel == "auto" and device.type == "cuda"):
+    if fused_adam(adam_kernel, on_cuda=device.type == "cuda"):
         for group in optimizer.param_groups:
             group["fused"], group["foreach"] = True, None
         optimizer.defaults.update(fused=True, foreach=None)
@@ -126,7 +125,7 @@ def gathered_training(model: GaussianModel, optimizer: torch.optim.Optimizer, st
             whole_optimizer.state[p] = st
     whole_strategy = copy.copy(strategy)
     whole_strategy.config = dataclasses.replace(strategy.config, max_primitives=int(budget))
-    for key in ("grad_accum", "count", "max_radii", "max_screen"):
+    for key in STATISTICS:
         setattr(whole_strategy, key,
                 ranks.all_gather_rows(getattr(strategy, key), what=f"gathering the {key}").to(whole.device))
     return whole, whole_optimizer, whole_strategy

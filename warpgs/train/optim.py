@@ -17,6 +17,7 @@ from torch import nn
 from warpgs.model.gaussians import GaussianModel
 
 Optimizers = Union[torch.optim.Optimizer, Iterable[torch.optim.Optimizer]]
+MOMENTS = ("exp_avg", "exp_avg_sq")  # Adam's per-row state; "step" is a scalar
 
 
 @dataclass
@@ -66,6 +67,11 @@ def _check_extent(scene_extent: float) -> float:
     return float(scene_extent)
 
 
+def fused_adam(adam_kernel: str, *, on_cuda: bool) -> bool:
+    """Whether optim.adam_kernel picks Adam's fused kernel for parameters on CUDA (on_cuda) or not."""
+    return adam_kernel == "fused" or (adam_kernel == "auto" and on_cuda)
+
+
 def build_optimizer(model: GaussianModel, config: Optional[OptimConfig] = None,
                     scene_extent: float = 1.0) -> torch.optim.Adam:
     """One Adam, one named group per parameter (group["name"] is the key in model.params)."""
@@ -75,8 +81,7 @@ def build_optimizer(model: GaussianModel, config: Optional[OptimConfig] = None,
     if unknown:
         raise ValueError(f"extras_lr: no such model parameters {unknown}; have {list(model.params)}")
     groups = [{"params": [p], "lr": config.lr_for(name, extent), "name": name} for name, p in model.params.items()]
-    fused = config.adam_kernel == "fused" or (config.adam_kernel == "auto" and
-                                              all(p.is_cuda for p in model.params.values()))
+    fused = fused_adam(config.adam_kernel, on_cuda=all(p.is_cuda for p in model.params.values()))
     return torch.optim.Adam(groups, lr=0.0, eps=config.eps, betas=(config.beta1, config.beta2), fused=fused or None)
 
 
@@ -101,10 +106,11 @@ def means_lr_at(step: int, config: OptimConfig, scene_extent: float, max_steps: 
 
 
 def update_learning_rates(optimizer: torch.optim.Optimizer, step: int, config: OptimConfig, scene_extent: float,
-                          max_steps: int, lr_scale: float = 1.0) -> float:
+                          max_steps: int, lr_scale: float = 1.0, means_lr: Optional[float] = None) -> float:
     """Set the `means` group's lr for this step (call once per step before optimizer.step()); returns it.
-    lr_scale: the batch's multiplier (train/scaling.py), applied on top of the schedule."""
-    lr = means_lr_at(step, config, scene_extent, max_steps)
+    lr_scale: the batch's multiplier (train/scaling.py), applied on top of the schedule. means_lr: this step's lr
+    in place of the schedule's (train.steps=auto's anneal, train/schedule.py), before lr_scale."""
+    lr = means_lr_at(step, config, scene_extent, max_steps) if means_lr is None else means_lr
     if lr_scale != 1.0:
         lr *= lr_scale
     hit = False

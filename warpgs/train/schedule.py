@@ -1,6 +1,7 @@
 """When a run densifies, resets opacities and stops.
 
-**Fixed step counts** (`train.steps=N`): the run's tail is left alone (DensifyStrategy applies it):
+**Fixed step counts** (`train.steps=N`): the run's tail is left alone (DensifySchedule below; DensifyStrategy
+asks it):
   - densification (refines and the statistics for them) ends at min(refine_stop, refine_stop_fraction x N), with
     refine_stop_fraction 0.5 in the `gaussians` preset (the library default, 1, leaves refine_stop alone for the
     configs that set their own schedule, e.g. short test runs that densify to their end). 3DGS
@@ -34,7 +35,8 @@ one kind only. The rule, with patience P, settle S and min_gain g (dB):
   lr, still on the bounded decay, gained nothing: docs/real_captures.md). The best state is not kept: the rule
   stops within P steps of it, and the polish changes the model anyway.
 Every validation and decision is logged (log.jsonl `type` "validation" / "schedule", the console) and listed in
-metrics.json's "schedule". AutoStop's state goes into checkpoints with the strategy's (DensifyStrategy.state_dict).
+metrics.json's "schedule". AutoStop's state goes into checkpoints with the strategy's (DensifyStrategy.state_dict),
+whose `schedule` (a DensifySchedule) holds it.
 """
 from __future__ import annotations
 
@@ -199,3 +201,53 @@ class AutoStop:
         what = (f"; the validation views join training for {self.end - step} polish steps" if self.end > step
                 else "")
         return self._record(step, "stop", psnr, reason + what + f"; the run ends at step {self.end}")
+
+
+class DensifySchedule:
+    """When densification (refines, resets, statistics) runs and opacities reset: a fixed run's tail (module doc)
+    and, with train.steps=auto, the AutoStop's earlier stop. config: the strategy's (refine_stop,
+    refine_stop_fraction, reset_every); run_steps: the run's length (None: unknown, refine_stop alone)."""
+
+    def __init__(self, config, run_steps: Optional[int] = None):
+        self.config = config
+        self.run_steps = None if run_steps is None else int(run_steps)
+        self.auto: Optional[AutoStop] = None  # set by the trainer with train.steps=auto
+
+    def scheduled_stop(self) -> int:
+        """The step at which densification ends by the schedule alone: refine_stop, or sooner, at
+        refine_stop_fraction of the run when its length is known."""
+        stop = int(self.config.refine_stop)
+        if self.run_steps is not None:
+            stop = min(stop, int(self.config.refine_stop_fraction * self.run_steps))
+        return stop
+
+    def refine_stop_at(self) -> int:
+        """The step at which densification (refines, resets, statistics) ends: the schedule's, or the auto rule's
+        decision when it came sooner."""
+        stop = self.scheduled_stop()
+        if self.auto is not None and self.auto.densify_stop is not None:
+            stop = min(stop, int(self.auto.densify_stop))
+        return stop
+
+    def densifying(self, step: int) -> bool:
+        """Whether this step gathers statistics and may refine or reset."""
+        return step < self.refine_stop_at()
+
+    def resets_at(self, step: int) -> bool:
+        """An opacity reset at this step: on the reset_every grid, while densifying (the refines after it prune what
+        stayed faint), and with a whole interval of training after it before the run ends (the opacities grow
+        back; with refine_stop_fraction <= 0.5 the quiet tail already guarantees it)."""
+        every = int(self.config.reset_every)
+        if not every or step <= 0 or step % every or step >= self.refine_stop_at():
+            return False
+        return self.run_steps is None or step + every <= self.run_steps
+
+    def last_reset(self, step: int) -> Optional[int]:
+        """The latest step <= `step` the schedule resets opacities at (None: none yet)."""
+        every = int(self.config.reset_every)
+        if not every:
+            return None
+        for s in range(step - step % every, 0, -every):
+            if self.resets_at(s):
+                return s
+        return None

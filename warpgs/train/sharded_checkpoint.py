@@ -17,9 +17,10 @@ from typing import List
 
 import torch
 
+from warpgs.train.optim import MOMENTS
+from warpgs.train.strategy import STATISTICS
+
 INDEX_VERSION = 3  # checkpoint.VERSION: readers older than the sharded format refuse the index by its version
-ROW_STRATEGY_KEYS = ("grad_accum", "count", "max_radii", "max_screen")
-ROW_OPTIMIZER_KEYS = ("exp_avg", "exp_avg_sq")
 
 
 def shard_folder(index_path) -> Path:
@@ -82,7 +83,7 @@ def assemble(index_path, index: dict, load) -> dict:
     whole["optimizer"] = _optimizer(shards)
     whole["strategy"] = {**shards[0]["strategy"],
                          **{k: torch.cat([s["strategy"][k] for s in shards])
-                            for k in ROW_STRATEGY_KEYS if k in shards[0]["strategy"]}}
+                            for k in STATISTICS if k in shards[0]["strategy"]}}
     return whole
 
 
@@ -101,7 +102,7 @@ def _optimizer(shards: list) -> dict:
         if not any(present):
             continue
         merged = dict(next(p for p in present if p))
-        for key in ROW_OPTIMIZER_KEYS:
+        for key in MOMENTS:
             if key in merged:
                 merged[key] = torch.cat([
                     p[key] if key in p else torch.zeros_like(s["model"]["params"][group["name"]])

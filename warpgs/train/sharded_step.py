@@ -46,7 +46,7 @@ def train_step_sharded(trainer) -> dict:
     world = ranks.world_size
     model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
     update_learning_rates(trainer.optimizer, step, cfg.optim, trainer.extent, trainer.max_steps, trainer.lr_scale)
-    densify = trainer.strategy.densifying(step)  # the schedule decides, as in the single-process step
+    densify = trainer.strategy.schedule.densifying(step)  # the schedule decides, as in the single-process step
     passes, seen = [], []
     for start in range(0, len(drawn), world):
         cameras = [trainer.view(i) for i in drawn[start:start + world]]

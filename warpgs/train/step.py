@@ -24,15 +24,14 @@ def train_step(trainer) -> dict:
     drawn = trainer.views.draw(trainer.batch_size)  # the global batch, drawn alike on every rank
     mine = [trainer.view(i) for i in drawn[trainer.ranks.shard(len(drawn))]]
     model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
-    update_learning_rates(trainer.optimizer, step, cfg.optim, trainer.extent, trainer.max_steps, trainer.lr_scale)
-    if trainer.strategy.auto is not None:  # train.steps=auto anneals once densification stops (train/schedule.py)
-        annealed = trainer.strategy.auto.means_lr(
+    schedule = trainer.strategy.schedule  # train/schedule.py
+    annealed = None  # train.steps=auto anneals once densification stops
+    if schedule.auto is not None:
+        annealed = schedule.auto.means_lr(
             step, lambda s: means_lr_at(s, cfg.optim, trainer.extent, trainer.max_steps))
-        if annealed is not None:
-            for group in trainer.optimizer.param_groups:
-                if group.get("name") == "means":
-                    group["lr"] = annealed * trainer.lr_scale
-    densify = trainer.strategy.densifying(step)  # the schedule's stop (train/schedule.py), not refine_stop alone
+    update_learning_rates(trainer.optimizer, step, cfg.optim, trainer.extent, trainer.max_steps, trainer.lr_scale,
+                          means_lr=annealed)
+    densify = schedule.densifying(step)  # the schedule's stop, not refine_stop alone
     passes = []
     for view in mine:
         # Through the method, so a Trainer subclass that overrides view_pass is honoured.

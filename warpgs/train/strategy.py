@@ -46,8 +46,8 @@ A refine step that removes more than half of the primitives issues a `PruningWar
 removed; every refine's report carries the same counts under "pruned_by".
 
 When densification and resets happen over a run (the tail a fixed-step run leaves alone: `refine_stop_fraction`, a
-reset only with a whole interval of training after it; `train.steps=auto`'s earlier stop) is train/schedule.py's;
-`densifying(step)` and `resets_at(step)` apply it, and maybe_refine / step_post_backward do nothing outside it.
+reset only with a whole interval of training after it; `train.steps=auto`'s earlier stop) is train/schedule.py's
+DensifySchedule (`strategy.schedule`); maybe_refine / step_post_backward do nothing outside its `densifying(step)`.
 
 A refine grows before it prunes (3DGS and gsplat): a high-gradient primitive the world-size rule flags is split and
 only children still over the limit go. Deleting it outright instead cost 1.9 dB of held-out PSNR after the first
@@ -64,9 +64,11 @@ import torch
 
 from warpgs.model.gaussians import GaussianModel, quat_to_rotmat
 from warpgs.train.optim import Optimizers, set_param_values, update_rows
+from warpgs.train.schedule import DensifySchedule
 from warpgs.train.screen_geometry import screen_grads_from_means_grad, screen_radii
 
 WARN_PRUNED_FRACTION = 0.5  # a refine removing more than this share of the primitives warns
+STATISTICS = ("grad_accum", "count", "max_radii", "max_screen")  # DensifyStrategy's rows, one per primitive
 
 
 class PruningWarning(UserWarning):
@@ -131,8 +133,8 @@ class DensifyStrategy:
                  run_steps: Optional[int] = None):
         """scene_extent: 3DGS's camera extent, the unit of dense_scale (clone or split).
         run_steps: the run's length (the trainer's max_steps), which ends densification at refine_stop_fraction of
-        it (None: refine_stop alone); `auto` (a train/schedule.py AutoStop, set by the trainer with steps=auto) may
-        end it sooner, and its state is checkpointed with the strategy's.
+        it (None: refine_stop alone); `schedule.auto` (a train/schedule.py AutoStop, set by the trainer with
+        steps=auto) may end it sooner, and its state is checkpointed with the strategy's.
         invisible_below: the renderer's alpha_min. Primitives with a lower opacity never reach a tile, so they
         get no gradient and would hold budget for good: they are pruned like those under prune_opacity.
         world_extent: the scene size the world-size rule measures against (default scene_extent); the trainer
@@ -149,8 +151,7 @@ class DensifyStrategy:
                           f"(20 px is 13% of a 156 px image but 2% of a 960 px one); use prune_screen_size, a "
                           f"fraction of the image's larger side (gsplat: 0.15)", PruningWarning, stacklevel=2)
         self.generator = torch.Generator().manual_seed(int(self.config.seed))
-        self.run_steps = None if run_steps is None else int(run_steps)
-        self.auto = None  # train/schedule.py AutoStop with train.steps=auto
+        self.schedule = DensifySchedule(self.config, run_steps)  # when densification and resets happen
         self.grad_accum = self.count = self.max_radii = self.max_screen = None
         self.last_refine: Optional[dict] = None  # the latest refine's report (with "pruned_by")
 
@@ -174,7 +175,7 @@ class DensifyStrategy:
         that changed the model ({"step", "cloned", "split", "pruned", "budget_dropped", "num_primitives",
         "opacity_reset"}), else None."""
         self._check_model(model)
-        if not self.densifying(step):
+        if not self.schedule.densifying(step):
             return None
         batched = viewmat.dim() == 3
         views = viewmat if batched else viewmat[None]
@@ -201,55 +202,15 @@ class DensifyStrategy:
         is one of theirs. Returns the report (or None)."""
         cfg = self.config
         report = None
-        if not self.densifying(step):
+        if not self.schedule.densifying(step):
             return None
         if step > cfg.refine_start and step % cfg.refine_every == 0:
             report = self.refine(model, optimizers, step)
-        if self.resets_at(step):
+        if self.schedule.resets_at(step):
             self.reset_opacities(model, optimizers)
             report = report or {"step": step, "num_primitives": model.num_primitives}
             report["opacity_reset"] = True
         return report
-
-    # ----- the schedule (train/schedule.py has the rules and why) -----
-    def scheduled_stop(self) -> int:
-        """The step at which densification ends by the schedule alone: refine_stop, or sooner, at
-        refine_stop_fraction of the run when its length is known."""
-        stop = int(self.config.refine_stop)
-        if self.run_steps is not None:
-            stop = min(stop, int(self.config.refine_stop_fraction * self.run_steps))
-        return stop
-
-    def refine_stop_at(self) -> int:
-        """The step at which densification (refines, resets, statistics) ends: the schedule's, or the auto rule's
-        decision when it came sooner."""
-        stop = self.scheduled_stop()
-        if self.auto is not None and self.auto.densify_stop is not None:
-            stop = min(stop, int(self.auto.densify_stop))
-        return stop
-
-    def densifying(self, step: int) -> bool:
-        """Whether this step gathers statistics and may refine or reset."""
-        return step < self.refine_stop_at()
-
-    def resets_at(self, step: int) -> bool:
-        """An opacity reset at this step: on the reset_every grid, while densifying (the refines after it prune what
-        stayed faint), and with a whole interval of training after it before the run ends (the opacities grow
-        back; with refine_stop_fraction <= 0.5 the quiet tail already guarantees it)."""
-        every = int(self.config.reset_every)
-        if not every or step <= 0 or step % every or step >= self.refine_stop_at():
-            return False
-        return self.run_steps is None or step + every <= self.run_steps
-
-    def last_reset(self, step: int) -> Optional[int]:
-        """The latest step <= `step` the schedule resets opacities at (None: none yet)."""
-        every = int(self.config.reset_every)
-        if not every:
-            return None
-        for s in range(step - step % every, 0, -every):
-            if self.resets_at(s):
-                return s
-        return None
 
     # ----- one camera at a time (batches of views with their own sizes, data-parallel training) -----
     def observe(self, model: GaussianModel, *, visible: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
@@ -429,8 +390,8 @@ class DensifyStrategy:
     def state_dict(self) -> dict:
         state = {"grad_accum": self.grad_accum, "count": self.count, "max_radii": self.max_radii,
                  "max_screen": self.max_screen, "generator": self.generator.get_state()}
-        if self.auto is not None:  # plain Python values (the checkpoint moves only tensors)
-            state["auto"] = self.auto.state_dict()
+        if self.schedule.auto is not None:  # plain Python values (the checkpoint moves only tensors)
+            state["auto"] = self.schedule.auto.state_dict()
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -440,8 +401,8 @@ class DensifyStrategy:
         if self.max_screen is None:
             self.max_screen = torch.zeros_like(self.max_radii)
         self.generator.set_state(state["generator"])
-        if self.auto is not None and state.get("auto") is not None:
-            self.auto.load_state_dict(state["auto"])
+        if self.schedule.auto is not None and state.get("auto") is not None:
+            self.schedule.auto.load_state_dict(state["auto"])
 
     @torch.no_grad()
     def select_statistics(self, rows: torch.Tensor) -> None:

@@ -34,7 +34,8 @@ class TrainViews:
         if self.queue:
             raise RuntimeError("hold_out: only before the first draw")
         self.held_out, self._split = held, True
-        self.indices = [i for i in self.indices if i not in set(held)]
+        held_set = set(held)
+        self.indices = [i for i in self.indices if i not in held_set]
 
     def restore_held_out(self) -> List[int]:
         """Put the held-out views back into the draws (from the next epoch: the rest of this one stays as drawn).
