@@ -1,6 +1,6 @@
 """The per-call surfel op the fast one (render/surfels_fast.py) replaced, kept as the tests' oracle: the surfel
 kernels driven the simple way (per-call arrays, a wp.Tape for the projection's adjoint, the blend adjoint recorded on
-it; tiles and sorting are `pipeline_gaussians.sort_into_tiles`), so on the CPU the fast path must give the same
+it; binning and sorting are `pipeline_gaussians.bin_into_tiles`), so on the CPU the fast path must give the same
 images and gradients to the last bit. `rasterize_surfels_legacy` takes the arguments of `rasterize_surfels` that the
 tests use."""
 from __future__ import annotations
@@ -17,7 +17,7 @@ from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_want
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, on_torch_stream, raster_settings,
                                      set_image_outputs)
 from warpgs.render.pipeline_gaussians import (Bins, Settings, _gradient_buffers, _merge_gradient_buffers,
-                                              _tile_launches, choose_blend_kernel, sort_into_tiles)
+                                              _tile_launches, bin_into_tiles, choose_blend_kernel)
 from warpgs.render.surfels import DISTORTION_SCALE
 
 from legacy_raster import warp_inputs
@@ -67,16 +67,8 @@ def project_surfels(means, quats, scales, coeffs, viewmat, intrinsics, s: Settin
 
 
 def bin_surfels(p: SurfelProjected, opacities, s: Settings) -> Bins:
-    n = p.means2d.shape[0]
-    dev = p.means2d.device
-    counts = wp.zeros(n, dtype=wp.int32, device=dev)
-    rects = wp.zeros(n, dtype=wp.vec4i, device=dev)
-    q_cut = wp.zeros(n, dtype=float, device=dev)
-    wp.launch(surfel_project.surfel_footprints, dim=n,
-              inputs=[p.transforms, p.means2d, opacities, p.valid, s.width, s.height, s.tile_size, s.max_sigmas,
-                      s.alpha_min],
-              outputs=[rects, counts, q_cut], device=dev)
-    return sort_into_tiles(rects, counts, p.depths, q_cut, s)
+    return bin_into_tiles(surfel_project.surfel_footprints, [p.transforms, p.means2d, opacities, p.valid], p.depths,
+                          s)
 
 
 def _blend_inputs(p: SurfelProjected, bins: Bins, opacities, features):

@@ -27,9 +27,6 @@ def _leaves(scene, requires_grad=True):
                 if scene.get(k) is not None else None) for k in INPUTS}
 
 
-LEGACY = "legacy"  # _run's options for the oracle
-
-
 def _render(scene, leaves, outputs, op=rasterize, **kw):
     return op(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
                      leaves["viewmat"], leaves["K"], scene["width"], scene["height"], sh_degree=scene["sh_degree"],
@@ -47,11 +44,10 @@ def _weights(scene, outputs, seed=0):
     return {o: torch.randn(scene["height"], scene["width"], channels[o], generator=g).to(DEVICE) for o in outputs}
 
 
-def _run(scene, outputs, options, track_means2d=False, **kw):
+def _run(scene, outputs, options=None, op=rasterize, track_means2d=False, **kw):
     leaves = _leaves(scene)
-    with raster_options(**({} if options == LEGACY else options)):
-        out = _render(scene, leaves, outputs, op=rasterize_legacy if options == LEGACY else rasterize,
-                      track_means2d=track_means2d, **kw)
+    with raster_options(**(options or {})):
+        out = _render(scene, leaves, outputs, op=op, track_means2d=track_means2d, **kw)
     _loss(out, _weights(scene, outputs)).backward()
     grads = {k: v.grad for k, v in leaves.items() if v is not None}
     if track_means2d:
@@ -68,7 +64,7 @@ PATHS = [dict(backward_kernel="warp_sums"), dict(backward_kernel="block")]
 def test_fast_path_matches_legacy_path(options, sh_degree, num_features, tile):
     scene = random_scene(n=60, seed=3, sh_degree=sh_degree, num_features=num_features)
     outputs = ("rgb", "alpha", "depth", "inv_depth") + (("features",) if num_features else ())
-    ref, ref_grads = _run(scene, outputs, LEGACY, track_means2d=True, tile_size=tile)
+    ref, ref_grads = _run(scene, outputs, op=rasterize_legacy, track_means2d=True, tile_size=tile)
     out, grads = _run(scene, outputs, options, track_means2d=True, tile_size=tile)
     for name in outputs + ("visible",):
         _assert_same(getattr(out, name), getattr(ref, name), name)
@@ -140,14 +136,14 @@ def test_interleaved_renders_keep_their_own_buffers():
     differentiated on its own."""
     scenes = [random_scene(n=50, seed=s, num_features=2) for s in (11, 12)]
     outputs = ("rgb", "alpha", "depth", "features")
-    alone = [_run(s, outputs, {})[1] for s in scenes]
+    alone = [_run(s, outputs)[1] for s in scenes]
 
     leaves = [_leaves(s) for s in scenes]
     outs = [_render(s, lv, outputs) for s, lv in zip(scenes, leaves)]
     with torch.no_grad():  # reuses the workspace a forward-only render gets
         big = random_scene(n=120, seed=13, width=64, height=48)
         _render(big, _leaves(big, False), ("rgb", "alpha"))
-    _run(random_scene(n=200, seed=14, width=72, height=40), ("rgb",), {})  # grows every buffer
+    _run(random_scene(n=200, seed=14, width=72, height=40), ("rgb",))  # grows every buffer
     for i in (1, 0):
         _loss(outs[i], _weights(scenes[i], outputs)).backward()
     for i in (0, 1):
@@ -159,8 +155,8 @@ def test_growing_and_shrinking_scenes_between_calls():
     """The workspace grows and hands out smaller views again; each render equals the oracle's."""
     for n, (w, h) in [(30, (40, 30)), (120, (64, 48)), (10, (16, 16)), (80, (40, 30))]:
         scene = random_scene(n=n, seed=n, width=w, height=h)
-        ref, ref_grads = _run(scene, ("rgb", "alpha"), LEGACY)
-        out, grads = _run(scene, ("rgb", "alpha"), {})
+        ref, ref_grads = _run(scene, ("rgb", "alpha"), op=rasterize_legacy)
+        out, grads = _run(scene, ("rgb", "alpha"))
         _assert_same(out.rgb.detach(), ref.rgb.detach(), f"rgb n={n}")
         for name, g in ref_grads.items():
             _assert_same(grads[name], g, f"grad {name} n={n}")
@@ -174,7 +170,7 @@ def test_empty_and_fully_culled_scenes():
         if behind:
             scene["means"] = scene["means"].clone()
             scene["means"][:, 2] = -10.0  # all behind the camera: no tile pairs
-        out, grads = _run(scene, ("rgb", "alpha"), {})
+        out, grads = _run(scene, ("rgb", "alpha"))
         assert out.num_intersections == 0
         assert torch.all(out.alpha == 0)
         for name, g in grads.items():

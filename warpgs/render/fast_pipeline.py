@@ -102,7 +102,7 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     cov2d = ws.array("cov2d", n, wp.vec3)
     valid = ws.array("valid", n, wp.int32)
     color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
-    seq = ws.sequence(immediate=(on_stage or stage_hook) is not None)
+    seq = launch_sequence(ws, on_stage)
     seq.launch("project", project.project_gaussians, n,
                list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0),
                                means2d, conics, cov2d, depths, colors, valid])
@@ -143,7 +143,7 @@ def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, 
     rects = ws.array("rects", n, wp.vec4i)
     counts = ws.array("counts", n, wp.int32)
     q_cut = per_call("q_cut", n, float)
-    seq = sequence if sequence is not None else ws.sequence(immediate=(on_stage or stage_hook) is not None)
+    seq = sequence if sequence is not None else launch_sequence(ws, on_stage)
     seq.launch(key, footprint_kernel, n,
                list(footprint_inputs) + [s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
                                          rects, counts, q_cut])
@@ -162,7 +162,7 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     tile_start = per_call("tile_start", s.num_tiles, wp.int32)
     tile_end = ws.array("tile_end", s.num_tiles, wp.int32)
     offsets = ws.array("offsets", n, wp.int32)
-    seq = sequence if sequence is not None else ws.sequence(immediate=(on_stage or stage_hook) is not None)
+    seq = sequence if sequence is not None else launch_sequence(ws, on_stage)
     depth_keys = ws.array("depth_keys", 2 * n, float)
     order = ws.array("order", 2 * n, wp.int32)
     ordered = ws.array("ordered_counts", n, wp.int32)
@@ -209,6 +209,11 @@ def normalize_depth_backward(ws: Workspace, grad_depth, zacc, transmittance, gra
                        [grad_depth, zacc, transmittance, eps, int(has_alpha),
                         grad_alpha if has_alpha else ws.dummy(float), up_zacc, up_alpha])
     return up_zacc, up_alpha
+
+
+def launch_sequence(ws: Workspace, on_stage: Optional[Callable[[str], None]] = None) -> LaunchSequence:
+    """The launches up to the tile-pair sync; issued one by one (no graph) while stages are being timed."""
+    return ws.sequence(immediate=(on_stage or stage_hook) is not None)
 
 
 def _stage(on_stage, name: str) -> None:

@@ -15,9 +15,8 @@ import warp as wp
 from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project, surfel_steps
 from warpgs.kernels.blend_gpu import warp_sums_supported
 from warpgs.render.cpu_threads import run_threads
-from warpgs.render import fast_pipeline
 from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, InputCheck, Keep, TileFrame, _stage, add_input_check,
-                                         bin_into_tiles, blend_settings_key, run_blend_adjoint)
+                                         bin_into_tiles, blend_settings_key, launch_sequence, run_blend_adjoint)
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
 from warpgs.render.workspace import Workspace
@@ -85,7 +84,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     normals = per_call("normals", n, wp.vec3)
     colors = per_call("colors", n, wp.vec3)
     valid = ws.array("surfel_valid", n, wp.int32)
-    seq = ws.sequence(immediate=fast_pipeline.stage_hook is not None)  # up to the sync: one graph on GPUs
+    seq = launch_sequence(ws)  # up to the sync: one graph on GPUs
     seq.launch("surfel_project", surfel_project.project_surfels, n,
                list(inputs) + _projection_settings(s) + [transforms, means2d, depths, normals, colors, valid])
     if check is not None:

@@ -197,7 +197,6 @@ def rasterize(
                                       height, sh_degree, features, background, near, far, tile_size, False,
                                       max_sigmas, alpha_min, transmittance_min, scale_dims=3,
                                       track_means2d=track_means2d, alpha_max=alpha_max)
-    options = current_raster_options()
     pipeline_checks = checks_before_render(check_inputs, _pipeline_checks, means, quats, scales, opacities, colors,
                                            features, viewmat, K, background)
     if viewmat.dim() == 3:
@@ -224,9 +223,8 @@ def rasterize(
                              num_features=feats.shape[1])
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, fout, visible, count = run_op(
-            FastRasterizeFunction, settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat,
-            _intrinsics_vector(K),
-            probe, (features, K, background) if pipeline_checks else None)
+            FastRasterizeFunction, settings, wanted, current_raster_options(), means, quats, scales, opacities, coeffs,
+            feats, viewmat, _intrinsics_vector(K), probe, (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width
         shapes = [(H, W, 3) if wanted.color else (0,), (H, W, 1), (H, W, 1) if wanted.depth else (0,),

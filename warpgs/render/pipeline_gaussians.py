@@ -116,16 +116,22 @@ def project_gaussians(means, quats, scales, opacities, coeffs, viewmat, intrinsi
 
 def bin_gaussians(p: Projected, opacities, s: Settings) -> Bins:
     """Tiles touched by each projected 3D Gaussian (exact alpha >= alpha_min footprint), then `sort_into_tiles`."""
-    n = p.means2d.shape[0]
-    dev = p.means2d.device
-    counts = wp.empty(n, dtype=wp.int32, device=dev)  # written for every Gaussian
+    return bin_into_tiles(binning.tile_footprints, [p.means2d, p.cov2d, opacities, p.valid], p.depths, s)
+
+
+def bin_into_tiles(footprint_kernel, footprint_inputs, depths, s: Settings) -> Bins:
+    """Every primitive kind's binning, per call (fast_pipeline.bin_into_tiles is the workspace twin): its footprint
+    kernel (inputs `footprint_inputs`, then the image and blend settings; it writes every primitive's tile
+    rectangle, tile count and cut-off), then `sort_into_tiles`."""
+    n = depths.shape[0]
+    dev = depths.device
+    counts = wp.empty(n, dtype=wp.int32, device=dev)  # written for every primitive
     rects = wp.empty(n, dtype=wp.vec4i, device=dev)
     q_cut = wp.empty(n, dtype=float, device=dev)
-    wp.launch(binning.tile_footprints, dim=n,
-              inputs=[p.means2d, p.cov2d, opacities, p.valid, s.width, s.height, s.tile_size, s.max_sigmas,
-                      s.alpha_min],
+    wp.launch(footprint_kernel, dim=n,
+              inputs=list(footprint_inputs) + [s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min],
               outputs=[rects, counts, q_cut], device=dev)
-    return sort_into_tiles(rects, counts, p.depths, q_cut, s)
+    return sort_into_tiles(rects, counts, depths, q_cut, s)
 
 
 def sort_into_tiles(rects, counts, depths, q_cut, s: Settings) -> Bins:

@@ -71,7 +71,6 @@ def rasterize_surfels(
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, False,
                                       max_sigmas, alpha_min, transmittance_min, scale_dims=2, alpha_max=alpha_max)
-    options = current_raster_options()
     pipeline_checks = checks_before_render(check_inputs, _pipeline_checks, means, quats, scales, opacities, colors,
                                            features, viewmat, K, background)
     if viewmat.dim() == 3:
@@ -95,9 +94,8 @@ def rasterize_surfels(
         num_features=feats.shape[1], distortion_scale=DISTORTION_SCALE)
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = run_op(
-            FastSurfelsFunction, settings, wanted, options, means, quats, scales, opacities, coeffs, feats, viewmat,
-            _intrinsics_vector(K),
-            (features, K, background) if pipeline_checks else None)
+            FastSurfelsFunction, settings, wanted, current_raster_options(), means, quats, scales, opacities, coeffs,
+            feats, viewmat, _intrinsics_vector(K), (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width
         shapes = [(H, W, c) if image_wanted(wanted, name) else (0,) for name, c, _ in IMAGES]

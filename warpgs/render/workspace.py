@@ -48,10 +48,10 @@ class LaunchCache:
     def launch(self, key, kernel, dim: int, args, block_dim: int = 0) -> None:
         if dim > 0:
             self.launch_params(key, kernel, dim, [a.__ctype__() if isinstance(a, _ARRAY) else a for a in args],
-                               block_dim)  # `_param`, inlined
+                               block_dim)
 
     def launch_params(self, key, kernel, dim: int, params: list, block_dim: int = 0) -> None:
-        """`launch` with the arguments already as parameters (`_param`; what LaunchSequence stores)."""
+        """`launch` with the arguments already as parameters (see _ARRAY; what LaunchSequence stores)."""
         entry = self._entries.get(key)
         if entry is None or entry[0] is not kernel:
             with _RECORD_LOCK:
@@ -102,11 +102,9 @@ class LaunchCache:
         entry[1].launch()
 
 
-def _param(a):
-    """Arrays travel as their (cached) descriptors: identity then means 'same array view'."""
-    return a.__ctype__() if isinstance(a, _ARRAY) else a
-
-
+# Launch arguments become parameters: arrays travel as their (cached) descriptors, `a.__ctype__() if isinstance(a,
+# _ARRAY) else a` (written out where launches are built: it runs for every argument), so identity then means
+# 'same array view'.
 _ARRAY = wp.array
 
 
