@@ -31,9 +31,13 @@ POINTS_FILE = "points.npz"
 INFO_FILE = "triangulation.json"
 KEEP_TWO_VIEW_TRACKS_UP_TO = 4  # views; with so few, most points are seen twice only
 # COLMAP's RANSAC (pair verification, point triangulation) draws a random seed unless given one: four processes
-# triangulating one capture found 13,234-13,347 points. With this seed (and _number_images_in_order) every run
-# with the same inputs finds the same points.
+# triangulating one capture found 13,234-13,347 points. With this seed, _number_images_in_order and matching on one
+# thread (deterministic=True) every run with the same inputs finds the same points.
 RANDOM_SEED = 0
+# COLMAP's CPU matcher searches an approximate (IVF) descriptor index; with several matching threads a pair's matches
+# differ now and then between runs (2 of 25 runs of the 36-view orbit test scene). One thread: 0 of 25 differed;
+# matching takes 1.8x as long on 2 cores (10 fern views: 7.2 s against 4.1). The brute-force matcher is exact but was
+# 78x slower (313 s), so it is not the way.
 
 
 @dataclass
@@ -169,10 +173,12 @@ def _reconstruction_with_poses(database: Path, names: list[str], cameras):
 def triangulate_from_poses(cameras, image_paths: Sequence[PathLike], out_dir: PathLike, *,
                            view_ids: Optional[Sequence[int]] = None, n_views: Optional[int] = None,
                            matcher: str = "auto", max_image_size: int = features.MAX_IMAGE_SIZE,
-                           num_threads: int = -1, progress: bool = True, quiet: bool = True) -> Triangulation:
+                           num_threads: int = -1, deterministic: bool = True, progress: bool = True,
+                           quiet: bool = True) -> Triangulation:
     """Triangulate points seen by `cameras` (native cameras of the given image files, poses and intrinsics kept
     fixed). view_ids: the scene index of each camera (for PointCloud.observed_by over n_views scene views);
-    default 0..len-1. Cached in out_dir (see the module docstring)."""
+    default 0..len-1. deterministic: match on one thread, so every run finds the same points (see RANDOM_SEED);
+    False matches on num_threads, faster on many cores. Cached in out_dir (see the module docstring)."""
     import pycolmap
 
     cameras, paths = list(cameras), [Path(p) for p in image_paths]
@@ -219,7 +225,7 @@ def triangulate_from_poses(cameras, image_paths: Sequence[PathLike], out_dir: Pa
     with stages.run("matching", detail):
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = RANDOM_SEED
-        features.match(database, used, pair_names, pairs, out_dir, num_threads=num_threads,
+        features.match(database, used, pair_names, pairs, out_dir, num_threads=1 if deterministic else num_threads,
                        verification=verification)
 
     with stages.run("triangulation", "poses and intrinsics fixed"):
