@@ -12,6 +12,8 @@ Scores, inside the evaluation box (all objects and the ground around them, |x|, 
                 to the mesh (exact point-to-triangle distance);
   chamfer       the mean of the two; normal consistency: mean |n_mesh . n_true| over the mesh samples (true
                 normal of the nearest object) and over the truth samples (normal of the nearest mesh face).
+  offset        per object, the median signed distance of the mesh samples from its surface (negative:
+                inside / below) and the median absolute deviation around it: bias against noise.
 Targets (issue 32): chamfer of the trained mesh <= 1.5x the exact-depth mesh's, normal consistency >= 0.9.
 
 --timing: TSDF fusion + marching cubes of N exact depth maps (ray-cast, untextured) at WxH, the figure the
@@ -45,25 +47,27 @@ MESH_RADIUS = 2.0  # the meshed cube: half-size 2 around TARGET holds the evalua
 
 
 # ----- the true surface ---------------------------------------------------------------------------------------
-def object_distances(points: np.ndarray, objects) -> tuple[np.ndarray, np.ndarray]:
-    """[N, O] unsigned distance of every point to every object's surface, and [N, O, 3] its unit normal there."""
+def object_offsets(points: np.ndarray, objects) -> tuple[np.ndarray, np.ndarray]:
+    """[N, O] signed distance of every point to every object's surface (outside / above: positive), and [N, O, 3]
+    its unit normal there."""
     dist, normals = [], []
     for obj in objects:
         if isinstance(obj, raytrace.Plane):
             out = np.maximum(np.abs(points[:, :2]) - obj.half_extent, 0.0)
-            dist.append(np.sqrt((points[:, 2] - obj.z) ** 2 + (out ** 2).sum(1)))
+            above = points[:, 2] - obj.z
+            dist.append(np.sign(above) * np.sqrt(above ** 2 + (out ** 2).sum(1)))
             normals.append(np.broadcast_to([0.0, 0.0, 1.0], points.shape))
         elif isinstance(obj, raytrace.Sphere):
             rel = points - np.asarray(obj.center)
             r = np.linalg.norm(rel, axis=1)
-            dist.append(np.abs(r - obj.radius))
+            dist.append(r - obj.radius)
             normals.append(rel / np.maximum(r, 1e-12)[:, None])
         else:  # Box: signed distance in its frame; normal of the nearest face (outside: of the nearest point)
             local = (points - np.asarray(obj.center)) @ obj._rot
             q = np.abs(local) - np.asarray(obj.half)
             outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
             inside = np.minimum(q.max(1), 0.0)
-            dist.append(np.abs(outside + inside))
+            dist.append(outside + inside)
             n_local = np.where(q.max(1, keepdims=True) > 0, np.maximum(q, 0.0), (q == q.max(1, keepdims=True)))
             n_local = n_local * np.sign(local)
             n_local /= np.maximum(np.linalg.norm(n_local, axis=1, keepdims=True), 1e-12)
@@ -71,14 +75,28 @@ def object_distances(points: np.ndarray, objects) -> tuple[np.ndarray, np.ndarra
     return np.stack(dist, 1), np.stack(normals, 1)
 
 
-def true_distance_and_normal(points: np.ndarray, objects, chunk: int = 200_000):
-    d_all, n_all = [], []
+def true_offset_and_normal(points: np.ndarray, objects, chunk: int = 200_000):
+    """Per point: the signed distance to the nearest object's surface, its normal there, and that object's index."""
+    d_all, n_all, k_all = [], [], []
     for s in range(0, len(points), chunk):
-        d, n = object_distances(points[s:s + chunk], objects)
-        k = d.argmin(1)
+        d, n = object_offsets(points[s:s + chunk], objects)
+        k = np.abs(d).argmin(1)
         d_all.append(d[np.arange(len(k)), k])
         n_all.append(n[np.arange(len(k)), k])
-    return np.concatenate(d_all), np.concatenate(n_all)
+        k_all.append(k)
+    return np.concatenate(d_all), np.concatenate(n_all), np.concatenate(k_all)
+
+
+def offsets_by_object(offset: np.ndarray, nearest: np.ndarray, objects) -> dict:
+    """Median signed offset of the mesh from each object's surface (negative: inside / below) and the median
+    absolute deviation around it: a bias shows in the first, noise in the second."""
+    out = {}
+    for k, obj in enumerate(objects):
+        x = offset[nearest == k]
+        if len(x):
+            med = float(np.median(x))
+            out[obj.name] = {"median": med, "mad": float(np.median(np.abs(x - med))), "samples": int(len(x))}
+    return out
 
 
 def in_box(points: np.ndarray) -> np.ndarray:
@@ -164,7 +182,8 @@ def score(mesh, truth_pts, truth_nrm, objects, rng, n_mesh: int) -> dict:
     pts, nrm = mesh_samples(mesh, n_mesh, rng)
     if len(pts) == 0:
         return {"faces": int(len(mesh.faces)), "error": "no mesh inside the evaluation box"}
-    acc, true_n = true_distance_and_normal(pts, objects)
+    offset, true_n, nearest = true_offset_and_normal(pts, objects)
+    acc = np.abs(offset)
     comp, mesh_n = closest_on_mesh(mesh, truth_pts)
     nc_mesh = np.abs(np.einsum("ij,ij->i", nrm, true_n))
     nc_truth = np.abs(np.einsum("ij,ij->i", truth_nrm, mesh_n))
@@ -172,7 +191,8 @@ def score(mesh, truth_pts, truth_nrm, objects, rng, n_mesh: int) -> dict:
             "accuracy": float(acc.mean()), "accuracy_median": float(np.median(acc)),
             "completeness": float(comp.mean()), "completeness_median": float(np.median(comp)),
             "chamfer": float(0.5 * (acc.mean() + comp.mean())),
-            "normal_consistency": float(0.5 * (nc_mesh.mean() + nc_truth.mean()))}
+            "normal_consistency": float(0.5 * (nc_mesh.mean() + nc_truth.mean())),
+            "offset_by_object": offsets_by_object(offset, nearest, objects)}
 
 
 # ----- the runs -----------------------------------------------------------------------------------------------
@@ -333,6 +353,9 @@ def main(argv=None) -> int:
             t = r["timings"]
             print(f"{name:<16} {r['faces']:>8} {r['accuracy']:>9.5f} {r['completeness']:>9.5f} {r['chamfer']:>9.5f} "
                   f"{r['normal_consistency']:>8.4f} {t['fusion_s']:>7.2f} {t['marching_cubes_s']:>6.2f}")
+        for name, r in rows:
+            print(f"{name} offset from the true surface, median / MAD: " + ", ".join(
+                f"{obj} {o['median']:+.4f} / {o['mad']:.4f}" for obj, o in r.get("offset_by_object", {}).items()))
         trained = result.get("trained_surfels", {})
         if trained.get("test_psnr") is not None:
             print(f"trained run: held-out PSNR {trained['test_psnr']:.2f}, training-view PSNR (last log) "
