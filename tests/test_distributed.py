@@ -129,6 +129,33 @@ def test_two_processes_match_one_with_the_same_batch_and_resume_on_one(scene, tm
     _assert_close(_snapshot(resumed), _snapshot(one), "resumed on one process vs one process at step 12")
 
 
+def test_steps_auto_decides_on_two_processes_as_on_one(scene, tmp_path):
+    """train.steps=auto (the gaussians preset's default) under torchrun: the validation views are scored across
+    ranks and every rank takes rank 0's decision, so two processes with one view each stop densifying and stop
+    training at the steps one process with a batch of two does, and end at the same model."""
+    auto = {"train.steps": "auto", "schedule.max_steps": 400, "schedule.val_every": 10, "schedule.patience": 20,
+            "schedule.min_gain": 0.3, "schedule.settle": 0, "schedule.polish": 10, "schedule.val_nth": 4,
+            "strategy.refine_stop": 400}
+    runs = {}
+    for name, nproc in (("two", ["--nproc", "2"]), ("one", [])):
+        cmd = [sys.executable, "-m", "warpgs.cli", "train", "default", *nproc,
+               *_overrides(scene, tmp_path / name, "auto", **auto)]
+        run = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=LAUNCH_TIMEOUT)
+        assert run.returncode == 0, run.stderr[-3000:]
+        runs[name] = json.loads((tmp_path / name / "metrics.json").read_text())["schedule"]
+    one, two = runs["one"], runs["two"]
+    # Decided by the rule, not by the bound: densification stopped, then training, before schedule.max_steps.
+    assert [d["decision"] for d in one["decisions"]] == ["stop_densifying", "stop"]
+    assert one["end"] < 400
+    for key in ("densify_stop", "polish_start", "end", "best_step"):
+        assert two[key] == one[key], key
+    assert [v["step"] for v in two["validation"]] == [v["step"] for v in one["validation"]]
+    assert [v["psnr"] for v in two["validation"]] == pytest.approx([v["psnr"] for v in one["validation"]], abs=1e-3)
+    a, b = load_checkpoint(tmp_path / "two" / "checkpoint.pt"), load_checkpoint(tmp_path / "one" / "checkpoint.pt")
+    assert a["step"] == b["step"] == one["end"]
+    _assert_close(a["model"]["params"], b["model"]["params"], "two processes vs one, steps=auto")
+
+
 def test_a_rank_that_dies_stops_the_other_with_a_clear_error(scene, tmp_path, how="exit"):
     # The two ranks are started directly (torchrun's environment, no torchrun agent to kill the survivor), so
     # what is tested is the survivor's own detection: its next collective fails and it exits with a message.

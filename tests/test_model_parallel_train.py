@@ -101,6 +101,30 @@ def test_two_model_parallel_processes_match_one_and_resume(scene, tmp_path):
     single.train_step()
 
 
+def test_steps_auto_scores_the_validation_views_from_every_shard(scene, tmp_path):
+    """train.steps=auto with train.parallel=model: the held-out training views are rendered in rounds from both
+    shards, so the rule decides on the whole model's score: the last validation score equals one process's score of
+    the saved model (no polish: the run ends at that validation)."""
+    from warpgs.metrics.image import psnr
+
+    auto = {"train.steps": "auto", "schedule.max_steps": 400, "schedule.val_every": 10, "schedule.patience": 20,
+            "schedule.min_gain": 0.3, "schedule.settle": 0, "schedule.polish": 0, "schedule.val_nth": 4,
+            "strategy.refine_stop": 400}
+    run = tmp_path / "mp_auto"
+    overrides = _overrides(scene, run, "auto", **auto)
+    _launch(overrides)
+    schedule = json.loads((run / "metrics.json").read_text())["schedule"]
+    assert [d["decision"] for d in schedule["decisions"]] == ["stop_densifying", "stop"]  # the rule, not the bound
+    assert schedule["end"] < 400 and schedule["validation"][-1]["step"] == schedule["end"]
+
+    one = Trainer(None, overrides=overrides, quiet=True, resume=True)
+    assert one.step == schedule["end"] and one.views.held_out
+    views = [one.views.kept_or_new(i) for i in one.views.held_out]
+    with torch.no_grad():
+        mine = sum(float(psnr(one.render(v).rgb.clamp(0.0, 1.0), v.image)) for v in views) / len(views)
+    assert schedule["validation"][-1]["psnr"] == pytest.approx(mine, abs=1e-3)
+
+
 def test_a_shard_is_its_rows_of_model_optimizer_and_statistics_and_its_share_of_the_budget():
     torch.manual_seed(0)
     n = 7

@@ -128,6 +128,24 @@ class Evaluator:
         self.history = list(state.get("history", []))
 
 
+def scores_over_ranks(views: list, render: Callable, score: Callable, ranks=None,
+                      render_round: Optional[Callable] = None, what: str = "gathering the scores") -> List[float]:
+    """[score(render(view), view) for view in views], the renders shared out over the ranks (each renders its
+    contiguous share; with render_round, model-parallel, in rounds of one view per rank) and the scores gathered,
+    so every rank returns the same list, in view order, as one process computes it."""
+    if ranks is None or not ranks.enabled:
+        return [score(render(v), v) for v in views]
+    share = range(len(views))[ranks.shard(len(views))]
+    rounds = _Rounds(render_round, ranks, views) if render_round is not None else None
+    mine = {k: score(rounds.next(views[k]) if rounds is not None else render(views[k]), views[k]) for k in share}
+    if rounds is not None:
+        rounds.finish()
+    merged = {}
+    for part in ranks.all_gather_object(mine, what=what):
+        merged.update(part)
+    return [merged[k] for k in range(len(views))]
+
+
 class _Rounds:
     """The evaluation's renders in rounds of one view per rank (Evaluator's render_round): round k is the k-th
     view of every rank's share; a rank whose share is used up renders the first view again and drops it, so every

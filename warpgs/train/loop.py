@@ -17,6 +17,7 @@ from warpgs.metrics.image import psnr
 from warpgs.metrics.views import write_json
 from warpgs.train import setup as train_setup
 from warpgs.train.distributed import DistributedError
+from warpgs.train.evaluation import scores_over_ranks
 from warpgs.train.guard import NonFiniteError
 from warpgs.utils.atomic_file import atomic_write_bytes
 from warpgs.utils.progress import Progress
@@ -174,15 +175,15 @@ class TrainingLoop:
 
     @torch.no_grad()
     def _validation_psnr(self) -> float:
-        """Mean PSNR over the held-out training views (renders clamped to [0, 1], as evaluations score). Every rank
-        scores them; rank 0's value counts, so all ranks take the same decisions."""
+        """Mean PSNR over the held-out training views (renders clamped to [0, 1], as evaluations score). The ranks
+        share the renders out (model-parallel: in rounds, every rank's camera at once) and gather the scores, so all
+        ranks get the value one process gets and take the same decisions."""
         tr = self.trainer
-        scores = []
-        for i in tr.views.held_out:
-            view = tr.views.kept_or_new(i)
-            rgb = tr.render(view, ("rgb",)).rgb.clamp(0.0, 1.0)
-            scores.append(float(psnr(rgb, view.image)))
-        return tr.ranks.broadcast_object(sum(scores) / len(scores), what="the validation score")
+        views = [tr.views.kept_or_new(i) for i in tr.views.held_out]
+        scores = scores_over_ranks(views, lambda v: tr.render(v, ("rgb",)).rgb,
+                                   lambda rgb, v: float(psnr(rgb.clamp(0.0, 1.0), v.image)), tr.ranks,
+                                   tr._render_round if tr.model_parallel else None, what="the validation score")
+        return sum(scores) / len(scores)
 
     def _close_progress(self) -> None:
         self.progress.close()

@@ -106,8 +106,6 @@ class Trainer:
         # train.steps=auto: the run is bounded by schedule.max_steps (its learning-rate horizon) and ends when
         # train/schedule.py's rule says so; the strategy and the loop apply its decisions.
         self.auto_steps = cfg.train.steps == "auto"
-        if self.auto_steps and self.model_parallel:
-            raise ValueError("train.steps=auto: not available with train.parallel=model yet; give a step count")
         self.max_steps = int(cfg.schedule.max_steps if self.auto_steps else cfg.train.steps)
         self.guard = NonFiniteGuard(self.named_parameters)
         self.checkpointer = Checkpointer(self.out_dir / cfg.output.checkpoint, self.device,
