@@ -3,7 +3,6 @@ of two ends, through a densification refine; a checkpoint of the two resumes on 
 files; a rank that dies makes the other stop with an error naming the failed collective instead of hanging."""
 import json
 import os
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from gloo_helpers import start_two_ranks
+from gloo_helpers import free_port, start_two_ranks
 from warpgs.data.formats.synthetic import RigSettings, write_synthetic_scene
 from warpgs.train.checkpoint import load_checkpoint
 from warpgs.train.distributed import Ranks
@@ -60,12 +59,6 @@ def _overrides(scene, out, steps, **extra):
     }
     settings.update(extra)
     return [f"{k}={v}" for k, v in settings.items()]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _env(**extra) -> dict:
@@ -167,7 +160,7 @@ def test_a_rank_that_dies_stops_the_other_with_a_clear_error(scene, tmp_path, ho
                                                             "extensions.test_die.how": how})
     (code0, _, err0), (code1, _, err1) = start_two_ranks(
         [sys.executable, "-m", "warpgs.cli", "train", "default", *overrides],
-        _env(WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=_free_port()), LAUNCH_TIMEOUT)
+        _env(WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=free_port()), LAUNCH_TIMEOUT)
     assert code1 == (17 if how == "exit" else 1), err1[-2000:]
     if how == "raise":
         assert "test_die: failing on purpose" in err1

@@ -11,8 +11,8 @@ import sys
 import pytest
 import torch
 
-from gloo_helpers import start_two_ranks
-from test_distributed import LAUNCH_TIMEOUT, _env, _free_port, _overrides
+from gloo_helpers import free_port, start_two_ranks
+from test_distributed import LAUNCH_TIMEOUT, _env, _overrides
 from warpgs.data.formats.synthetic import RigSettings, write_synthetic_scene
 from warpgs.model.gaussians import GaussianModel, SurfelModel
 from warpgs.train.checkpoint import load_checkpoint
@@ -249,7 +249,7 @@ def test_non_finite_gradients_on_one_rank_stop_both_at_that_step(scene, tmp_path
     overrides = _overrides(scene, tmp_path / "run", K, **SETTINGS, **{"imports": f"[{loss}]",
                                                                        "losses.test_nan_on_rank1": 1.0})
     results = start_two_ranks([sys.executable, "-m", "warpgs.cli", "train", "default", *overrides, "train.parallel=model"],
-                              _env(WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=_free_port()), LAUNCH_TIMEOUT)
+                              _env(WORLD_SIZE=2, MASTER_ADDR="127.0.0.1", MASTER_PORT=free_port()), LAUNCH_TIMEOUT)
     for rank, (code, _, err) in enumerate(results):
         assert code == 3, f"rank {rank}: {err[-2000:]}"  # EXIT_NONFINITE
     err0 = results[0][2]

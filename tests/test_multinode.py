@@ -6,9 +6,8 @@ import subprocess
 import sys
 import time
 
-from gloo_helpers import wait_all
-from test_distributed import (K, LAUNCH_TIMEOUT, _assert_close, _env, _free_port, _overrides, _snapshot,  # noqa: F401
-                              scene)
+from gloo_helpers import free_port, wait_all
+from test_distributed import K, LAUNCH_TIMEOUT, _assert_close, _env, _overrides, _snapshot, scene  # noqa: F401
 from warpgs.train.checkpoint import load_checkpoint
 from warpgs.train.trainer import Trainer
 
@@ -22,7 +21,7 @@ def _agent(port: int, overrides: list) -> list:
 
 def test_two_nodes_match_one_process(scene, tmp_path):
     two = tmp_path / "two"
-    cmd = _agent(_free_port(), _overrides(scene, two, K))
+    cmd = _agent(free_port(), _overrides(scene, two, K))
     agents = []
     for node in range(2):
         agents.append(subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))

@@ -24,6 +24,10 @@ def test_depth_png16_round_trip_to_its_quantum(tmp_path):
     assert np.array_equal(ok, valid & (depth <= 65.535))
     assert np.abs(got[ok] - depth[ok]).max() <= 0.5 / 1000 + 1e-6
     assert (got[~ok] == 0).all()
+    # A valid depth under half a level stays a depth (the nearest the format holds), not "no depth".
+    write_depth_png16(tmp_path / "near.png", np.array([[0.0002, 0.0, 2.0]]), 1000.0, np.array([[True, False, True]]))
+    got, ok = read_depth(tmp_path / "near.png", "depth", scale=1 / 1000)
+    assert ok.tolist() == [[True, False, True]] and got[0, 0] == pytest.approx(0.001) and got[0, 2] == pytest.approx(2.0)
     for bad in (0.0, float("inf"), float("nan")):
         with pytest.raises(ValueError, match="e.png: depth scale must be positive and finite"):
             write_depth_png16(tmp_path / "e.png", depth, bad)

@@ -176,8 +176,9 @@ def write_exr(path: PathLike, values: np.ndarray, kind: str, valid: Optional[np.
 
 def write_depth_png16(path: PathLike, depth: np.ndarray, scale: float, valid: Optional[np.ndarray] = None) -> int:
     """Write depth [H, W] as a 16-bit PNG of round(depth * scale), atomically; 0 marks pixels without depth (not
-    `valid`, not finite, or beyond 65535 / scale). Read back with read_depth(path, "depth", scale=1 / scale).
-    Returns how many valid pixels were beyond the range (and written as 0)."""
+    `valid`, not finite, or beyond 65535 / scale). A valid depth under half a level is written as level 1, the
+    nearest depth the format holds, not as 0 (which would read as "no depth"). Read back with read_depth(path,
+    "depth", scale=1 / scale). Returns how many valid pixels were beyond the range (and written as 0)."""
     from warpgs.utils.atomic_file import atomic_write_bytes
 
     if not 0 < scale < float("inf"):  # inf would write every pixel as "no depth"
@@ -188,7 +189,7 @@ def write_depth_png16(path: PathLike, depth: np.ndarray, scale: float, valid: Op
     ok = np.isfinite(depth) & (depth > 0) if valid is None else np.asarray(valid, bool) & np.isfinite(depth)
     levels = np.round(np.where(ok, depth, 0.0) * scale)
     beyond = ok & (levels > 65535)
-    levels = np.where(ok & ~beyond & (levels >= 0), levels, 0).astype(np.uint16)
+    levels = np.where(ok & ~beyond & (levels >= 0), np.maximum(levels, 1), 0).astype(np.uint16)
     buf = io.BytesIO()
     Image.fromarray(levels).save(buf, format="PNG")  # uint16 arrays become mode I;16
     atomic_write_bytes(path, buf.getvalue())
