@@ -104,3 +104,15 @@ def test_deterministic_adjoint_gives_the_default_gradients(kind, variant):
         torch.testing.assert_close(fixed[k], ref, rtol=1e-4, atol=1e-5 * ref.abs().max().item(),
                                    msg=lambda m, k=k: f"{kind} {variant} grad {k}: {m}")
         assert torch.equal(fixed[k], again[k]), k
+
+
+def test_bad_settings_are_refused_by_name():
+    from warpgs.train.determinism import use_deterministic_algorithms
+
+    with pytest.raises(ValueError, match="raster option deterministic"):
+        with raster_options(deterministic="yes"):
+            pass
+    was = torch.are_deterministic_algorithms_enabled()
+    with pytest.raises(ValueError, match="train.deterministic.*train.parallel=model"):
+        use_deterministic_algorithms(torch.device("cpu"), model_parallel=True)
+    assert torch.are_deterministic_algorithms_enabled() == was  # refused before switching anything on

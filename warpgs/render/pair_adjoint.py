@@ -51,6 +51,11 @@ def run_pair_adjoint(ws: Workspace, key: str, fields, n: int, pairs: PairOrder, 
             plan.append((f, wp.types.type_size_in_bytes(a.dtype) // 4 if used else 0, a.dtype, a))
         else:
             plan.append((f[0], f[1], f[2], None))
+    widest = max(p[1] for p in plan)
+    if slots * widest >= 2**31:  # the kernels index each gradient's slots with 32-bit ints
+        raise ValueError(f"deterministic render: {pairs.total} tile pairs x {parts} parts per tile x {widest} floats "
+                         f"is past 2^31 (int32 indices); use a smaller tile_size, fewer primitives or pixels, or "
+                         f"deterministic=False")
     own = [p for p, f in zip(plan, fields) if not isinstance(f, str)]
     sums = ws.array("grad_projected", sum(p[1] for p in own) * n, float)
     sums.zero_()
