@@ -17,7 +17,9 @@ def use_deterministic_algorithms(device: torch.device, model_parallel: bool) -> 
         raise ValueError("train.deterministic: not available with train.parallel=model yet (its splat renderer's "
                          "adjoint adds with float atomics); use train.parallel=data or turn it off")
     if device.type == "cuda":
-        # cuBLAS is deterministic only with a fixed workspace; torch raises for cuBLAS calls without this setting.
-        # It must be set before the first cuBLAS handle is made, so a run that already used cuBLAS keeps its own.
+        # cuBLAS: a fixed workspace (torch releases before late 2025 raise without it; read when the first cuBLAS
+        # handle is made, so a process that already used cuBLAS keeps its own). cuDNN: no benchmarking, which can
+        # pick another (deterministic) algorithm, and so other bits, on another run.
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.backends.cudnn.benchmark = False
     torch.use_deterministic_algorithms(True, warn_only=False)
