@@ -253,8 +253,8 @@ def main():
                     print_table([row], [c for c in row if not c.endswith("_rounds")])  # progress, one row at a time
                 sync(device)
     print()
-    columns = ["n", "resolution", "tile_size", "variant", "deterministic", "checks", "graphs", "fwd_ms", "fwd_bwd_ms", "max_err",
-               "evals_per_s"]
+    columns = ["n", "resolution", "tile_size", "variant", "deterministic", "checks", "graphs", "fwd_ms", "fwd_bwd_ms",
+               "max_err", "evals_per_s"]
     columns += ["frac_of_core_peak"] if peak else []
     columns += ["gsplat_fwd_ms", "gsplat_fwd_bwd_ms", "ratio_fwd", "ratio_fwd_bwd"] if args.gsplat else []
     print_table(rows, columns)

@@ -17,7 +17,7 @@ import warp as wp
 @wp.func
 def pair_part_index(k: int, tid: int, tile_size: int, group: int) -> int:
     """The slot of sorted pair k's sum from the summing group (`group` consecutive threads of a tile) that launch
-    thread tid belongs to (launches start at a tile boundary, so tid % tile_size² is the thread's place in its tile)."""
+    thread tid belongs to (launches start at a tile boundary: tid % tile_size² is the thread's place in its tile)."""
     per_tile = tile_size * tile_size
     return k * (per_tile / group) + (tid % per_tile) / group
 

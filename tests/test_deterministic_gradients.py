@@ -58,7 +58,8 @@ def test_pair_sums_find_every_pair_and_add_them_in_float32_of_a_float64_sum():
     assert [sorted_pairs[p] for p in pos] == emitted  # emitted slot -> the same (tile, primitive) after the sort
     assert pos.tolist() != list(range(total))  # the sort did move pairs: the test means something
 
-    values_np = rng.standard_normal((total * parts, width)).astype(np.float32) * 10.0 ** rng.integers(-3, 3, (total * parts, 1))
+    magnitudes = 10.0 ** rng.integers(-3, 3, (total * parts, 1))  # mixed scales: the order of float32 adds matters
+    values_np = (rng.standard_normal((total * parts, width)) * magnitudes).astype(np.float32)
     sums = wp.array(np.full(n * width, 0.5, np.float32), dtype=float, device=dev)  # adds to what is there
     wp.launch(pair_sums.sum_pair_parts, n * width,
               [positions, ranges, parts, width, wp.array(values_np.reshape(-1), dtype=float, device=dev), sums],

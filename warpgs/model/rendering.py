@@ -48,8 +48,8 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
         inputs["features"] = features
     kwargs = dict(viewmat=viewmat, K=K, width=width, height=height, outputs=tuple(outputs), background=background,
                   near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
-                  transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=check_inputs, deterministic=deterministic,
-                  **inputs)
+                  transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=check_inputs,
+                  deterministic=deterministic, **inputs)
     if kind == "gaussians":
         return rasterize(track_means2d=track_means2d, **kwargs)
     return rasterize_surfels(**kwargs)

@@ -198,7 +198,8 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     return total, tile_start, tile_end, sorted_ids
 
 
-def pair_order(ws: Workspace, s: Settings, keep: Optional[Keep], n: int, total: int, sorted_ids) -> Optional[PairOrder]:
+def pair_order(ws: Workspace, s: Settings, keep: Optional[Keep], n: int, total: int,
+               sorted_ids) -> Optional[PairOrder]:
     """For the deterministic GPU adjoint (pair_adjoint.py): where each pair emitted by `sort_into_tiles` ended up
     after the sort, and each primitive's run of emitted pairs, in `keep` (run right after the sort: it reads the
     sort's workspace arrays). None where nothing needs it: no backward follows (keep None), no pairs, or the CPU's

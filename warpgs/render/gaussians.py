@@ -209,7 +209,8 @@ def rasterize(
                                 sh_degree=sh_degree, features=features, background=background, outputs=outputs,
                                 near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
                                 transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=False,
-                                deterministic=deterministic, _means2d_probe=None if probe is None else probe[b], _pipeline_checks=pipeline_checks)
+                                deterministic=deterministic, _means2d_probe=None if probe is None else probe[b],
+                                _pipeline_checks=pipeline_checks)
                       for b in range(viewmat.shape[0])]
         out = _stack(per_camera)
         out.means2d = probe
@@ -227,8 +228,9 @@ def rasterize(
                              num_features=feats.shape[1])
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, fout, visible, count = run_op(
-            FastRasterizeFunction, settings, wanted, options_for_call(deterministic), means, quats, scales, opacities, coeffs,
-            feats, viewmat, _intrinsics_vector(K), probe, (features, K, background) if pipeline_checks else None)
+            FastRasterizeFunction, settings, wanted, options_for_call(deterministic), means, quats, scales, opacities,
+            coeffs, feats, viewmat, _intrinsics_vector(K), probe,
+            (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width
         shapes = [(H, W, 3) if wanted.color else (0,), (H, W, 1), (H, W, 1) if wanted.depth else (0,),

@@ -96,8 +96,8 @@ def rasterize_surfels(
         num_features=feats.shape[1], distortion_scale=DISTORTION_SCALE)
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = run_op(
-            FastSurfelsFunction, settings, wanted, options_for_call(deterministic), means, quats, scales, opacities, coeffs,
-            feats, viewmat, _intrinsics_vector(K), (features, K, background) if pipeline_checks else None)
+            FastSurfelsFunction, settings, wanted, options_for_call(deterministic), means, quats, scales, opacities,
+            coeffs, feats, viewmat, _intrinsics_vector(K), (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width
         shapes = [(H, W, c) if image_wanted(wanted, name) else (0,) for name, c, _ in IMAGES]
