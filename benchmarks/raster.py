@@ -11,6 +11,8 @@ tile size: 16 for a GPU forward that autograd will not differentiate, else 8), o
     python benchmarks/raster.py --variants fast+bwd=warp_sums,fast+bwd=block ...
                                                           # one row per renderer variant (benchmarks/variants.py),
                                                           # timed in interleaved rounds in one process
+    python benchmarks/raster.py --deterministic off,on ... # the default adjoint and the deterministic one
+                                                          # (rasterize(deterministic=True)), one row each
     python benchmarks/raster.py --checks on,off --graphs on,off ...
                                                           # input checks (check_inputs) and CUDA graphs
                                                           # (warpgs.render.workspace) each way, one row each
@@ -181,6 +183,9 @@ def main():
     ap.add_argument("--variants", default="default",
                     help="comma-separated renderer variants (benchmarks/variants.py), e.g. "
                          "fast+bwd=warp_sums,fast+bwd=block")
+    ap.add_argument("--deterministic", default="off",
+                    help="the blend adjoint: off (the default call), on (deterministic=True: fixed-order sums, "
+                         "run-to-run identical GPU gradients), or off,on; crossed with --variants (CPU: no-op)")
     ap.add_argument("--rounds", type=int, default=1, help="interleaved timing rounds per variant (median reported)")
     ap.add_argument("--out-name", default=None, help="JSON name (default raster_<device>[_surfels])")
     args = ap.parse_args()
@@ -201,7 +206,8 @@ def main():
             scene = (means, quats, scales, opacities, colors, viewmat, K)
             max_err = max_error_vs_reference(scene, W, H, surfels, args.error_pixels)
             for tile in (None if v == "auto" else int(v) for v in args.tile_sizes.split(",")):
-                specs = [(v, c == "on", g == "on") for v in args.variants.split(",")
+                specs = [(v + ("+det=on" if d == "on" else ""), c == "on", g == "on")
+                         for v in args.variants.split(",") for d in args.deterministic.split(",")
                          for c in args.checks.split(",") for g in args.graphs.split(",")]
                 times = {spec: ([], []) for spec in specs + (["gsplat"] if args.gsplat else [])}
                 for _ in range(args.rounds):  # interleaved, so that a busy moment hits every variant alike
@@ -225,10 +231,12 @@ def main():
                     evals, pairs = evaluations(scene, W, H, fwd_tile)
                 for spec in specs:
                     fwd_ms, fb_ms = (statistics.median(v) for v in times[spec])
-                    with variant(spec[0]):
+                    with variant(spec[0]) as options:
                         name = describe()
+                        deterministic = options.deterministic
                     row = dict(primitive=args.primitive, device=device, n=n, resolution=f"{W}x{H}",
-                               tile_size="auto" if tile is None else tile, variant=name, checks=spec[1],
+                               tile_size="auto" if tile is None else tile, variant=name,
+                               deterministic=deterministic, checks=spec[1],
                                graphs=spec[2] and HAS_GRAPHS and device.startswith("cuda"), fwd_ms=fwd_ms,
                                fwd_bwd_ms=fb_ms, max_err=max_err, tile_pairs=pairs, evals_per_s=evals / (fwd_ms / 1e3))
                     if args.label:
@@ -245,8 +253,8 @@ def main():
                     print_table([row], [c for c in row if not c.endswith("_rounds")])  # progress, one row at a time
                 sync(device)
     print()
-    columns = ["n", "resolution", "tile_size", "variant", "checks", "graphs", "fwd_ms", "fwd_bwd_ms", "max_err",
-               "evals_per_s"]
+    columns = ["n", "resolution", "tile_size", "variant", "deterministic", "checks", "graphs", "fwd_ms", "fwd_bwd_ms",
+               "max_err", "evals_per_s"]
     columns += ["frac_of_core_peak"] if peak else []
     columns += ["gsplat_fwd_ms", "gsplat_fwd_bwd_ms", "ratio_fwd", "ratio_fwd_bwd"] if args.gsplat else []
     print_table(rows, columns)

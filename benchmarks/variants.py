@@ -1,8 +1,9 @@
 """Renderer variants to time side by side in one process (benchmarks/raster.py, profile_stages.py).
 
 A variant is `default` (whatever the WARPGS_* variables select) or `fast`, then optional options joined by '+':
-`fast+bwd=block`, `fast+sbwd=warp_sums`. Keys: bwd (the 3D GPU adjoint: warp_sums, block), sbwd (the surfel GPU
-adjoint: block, warp_sums); see warpgs/render/defaults.py.
+`fast+bwd=block`, `fast+sbwd=warp_sums`, `fast+det=on`. Keys: bwd (the 3D GPU adjoint: warp_sums, block), sbwd
+(the surfel GPU adjoint: block, warp_sums), det (the deterministic adjoint: on, off; a no-op for the CPU's per-thread
+kernels, deterministic anyway); see warpgs/render/defaults.py.
 """
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ from contextlib import contextmanager
 
 from warpgs.render.defaults import current_raster_options, raster_options
 
-KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel"}
+KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel", "det": "deterministic"}
+SWITCHES = {"on": True, "off": False}  # the values of on/off keys
 
 
 def parse(spec: str) -> dict:
@@ -24,6 +26,10 @@ def parse(spec: str) -> dict:
         key, _, value = part.partition("=")
         if key not in KEYS or not value:
             raise SystemExit(f"variant {spec!r}: expected key=value with key in {sorted(KEYS)}")
+        if KEYS[key] == "deterministic":
+            if value not in SWITCHES:
+                raise SystemExit(f"variant {spec!r}: det takes on or off, got {value!r}")
+            value = SWITCHES[value]
         options[KEYS[key]] = value
     return options
 
@@ -37,4 +43,4 @@ def variant(spec: str):
 
 def describe() -> str:
     o = current_raster_options()
-    return f"fast+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}"
+    return f"fast+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}" + ("+det=on" if o.deterministic else "")

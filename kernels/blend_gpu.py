@@ -18,6 +18,7 @@ import functools
 
 import warp as wp
 
+from .pair_sums import pair_part_index
 from .warp_ops import lane_any, lane_max, lane_sum, lane_sum2, lane_sum3
 
 from .blend import (
@@ -129,7 +130,10 @@ def forward_kernel(block_dim: int, num_features: int):
 
 
 @functools.lru_cache(maxsize=None)
-def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
+def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deterministic: bool = False):
+    """deterministic: each block's sums go to their own slot per sorted pair (pair_sums.py; needs block_reduce)."""
+    if deterministic and not block_reduce:
+        raise ValueError("the deterministic adjoint sums over the block: block_reduce must be on")
     FeatureVec = feature_vector_type(num_features)
     has_features = num_features > 0
 
@@ -198,13 +202,16 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
                         T = row[ROW_T]
                         suffix = row[ROW_SUFFIX]
                 if wp.static(block_reduce):
+                    dest = g  # deterministic: this block's slot for the pair instead (pair_sums.py)
+                    if wp.static(deterministic):
+                        dest = pair_part_index(lo + j, tid, p.tile_size, wp.static(block_dim))
                     total = wp.tile_sum(wp.tile(gradient_sum_part(row), preserve_type=True))[0]
                     if lane == 0 and total[10] > 0.0:
-                        add_gradient_sum(g, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
+                        add_gradient_sum(dest, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
                     if wp.static(has_features):
                         f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * up_features, preserve_type=True))[0]
                         if lane == 0 and total[10] > 0.0:
-                            wp.atomic_add(adj_features, g, f_total)
+                            wp.atomic_add(adj_features, dest, f_total)
                 else:
                     if row[ROW_USED] > 0.0:
                         add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
@@ -236,7 +243,8 @@ def warp_sums_supported(tile_size: int) -> bool:
 
 
 @functools.lru_cache(maxsize=None)  # compiled once per block size and feature count
-def backward_kernel_warp_sums(block_dim: int, num_features: int):
+def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: bool = False):
+    """deterministic: each warp's sums go to their own slot per sorted pair (pair_sums.py), not to the primitive."""
     if block_dim % WARP != 0:
         raise ValueError(f"per-warp sums need whole warps per block, got block_dim={block_dim}")
     FeatureVec = feature_vector_type(num_features)
@@ -318,17 +326,20 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int):
                     o = lane_sum(row[5])
                     col = lane_sum3(wp.vec3(row[6], row[7], row[8]))
                     d = lane_sum(row[9])
+                    dest = g  # deterministic: this warp's slot for the pair instead (pair_sums.py)
+                    if wp.static(deterministic):
+                        dest = pair_part_index(lo + j, tid, p.tile_size, WARP)
                     if lane == 0:  # one set of atomics per warp and Gaussian
-                        wp.atomic_add(adj_means2d, g, m)
-                        wp.atomic_add(adj_conics, g, c)
-                        wp.atomic_add(adj_opacities, g, o)
-                        wp.atomic_add(adj_colors, g, col)
-                        wp.atomic_add(adj_depths, g, d)
+                        wp.atomic_add(adj_means2d, dest, m)
+                        wp.atomic_add(adj_conics, dest, c)
+                        wp.atomic_add(adj_opacities, dest, o)
+                        wp.atomic_add(adj_colors, dest, col)
+                        wp.atomic_add(adj_depths, dest, d)
                     if wp.static(has_features):
                         f_sum = FeatureVec()
                         for ch in range(wp.static(num_features)):
                             f_sum[ch] = lane_sum(f_part[ch])
                         if lane == 0:
-                            wp.atomic_add(adj_features, g, f_sum)
+                            wp.atomic_add(adj_features, dest, f_sum)
 
     return blend_backward_warp_sums

@@ -16,6 +16,7 @@ import warp as wp
 
 from .blend import thread_pixel
 from .blend_gpu import WARP, feature_vector_type
+from .pair_sums import pair_part_index
 from .warp_ops import lane_any, lane_max, lane_sum
 from .surfel_steps import (
     ROW_HIT,
@@ -136,7 +137,10 @@ def forward_kernel(block_dim: int, num_features: int):
 
 
 @functools.lru_cache(maxsize=None)
-def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
+def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deterministic: bool = False):
+    """deterministic: each block's sums go to their own slot per sorted pair (pair_sums.py; needs block_reduce)."""
+    if deterministic and not block_reduce:
+        raise ValueError("the deterministic adjoint sums over the block: block_reduce must be on")
     FeatureVec = feature_vector_type(num_features)
     has_features = num_features > 0
 
@@ -218,16 +222,19 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
                             T = row[ROW_T]
                             suffix = row[ROW_SUFFIX]
                 if wp.static(block_reduce):
+                    dest = g  # deterministic: this block's slot for the pair instead (pair_sums.py)
+                    if wp.static(deterministic):
+                        dest = pair_part_index(lo + j, tid, p.base.tile_size, wp.static(block_dim))
                     total = wp.tile_sum(wp.tile(gradient_sum_part(row), preserve_type=True))[0]
                     used = total[ROW_HIT] + total[ROW_SCREEN] > 0.0
                     if lane == 0 and used:
-                        add_surfel_gradient_row(g, gradient_sum_row(total), p,
+                        add_surfel_gradient_row(dest, gradient_sum_row(total), p,
                                                 adj_transforms, adj_means2d, adj_depths, adj_opacities, adj_colors,
                                                 adj_normals)
                     if wp.static(has_features):
                         f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * up_features, preserve_type=True))[0]
                         if lane == 0 and used:
-                            wp.atomic_add(adj_features, g, f_total)
+                            wp.atomic_add(adj_features, dest, f_total)
                 else:
                     if row[ROW_HIT] + row[ROW_SCREEN] > 0.0:
                         add_surfel_gradient_row(g, row, p, adj_transforms, adj_means2d,
@@ -247,7 +254,8 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int):
 
 
 @functools.lru_cache(maxsize=None)  # compiled once per block size and feature count
-def backward_kernel_warp_sums(block_dim: int, num_features: int):
+def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: bool = False):
+    """deterministic: each warp's sums go to their own slot per sorted pair (pair_sums.py), not to the surfel."""
     if block_dim % WARP != 0:
         raise ValueError(f"per-warp sums need whole warps per block, got block_dim={block_dim}")
     FeatureVec = feature_vector_type(num_features)
@@ -343,14 +351,17 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int):
                     total = SurfelGradSum()
                     for i in range(wp.static(GRAD_SUM_LENGTH)):
                         total[i] = lane_sum(row[i])
+                    dest = g  # deterministic: this warp's slot for the pair instead (pair_sums.py)
+                    if wp.static(deterministic):
+                        dest = pair_part_index(lo + j, tid, p.base.tile_size, WARP)
                     if lane == 0:  # one set of atomics per warp and surfel
-                        add_surfel_gradient_row(g, gradient_sum_row(total), p, adj_transforms, adj_means2d,
+                        add_surfel_gradient_row(dest, gradient_sum_row(total), p, adj_transforms, adj_means2d,
                                                 adj_depths, adj_opacities, adj_colors, adj_normals)
                     if wp.static(has_features):
                         f_sum = FeatureVec()
                         for ch in range(wp.static(num_features)):
                             f_sum[ch] = lane_sum(f_part[ch])
                         if lane == 0:
-                            wp.atomic_add(adj_features, g, f_sum)
+                            wp.atomic_add(adj_features, dest, f_sum)
 
     return surfel_blend_backward_warp_sums

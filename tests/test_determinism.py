@@ -18,6 +18,7 @@ import warp as wp
 from legacy_raster import rasterize_legacy
 from random_scenes import random_scene
 from warpgs import rasterize, rasterize_surfels
+from warpgs.render.defaults import raster_options
 
 CALLS = 20
 OUTPUTS = ("rgb", "depth", "alpha")
@@ -106,10 +107,22 @@ def _cuda_available() -> bool:
 @pytest.mark.skipif(not _cuda_available(), reason="no CUDA device visible to Warp and torch (CPU-only machine)")
 @pytest.mark.parametrize("kind", ["gaussians", "surfels"])
 def test_cuda_renders_are_bit_identical(kind):
-    # Images: bit-identical (each pixel is blended by one thread, in order). Gradients: not on a GPU. The blend
-    # adjoint adds each tile's per-Gaussian sums with float atomics, whose order varies from run to run; on an
-    # H100 two calls differed by up to ~1e-4 in absolute value (seen 2026-11-24). Equal up to rounding is checked.
+    # Images: bit-identical (each pixel is blended by one thread, in order). Gradients: not by default on a GPU.
+    # The blend adjoint adds each tile's per-Gaussian sums with float atomics, whose order varies from run to run;
+    # on an H100 two calls differed by up to ~1e-4 in absolute value (seen 2026-11-24). Equal up to rounding is
+    # checked; the deterministic mode's bits are, below.
     assert_repeatable(kind, "cuda", exact_grads=False)
+
+
+@pytest.mark.skipif(not _cuda_available(), reason="no CUDA device visible to Warp and torch (CPU-only machine)")
+@pytest.mark.parametrize("kind", ["gaussians", "surfels"])
+@pytest.mark.parametrize("variant", ["warp_sums", "block"])
+def test_cuda_gradients_are_bit_identical_in_deterministic_mode(kind, variant):
+    """Raster option deterministic: the blend adjoint's per-pair sums are added in a fixed order (no atomics), so
+    20 calls give the same gradient bits, with either GPU adjoint."""
+    option = "surfel_backward_kernel" if kind == "surfels" else "backward_kernel"
+    with raster_options(deterministic=True, **{option: variant}):
+        assert_repeatable(kind, "cuda", exact_grads=True)
 
 
 def test_thread_pool_loads_modules_before_its_workers_launch(tmp_path):
@@ -170,6 +183,40 @@ def test_same_seed_training_is_repeatable_and_evaluating_does_not_perturb_it(tmp
                 trainer.evaluate()
         assert refines >= 2  # the comparison covers splits, whose children are sampled at random
         runs.append({k: v.detach().clone() for k, v in trainer.model.params.items()})
+    assert runs[0].keys() == runs[1].keys()
+    for k in runs[0]:
+        assert torch.equal(runs[0][k], runs[1][k]), k
+
+
+def test_deterministic_training_runs_and_repeats(tmp_path, monkeypatch):
+    """train.deterministic=true: every training render asks for the fixed-order adjoint, torch's deterministic mode
+    is on during the run (and this test puts it back after), and two same-seed CPU runs end bit-identical."""
+    import warpgs.train.trainer as trainer_module
+    from train_fixtures import quick_overrides
+    from warpgs.config.loader import load_config
+
+    asked = []
+    render_model = trainer_module.render_model
+
+    def spy(*args, **kwargs):
+        asked.append(kwargs.get("deterministic"))
+        return render_model(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "render_model", spy)
+    was = torch.are_deterministic_algorithms_enabled()
+    runs = []
+    try:
+        for name in ("a", "b"):
+            cfg = load_config(None, quick_overrides(tmp_path / name, steps=25,
+                                                    **{"train.threads": 2, "train.deterministic": "true"}))
+            trainer = trainer_module.Trainer(cfg, quiet=True)
+            assert torch.are_deterministic_algorithms_enabled()
+            for _ in range(25):
+                trainer.train_step()
+            runs.append({k: v.detach().clone() for k, v in trainer.model.params.items()})
+    finally:
+        torch.use_deterministic_algorithms(was)
+    assert asked and all(a is True for a in asked)
     assert runs[0].keys() == runs[1].keys()
     for k in runs[0]:
         assert torch.equal(runs[0][k], runs[1][k]), k

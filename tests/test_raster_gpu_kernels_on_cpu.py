@@ -1,6 +1,7 @@
 """The block-cooperative GPU kernels (kernels/blend_gpu.py), run on the CPU through Warp's CPU blocks, must
 pass the same forward and gradient checks: CI has no GPU, and these are the kernels GPUs run. Every GPU adjoint
-(`backward_kernel_warp_sums`, the default, and `backward_kernel` with and without its block sums) is checked
+(`backward_kernel_warp_sums`, the default, `backward_kernel` with and without its block sums, and the
+deterministic mode's twins) is checked
 against the float64 reference, and the op against its per-call oracle (tests/legacy_raster.py)."""
 import os
 import subprocess
@@ -21,6 +22,9 @@ VARIANTS = {  # name: (environment, test files)
                "test_raster_knobs.py::test_gaussians_gradients_follow_reference_at_other_thresholds"]),
     "block-no-reduce": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "0"},
                         ["test_raster_gradients.py::test_gradients_of_all_inputs_match_reference"]),
+    # the fixed-order adjoint (raster option deterministic): the float64 checks, and the default path's gradients
+    "deterministic": ({"WARPGS_DETERMINISTIC": "1"},
+                      ["test_raster_gradients.py", "test_deterministic_gradients.py"]),
 }  # the per-call oracle runs in test_raster_fast_path.py, as the reference of the op
 
 

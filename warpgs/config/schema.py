@@ -98,6 +98,9 @@ class TrainConfig:
     parallel: str = "data"
     viewer: bool = False  # serve a browser viewer of the model as it trains (pip install 'warpgs[viewer]')
     viewer_port: int = 8080  # its port on 127.0.0.1 (0: any free one)
+    # Run-to-run identical gradients on GPUs: fixed-order sums in the blend adjoint (rasterize(deterministic=True))
+    # and torch.use_deterministic_algorithms; slower (docs/distributed.md, "Deterministic training").
+    deterministic: bool = False
 
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""

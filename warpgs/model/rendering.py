@@ -35,10 +35,11 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
                  track_means2d: bool = False, near: float = 0.01, far: float = 1e10,
                  tile_size: Optional[int] = None, max_sigmas: float = 0.0, alpha_min: float = DEFAULT_ALPHA_MIN,
                  transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN, alpha_max: float = DEFAULT_ALPHA_MAX,
-                 check_inputs: bool = True) -> RenderOutput:
+                 check_inputs: bool = True, deterministic: Optional[bool] = None) -> RenderOutput:
     """One camera. `inputs` (default: model.render_inputs()) may be edited by the caller, e.g. colours from
     an MLP; `features` [N, C] is rendered when "features" is in outputs. track_means2d is honoured for 3D
-    Gaussians only (surfels: `out.means2d` stays None and densification falls back to means.grad)."""
+    Gaussians only (surfels: `out.means2d` stays None and densification falls back to means.grad).
+    deterministic: as in `rasterize` (None: the raster option's value)."""
     kind = model.kind
     if kind not in OUTPUTS_BY_KIND:
         raise ValueError(f"model.kind: expected one of {sorted(OUTPUTS_BY_KIND)}, got {kind!r}")
@@ -47,7 +48,8 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
         inputs["features"] = features
     kwargs = dict(viewmat=viewmat, K=K, width=width, height=height, outputs=tuple(outputs), background=background,
                   near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
-                  transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=check_inputs, **inputs)
+                  transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=check_inputs,
+                  deterministic=deterministic, **inputs)
     if kind == "gaussians":
         return rasterize(track_means2d=track_means2d, **kwargs)
     return rasterize_surfels(**kwargs)

@@ -50,11 +50,16 @@ class RasterOptions:
     backward_kernel: str = os.environ.get("WARPGS_BWD_KERNEL", "warp_sums")
     # Surfels: the per-warp adjoint halves fwd+bwd on an H200 (raster_cuda_h200_surfels_*.json); "block" is the old one.
     surfel_backward_kernel: str = os.environ.get("WARPGS_SURFEL_BWD_KERNEL", "warp_sums")
+    # GPU gradients bit-identical from run to run: the blend adjoint sums each primitive's per-tile parts in a fixed
+    # order instead of with float atomics (render/pair_adjoint.py). Off: faster. The CPU is deterministic either way.
+    deterministic: bool = os.environ.get("WARPGS_DETERMINISTIC", "0") == "1"
 
     def __post_init__(self):
         for f in ("backward_kernel", "surfel_backward_kernel"):
             if getattr(self, f) not in BACKWARD_KERNELS:
                 raise ValueError(f"raster option {f}: expected one of {BACKWARD_KERNELS}, got {getattr(self, f)!r}")
+        if not isinstance(self.deterministic, bool):
+            raise ValueError(f"raster option deterministic: expected True or False, got {self.deterministic!r}")
 
 
 _options = [RasterOptions()]
@@ -77,3 +82,11 @@ def raster_options(**changes):
         yield _options[-1]
     finally:
         _options.pop()
+
+
+def options_for_call(deterministic=None) -> RasterOptions:
+    """The raster options one render uses: the current ones, with a render's own `deterministic` (None: keep)."""
+    options = current_raster_options()
+    if deterministic is None or deterministic == options.deterministic:
+        return options
+    return replace(options, deterministic=deterministic)

@@ -20,13 +20,14 @@ order (tile, depth, primitive index).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import warp as wp
 
-from warpgs.kernels import binning, blend, blend_gpu, depth_norm, input_checks, project
+from warpgs.kernels import binning, blend, blend_gpu, depth_norm, input_checks, pair_sums, project
 from warpgs.render.cpu_threads import run_threads
+from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
 from warpgs.render.workspace import LaunchSequence, Workspace
@@ -51,6 +52,7 @@ class TileFrame:
     transmittance: wp.array
     last: wp.array
     counts: wp.array  # workspace: valid until the next call on this workspace
+    pairs: Optional[PairOrder] = field(default=None, kw_only=True)  # set for a deterministic backward (pair_order)
 
 
 @dataclass
@@ -80,14 +82,15 @@ def add_input_check(ws: Workspace, seq: LaunchSequence, n: int, check: InputChec
 
 
 def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, features, outputs, keep: Optional[Keep],
-            on_stage: Optional[Callable[[str], None]] = None, check: Optional[InputCheck] = None) -> Frame:
+            on_stage: Optional[Callable[[str], None]] = None, check: Optional[InputCheck] = None,
+            deterministic: bool = False) -> Frame:
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth, inv_depth, features) arrays the blend writes
     (1-element dummies for outputs not asked for; features zeroed beforehand for the per-thread CPU kernel);
     features in the layout of `feature_layout`. keep=None: everything in the workspace (no backward follows).
     on_stage(name), if given, is called after each stage (benchmarks/profile_stages.py times them).
     check: the input checks to run, whose error is raised at the tile-pair count's sync (before anything is sized
-    from the count)."""
+    from the count). deterministic: keep what a fixed-order (run-to-run identical) GPU backward needs (pair_order)."""
     _stage(on_stage, "op prologue")  # the render call's host work up to here (checks, wrapping, allocation)
     dev = ws.device
     n = int(inputs[0].shape[0])
@@ -112,6 +115,7 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "footprints", binning.tile_footprints, [means2d, cov2d, opacities, valid], depths, s, per_call,
         on_stage, sequence=seq)
+    pairs = pair_order(ws, s, keep, n, total, sorted_ids) if deterministic else None
 
     npix = s.width * s.height
     transmittance = per_call("transmittance", npix, float)
@@ -130,7 +134,7 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     _stage(on_stage, "blend forward")
     return Frame(n=n, total=total, means2d=means2d, conics=conics, depths=depths, colors=colors, q_cut=q_cut,
                  tile_start=tile_start, sorted_ids=sorted_ids, transmittance=transmittance, last=last,
-                 counts=counts)
+                 counts=counts, pairs=pairs)
 
 
 def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, depths, s: Settings, per_call,
@@ -194,6 +198,26 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     return total, tile_start, tile_end, sorted_ids
 
 
+def pair_order(ws: Workspace, s: Settings, keep: Optional[Keep], n: int, total: int,
+               sorted_ids) -> Optional[PairOrder]:
+    """For the deterministic GPU adjoint (pair_adjoint.py): where each pair emitted by `sort_into_tiles` ended up
+    after the sort, and each primitive's run of emitted pairs, in `keep` (run right after the sort: it reads the
+    sort's workspace arrays). None where nothing needs it: no backward follows (keep None), no pairs, or the CPU's
+    per-thread kernels, which are deterministic already."""
+    if keep is None or total == 0 or not _cooperative(ws.device):
+        return None
+    ranges = keep("pair_ranges", n, wp.vec2i)
+    positions = keep("pair_positions", total, wp.int32)
+    L = ws.launches
+    L.launch("pair_ranges", pair_sums.pair_ranges, n,
+             [ws.array("order", 2 * n, wp.int32), ws.array("offsets", n, wp.int32), ws.array("counts", n, wp.int32),
+              ranges])
+    L.launch("pair_positions", pair_sums.pair_positions, total,
+             [sorted_ids, ws.array("tile_keys", 2 * total, wp.int32), ws.array("rects", n, wp.vec4i), ranges,
+              s.tiles_x, positions])
+    return PairOrder(total=total, positions=positions, ranges=ranges)
+
+
 def normalize_depth(ws: Workspace, zacc, alpha, depth, npix: int, eps: float) -> None:
     """depth = zacc / max(alpha, eps) per pixel (kernels/depth_norm.py), in one launch."""
     ws.launches.launch("normalize_depth", depth_norm.normalize_depth, npix, [zacc, alpha, eps, depth])
@@ -227,9 +251,14 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
     """The blending adjoint. upstream: (grad color, alpha, depth, inv_depth, features) in the kernels' layouts
     (dummies for outputs not rendered). adj_opacities / adj_features: where the opacity and feature gradients
     accumulate (zeroed by the caller). Returns the projected gradients (means2d, conics, colors, depths), in the
-    workspace: valid until the next backward on it."""
+    workspace: valid until the next backward on it. A frame with `pairs` (forward(deterministic=True)) gets the
+    fixed-order adjoint of pair_adjoint.py."""
     L = ws.launches
     kernel, block_dim = _blend_kernel(ws.device, s, want, backward=True, variant=backward_kernel)
+    parts = 1
+    if frame.pairs is not None:
+        kernel, block_dim, parts = choose_kernel(blend_gpu, s.tile_size, backward_kernel, _block_dims(s)[1],
+                                                 want.num_features)
     head = [frame.tile_start, frame.sorted_ids, frame.means2d, frame.conics, opacities, frame.colors, frame.depths,
             features, frame.q_cut]
     tail = [frame.transmittance, frame.last] + list(upstream)
@@ -241,7 +270,7 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
     fields = [("means2d", 2, wp.vec2), ("conics", 3, wp.vec3), OPACITIES, ("colors", 3, wp.vec3),
               ("depths", 1, float), FEATURES]
     projected = run_blend_adjoint(ws, s, "blend_bwd", fields, frame.n, adj_opacities, adj_features,
-                                  num_features_rows, want.num_features, launch)
+                                  num_features_rows, want.num_features, launch, frame.pairs, parts)
     _stage(None, "blend backward")
     return projected
 
@@ -250,7 +279,8 @@ OPACITIES, FEATURES = "opacities", "features"  # where a blend adjoint takes the
 
 
 def run_blend_adjoint(ws: Workspace, s: Settings, key: str, fields, n: int, adj_opacities, adj_features,
-                      num_features_rows: int, num_features: int, launch) -> list:
+                      num_features_rows: int, num_features: int, launch, pairs: Optional[PairOrder] = None,
+                      parts: int = 1) -> list:
     """Runs a blend adjoint over the tiles (one launch on GPUs, a few threads on the CPU) and returns its sums per
     primitive. fields: the kernel's gradient targets in its argument order, each (name, floats per primitive,
     dtype) summed in one zeroed workspace block, or OPACITIES / FEATURES for the caller's arrays.
@@ -258,7 +288,11 @@ def run_blend_adjoint(ws: Workspace, s: Settings, key: str, fields, n: int, adj_
 
     CPU threads would race on the sums (Warp's CPU atomics are plain adds), so threads other than the first
     accumulate into private workspace buffers (the fields, then opacities, then features) added in afterwards.
-    The returned views are workspace memory: valid until the next backward on it."""
+    The returned views are workspace memory: valid until the next backward on it.
+    pairs: the deterministic adjoint instead (one launch; `parts` summing groups per tile; pair_adjoint.py)."""
+    if pairs is not None:
+        caller = {OPACITIES: (adj_opacities, True), FEATURES: (adj_features, num_features > 0)}
+        return run_pair_adjoint(ws, key, fields, n, pairs, parts, caller, s.num_tiles, launch)
     width = sum(f[1] for f in fields if f not in (OPACITIES, FEATURES))
     block = ws.array("grad_projected", width * n, float)
     block.zero_()

@@ -16,7 +16,9 @@ from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project, surfe
 from warpgs.kernels.blend_gpu import warp_sums_supported
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, InputCheck, Keep, TileFrame, _stage, add_input_check,
-                                         bin_into_tiles, blend_settings_key, launch_sequence, run_blend_adjoint)
+                                         bin_into_tiles, blend_settings_key, launch_sequence, pair_order,
+                                         run_blend_adjoint)
+from warpgs.render.pair_adjoint import choose_kernel
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
 from warpgs.render.workspace import Workspace
@@ -67,12 +69,13 @@ class SurfelFrame(TileFrame):
 
 
 def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, features, outputs,
-            keep: Optional[Keep], check: Optional[InputCheck] = None) -> SurfelFrame:
+            keep: Optional[Keep], check: Optional[InputCheck] = None, deterministic: bool = False) -> SurfelFrame:
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth, inv_depth, normal, median, distortion, features)
     arrays the blend writes (1-element dummies for outputs not asked for; features zeroed beforehand for the
     per-thread CPU kernel). keep=None: everything in the workspace (no backward follows). check: the input checks,
-    raised at the tile-pair count's sync (fast_pipeline.InputCheck)."""
+    raised at the tile-pair count's sync (fast_pipeline.InputCheck). deterministic: keep what a fixed-order GPU
+    backward needs (fast_pipeline.pair_order)."""
     L = ws.launches
     n = int(inputs[0].shape[0])
 
@@ -93,6 +96,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "surfel_footprints", surfel_project.surfel_footprints, [transforms, means2d, opacities, valid], depths,
         s, per_call, sequence=seq)
+    pairs = pair_order(ws, s, keep, n, total, sorted_ids) if deterministic else None
 
     npix = s.width * s.height
     transmittance = per_call("transmittance", npix, float)
@@ -116,7 +120,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     return SurfelFrame(n=n, total=total, transforms=transforms, means2d=means2d, depths=depths, normals=normals,
                        colors=colors, q_cut=q_cut, tile_start=tile_start, sorted_ids=sorted_ids,
                        transmittance=transmittance, last=last, median_index=median_index, dist_stats=dist_stats,
-                       counts=counts)
+                       counts=counts, pairs=pairs)
 
 
 def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelWanted, opacities, features,
@@ -125,9 +129,14 @@ def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelW
     in the kernels' layouts (dummies for outputs not rendered). adj_opacities / adj_features: where the opacity and
     feature gradients accumulate (zeroed by the caller). backward_kernel: the GPU adjoint, "block" or "warp_sums"
     (tiles of 8x8 and up). Returns the projected gradients (transforms, means2d, depths, colors, normals), in the
-    workspace: valid until the next backward on it."""
+    workspace: valid until the next backward on it. A frame with `pairs` gets the fixed-order adjoint
+    (pair_adjoint.py)."""
     L = ws.launches
     kernel, block_dim = _blend_kernel(ws.device, s, want, backward=True, variant=backward_kernel)
+    parts = 1
+    if frame.pairs is not None:
+        kernel, block_dim, parts = choose_kernel(surfel_blend_gpu, s.tile_size, backward_kernel, _block_dims(s)[1],
+                                                 want.num_features)
     head = [frame.tile_start, frame.sorted_ids, frame.transforms, frame.means2d, frame.depths, opacities,
             frame.colors, frame.normals, features, frame.q_cut]
     tail = [frame.transmittance, frame.last, frame.median_index, frame.dist_stats] + list(upstream)
@@ -137,7 +146,7 @@ def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelW
                  block_dim)
 
     projected = run_blend_adjoint(ws, s, "surfel_blend_bwd", ADJOINT_FIELDS, frame.n, adj_opacities, adj_features,
-                                  num_features_rows, want.num_features, launch)
+                                  num_features_rows, want.num_features, launch, frame.pairs, parts)
     _stage(None, "surfel blend backward")
     return projected
 

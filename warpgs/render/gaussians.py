@@ -16,7 +16,7 @@ import warp as wp
 from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, DEPTH_EPS,
                                     LOWEST_TRANSMITTANCE_MIN, alpha_clamp_problem, choose_tile_size,
-                                    current_raster_options)
+                                    options_for_call)
 from warpgs.render.empty_scene import EmptySceneFunction
 from warpgs.render.gaussians_fast import FastRasterizeFunction, run_op
 from warpgs.render.validation import (check_finite, check_same_device, check_tensor, checks_before_render,
@@ -176,6 +176,7 @@ def rasterize(
     alpha_max: float = DEFAULT_ALPHA_MAX,
     check_inputs: bool = True,
     track_means2d: bool = False,
+    deterministic: Optional[bool] = None,
     _means2d_probe: Optional[torch.Tensor] = None,
     _pipeline_checks: bool = False,
 ) -> RenderOutput:
@@ -192,6 +193,9 @@ def rasterize(
     would drop under `transmittance_min`. Raising any of them trades accuracy for speed
     (benchmarks/speed_vs_error.py measures how much). `alpha_max` clamps each contribution's alpha (3DGS's 0.99;
     gsplat's 0.999), a modelling choice, not a speed knob.
+    deterministic: gradients bit-identical from run to run on GPUs too (a fixed-order sum instead of float atomics
+    in the blend adjoint; slower, docs/distributed.md); None: the raster option's value (off unless
+    WARPGS_DETERMINISTIC=1 or raster_options(deterministic=True)). The CPU's gradients are deterministic anyway.
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, False,
@@ -205,7 +209,8 @@ def rasterize(
                                 sh_degree=sh_degree, features=features, background=background, outputs=outputs,
                                 near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
                                 transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=False,
-                                _means2d_probe=None if probe is None else probe[b], _pipeline_checks=pipeline_checks)
+                                deterministic=deterministic, _means2d_probe=None if probe is None else probe[b],
+                                _pipeline_checks=pipeline_checks)
                       for b in range(viewmat.shape[0])]
         out = _stack(per_camera)
         out.means2d = probe
@@ -223,8 +228,9 @@ def rasterize(
                              num_features=feats.shape[1])
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, fout, visible, count = run_op(
-            FastRasterizeFunction, settings, wanted, current_raster_options(), means, quats, scales, opacities, coeffs,
-            feats, viewmat, _intrinsics_vector(K), probe, (features, K, background) if pipeline_checks else None)
+            FastRasterizeFunction, settings, wanted, options_for_call(deterministic), means, quats, scales, opacities,
+            coeffs, feats, viewmat, _intrinsics_vector(K), probe,
+            (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width
         shapes = [(H, W, 3) if wanted.color else (0,), (H, W, 1), (H, W, 1) if wanted.depth else (0,),

@@ -312,7 +312,8 @@ class FastRasterizeFunction(torch.autograd.Function):
         checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), viewmat,
                                                         check, alive)
         with state.scope():
-            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, check=checks)
+            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, check=checks,
+                                 deterministic=options.deterministic)
             if wanted.depth:
                 fast.normalize_depth(ws, zacc, outputs[1], desc(depth.view(npix), wp.float32), npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0

@@ -14,7 +14,7 @@ import warp as wp
 
 from warpgs.render import fast_pipeline_surfels as fast
 from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN,
-                                    current_raster_options)
+                                    options_for_call)
 from warpgs.render.empty_scene import EmptySceneFunction
 from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted
@@ -57,6 +57,7 @@ def rasterize_surfels(
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN,
     alpha_max: float = DEFAULT_ALPHA_MAX,
     check_inputs: bool = True,
+    deterministic: Optional[bool] = None,
     _pipeline_checks: bool = False,
 ) -> RenderOutput:
     """Render N 2D Gaussian surfels from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
@@ -65,8 +66,8 @@ def rasterize_surfels(
     and the normal as its third. colors/sh_degree/features/background as in `rasterize`.
     outputs: any of rgb, alpha, depth (Σ w z / alpha, z the ray-surfel hit depth), inv_depth (Σ w / z),
     normal (Σ w n, world space, each normal facing the camera), median_depth, distortion, features.
-    Only the requested outputs are computed. tile_size, max_sigmas / alpha_min / transmittance_min / alpha_max:
-    as in `rasterize`.
+    Only the requested outputs are computed. tile_size, max_sigmas / alpha_min / transmittance_min / alpha_max,
+    deterministic: as in `rasterize`.
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, False,
@@ -79,7 +80,8 @@ def rasterize_surfels(
                                         outputs=outputs, near=near, far=far, tile_size=tile_size,
                                         max_sigmas=max_sigmas, alpha_min=alpha_min,
                                         transmittance_min=transmittance_min, alpha_max=alpha_max,
-                                        check_inputs=False, _pipeline_checks=pipeline_checks)
+                                        check_inputs=False, deterministic=deterministic,
+                                        _pipeline_checks=pipeline_checks)
                       for b in range(viewmat.shape[0])]
         return _stack(per_camera)
 
@@ -94,8 +96,8 @@ def rasterize_surfels(
         num_features=feats.shape[1], distortion_scale=DISTORTION_SCALE)
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = run_op(
-            FastSurfelsFunction, settings, wanted, current_raster_options(), means, quats, scales, opacities, coeffs,
-            feats, viewmat, _intrinsics_vector(K), (features, K, background) if pipeline_checks else None)
+            FastSurfelsFunction, settings, wanted, options_for_call(deterministic), means, quats, scales, opacities,
+            coeffs, feats, viewmat, _intrinsics_vector(K), (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width
         shapes = [(H, W, c) if image_wanted(wanted, name) else (0,) for name, c, _ in IMAGES]

@@ -55,7 +55,8 @@ class FastSurfelsFunction(torch.autograd.Function):
                                                         check, alive)
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
-                                 _features_arg(features, nf, layout, state), outputs, keep, checks)
+                                 _features_arg(features, nf, layout, state), outputs, keep, checks,
+                                 options.deterministic)
             if wanted.depth:
                 normalize_depth(ws, zacc, outputs[ALPHA], depth_out, npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0

@@ -35,6 +35,7 @@ from torch import nn
 
 from warpgs.train import checkpoint as ckpt
 from warpgs.config.loader import Config, load_config
+from warpgs.train.determinism import use_deterministic_algorithms
 from warpgs.train.extensions import CallbackExtension, Extension, build_extension
 from warpgs.model.gaussians import GaussianModel
 from warpgs.model.rendering import check_outputs, render_model
@@ -89,6 +90,8 @@ class Trainer:
         self.model_parallel = cfg.train.parallel == "model" and self.ranks.enabled
         if self.model_parallel:
             sharded_step.check_config(cfg, self.ranks.world_size)
+        if cfg.train.deterministic:
+            use_deterministic_algorithms(self.device, self.model_parallel)
         terms = resolve_terms(cfg.losses)
 
         if out_dir is not None:
@@ -353,7 +356,8 @@ class Trainer:
         outputs = tuple(outputs) + tuple(dict.fromkeys(extra))
         out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,
                            background=self.background, inputs=self.render_inputs(batch, step, outputs),
-                           track_means2d=track_means2d, check_inputs=not t.nan_guard, **t.render_options())
+                           track_means2d=track_means2d, check_inputs=not t.nan_guard,
+                           deterministic=t.deterministic or None, **t.render_options())
         for ext in self.extensions:
             out = ext.after_render(self, out, batch, step)
         return out
