@@ -4,6 +4,7 @@ The videos are made here with imageio (the `video` extra, in the test extra): a 
 frame, with chosen frames box-blurred before encoding. SfM itself is not run on them (a synthetic pattern is no
 capture, and it would take minutes); the pipeline test passes a stand-in that records its call."""
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -155,6 +156,45 @@ def test_video_to_scene_writes_frames_runs_sfm_once_and_reuses(tmp_path):
     # Other settings on the same folder are refused, not overwritten.
     with pytest.raises(SceneError, match=r"clip: made from another video or other settings .*frames"):
         video_to_scene(video, frames=12, min_frames=5, progress=False, sfm=sfm)
+
+
+def test_a_video_and_its_scene_moved_together_are_reused(tmp_path):
+    """The scene folder knows its video by contents, not by path or time stamp: moved (or copied) elsewhere
+    together, the video trains on the scene made before; another video is refused."""
+    video = tmp_path / "a" / "clip.mp4"
+    video.parent.mkdir()
+    make_video(video, 24, set())
+    sfm = _SfmStandIn()
+    video_to_scene(video, frames=6, min_frames=3, progress=False, sfm=sfm)
+    moved = tmp_path / "b"
+    shutil.copytree(tmp_path / "a", moved)  # new path; the copy's time stamps are new too
+    shutil.rmtree(tmp_path / "a")
+    assert finished_scene(moved / "clip.mp4")
+    video_to_scene(moved / "clip.mp4", frames=6, min_frames=3, progress=False, sfm=sfm)
+    assert len(sfm.calls) == 1  # nothing redone
+    other = moved / "clip2.mp4"
+    make_video(other, 24, {3})
+    assert not finished_scene(other, moved / "clip")
+    with pytest.raises(SceneError, match=r"made from another video or other settings .*fingerprint"):
+        video_to_scene(other, moved / "clip", frames=6, min_frames=3, progress=False, sfm=sfm)
+
+
+def test_a_scene_made_by_the_first_record_format_is_reused_and_upgraded(tmp_path):
+    video = tmp_path / "clip.mp4"
+    make_video(video, 24, set())
+    sfm = _SfmStandIn()
+    out = video_to_scene(video, frames=6, min_frames=3, progress=False, sfm=sfm)
+    record = json.loads((out / "video.json").read_text())
+    st = video.stat()  # the first format: the resolved path, size and time stamp
+    record["settings"] = {"video": str(video.resolve()), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns,
+                          "frames": 6, "max_size": record["settings"]["max_size"],
+                          "blur_ratio": record["settings"]["blur_ratio"]}
+    (out / "video.json").write_text(json.dumps(record))
+    assert finished_scene(video)
+    video_to_scene(video, frames=6, min_frames=3, progress=False, sfm=sfm)
+    assert len(sfm.calls) == 1
+    upgraded = json.loads((out / "video.json").read_text())["settings"]
+    assert "fingerprint" in upgraded and "mtime_ns" not in upgraded and upgraded["video"] == "clip.mp4"
 
 
 def test_a_foreign_folder_is_not_overwritten(tmp_path):

@@ -8,6 +8,7 @@ than overwritten.
 """
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 from pathlib import Path
@@ -35,23 +36,57 @@ def video_scene_dir(video: PathLike) -> Path:
     return Path(video).with_suffix("")
 
 
+FINGERPRINT_BYTES = 1 << 20  # read from each end of the video
+
+
+def _fingerprint(video: Path) -> str:
+    """The video's identity wherever it lies: a digest of its size and of its first and last MiB (moving or copying
+    the video and its scene folder elsewhere, which changes the path and may change the time stamp, keeps it)."""
+    size = video.stat().st_size
+    h = hashlib.sha1(str(size).encode())
+    with open(video, "rb") as f:
+        h.update(f.read(FINGERPRINT_BYTES))
+        if size > FINGERPRINT_BYTES:
+            f.seek(max(FINGERPRINT_BYTES, size - FINGERPRINT_BYTES))
+            h.update(f.read(FINGERPRINT_BYTES))
+    return h.hexdigest()
+
+
 def _settings(video: Path, frames: int, max_size: int, blur_ratio: float) -> dict:
+    return {"video": video.name, "bytes": video.stat().st_size, "fingerprint": _fingerprint(video),
+            "frames": int(frames), "max_size": int(max_size), "blur_ratio": float(blur_ratio)}
+
+
+VIDEO_KEYS = ("bytes", "fingerprint")  # what says "the same video" (the name may change with the file's)
+
+
+def _differences(made: dict, mine: dict, keys) -> list:
+    return sorted(k for k in keys if not isinstance(made, dict) or made.get(k) != mine[k])
+
+
+def _upgraded(record: dict, video: Path) -> dict:
+    """A record of the first format (the video's resolved path, size and time stamp, no fingerprint) that names
+    this very file, given the fingerprint, so folders made then are reused and can move from now on."""
+    made = record.get("settings") if isinstance(record, dict) else None
+    if not isinstance(made, dict) or "fingerprint" in made or "mtime_ns" not in made:
+        return record
     st = video.stat()
-    return {"video": str(video.resolve()), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns, "frames": int(frames),
-            "max_size": int(max_size), "blur_ratio": float(blur_ratio)}
+    if (made.get("video"), made.get("bytes"), made.get("mtime_ns")) == (str(video.resolve()), st.st_size,
+                                                                        st.st_mtime_ns):
+        record["settings"] = {**{k: v for k, v in made.items() if k != "mtime_ns"},
+                              "video": video.name, "fingerprint": _fingerprint(video)}
+    return record
 
 
 def finished_scene(video: PathLike, out: Optional[PathLike] = None) -> bool:
-    """Whether `out` (default video_scene_dir(video)) holds a finished scene made from this very video (same
-    file, size and time stamp), whatever frame settings it was made with: `warpgs-train --data VIDEO` trains on
-    what an earlier `warpgs-process VIDEO --frames N` made."""
+    """Whether `out` (default video_scene_dir(video)) holds a finished scene made from this very video (the same
+    contents, wherever it now lies), whatever frame settings it was made with: `warpgs-train --data VIDEO` trains
+    on what an earlier `warpgs-process VIDEO --frames N` made."""
     video = Path(video)
     out = Path(out) if out is not None else video_scene_dir(video)
     try:
-        record = read_json(out / RECORD)
-        mine = _settings(video, 1, 0, 0.0)
-        made = record["settings"]
-        same = all(made[k] == mine[k] for k in ("video", "bytes", "mtime_ns"))
+        record = _upgraded(read_json(out / RECORD), video)
+        same = not _differences(record["settings"], _settings(video, 1, 0, 0.0), VIDEO_KEYS)
         return bool(same and _frames_written(out, record) and _sfm_done(out, record))
     except (OSError, ValueError, KeyError, TypeError):
         return False
@@ -71,15 +106,19 @@ def _write_record(out: Path, record: dict) -> None:
     atomic_write_bytes(out / RECORD, (json.dumps(record, indent=1) + "\n").encode())
 
 
-def _claim(out: Path, settings: dict) -> dict:
+def _claim(out: Path, video: Path, settings: dict) -> dict:
     """The folder's record when it was made from this video with these settings (a fresh one for a new or
     empty folder); SceneError naming the folder otherwise."""
     path = out / RECORD
     if path.is_file():
         record = read_json(path)
+        first_format = isinstance(record, dict) and "mtime_ns" in (record.get("settings") or {})
+        record = _upgraded(record, video)
         old = record.get("settings") if isinstance(record, dict) else None
-        if old != settings:
-            diff = sorted(k for k in settings if not isinstance(old, dict) or old.get(k) != settings[k])
+        diff = _differences(old, settings, VIDEO_KEYS + ("frames", "max_size", "blur_ratio"))
+        if first_format and not diff:
+            _write_record(out, record)
+        if diff:
             raise SceneError(out, f"made from another video or other settings (differs in {diff}: "
                                   f"{ {k: (old or {}).get(k) for k in diff} }); delete it to redo it, or "
                                   f"{ELSEWHERE}")
@@ -128,7 +167,7 @@ def video_to_scene(video: PathLike, out: Optional[PathLike] = None, *, frames: i
         raise ValueError(f"max_size: expected 0 (keep) or a positive number of pixels, got {max_size}")
     require_video_support()
     out = Path(out) if out is not None else video_scene_dir(video)
-    record = _claim(out, _settings(video, frames, max_size, blur_ratio))
+    record = _claim(out, video, _settings(video, frames, max_size, blur_ratio))
     stages = Stages(STAGES, prefix="video", enabled=progress)
     images = out / "images"
 
