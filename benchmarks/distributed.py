@@ -21,6 +21,9 @@ equal work. Reported per run, from rank 0's log.jsonl and metrics.json:
 - time_to_target_s: training seconds until a periodic held-out evaluation first reached --target-psnr
   (null when none did), and the PSNR/time of every evaluation;
 - final held-out PSNR, primitives, steps and the scaling efficiency views_per_s(N) / (N x views_per_s(1)).
+- phases (--phases): per rank, milliseconds a step spent drawing views, rendering + back-propagating, in the
+  all-reduce, the optimizer, densification and clearing gradients (train.profile_phases: the GPU is synchronised at
+  each boundary, which costs a little throughput). A rank whose all-reduce is long waits for the others.
 - peak_gpu_memory_gb: rank 0's peak of allocated GPU memory (CUDA runs). With train.parallel=model (pass it as
   an override) this is what partitioning the primitives saves per GPU.
 
@@ -81,6 +84,8 @@ def run_one(nproc: int, args, out: Path) -> dict:
         "train.progress": "false", "train.checkpoint_every": 0, "train.log_every": scaled(args.eval_every, f),
         "eval.lpips": "false", "eval.save_images": "false",
     }
+    if args.phases:
+        overrides["train.profile_phases"] = "true"
     train = ["-m", "warpgs.cli", "train", args.config, "--out", str(out), "--quiet",
              *[f"{k}={v}" for k, v in overrides.items()], *args.overrides]
     env = dict(os.environ, NCCL_NVLS_ENABLE="0")  # NVLink multicast off (docs/distributed.md)
@@ -124,7 +129,20 @@ def run_one(nproc: int, args, out: Path) -> dict:
             "peak_gpu_memory_gb": (metrics["peak_gpu_memory_bytes"] / 1e9 if "peak_gpu_memory_bytes" in metrics
                                    else None),
             "time_to_target_s": None if reached is None else reached["train_seconds"],
-            "views_to_target": None if reached is None else reached["views_seen"], "evals": evals}
+            "views_to_target": None if reached is None else reached["views_seen"], "evals": evals,
+            "phases": metrics.get("phases")}
+
+
+def print_phases(runs: list) -> None:
+    """Milliseconds a step per phase, one row per run and rank."""
+    rows = []
+    for r in runs:
+        for rank, split in enumerate(r.get("phases") or []):
+            if split:
+                rows.append({"nproc": r["nproc"], "rank": rank, **split["ms_per_step"],
+                             "sum": round(sum(split["ms_per_step"].values()), 3)})
+    if rows:
+        print_table(rows, list(dict.fromkeys(k for row in rows for k in row)))
 
 
 def main(argv=None) -> dict:
@@ -155,6 +173,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", help="folder for the runs (default: a temporary folder)")
     ap.add_argument("--warmup-steps", type=int, default=30,
                     help="steps of an unreported first run that fills the kernel and scene caches (0: none)")
+    ap.add_argument("--phases", action="store_true",
+                    help="time each phase of the step on every rank (train.profile_phases) and print the split")
     ap.add_argument("--tiny", action="store_true", help="CPU smoke test: 64x48, 40 steps, gloo")
     ap.add_argument("overrides", nargs="*", help="extra key=value overrides for every run")
     args = ap.parse_args(argv)
@@ -197,6 +217,8 @@ def main(argv=None) -> dict:
     print_table(runs, ["nproc", "nodes", "batch_size", "steps", "views_per_s", "scaling_efficiency", "steady_views_per_s",
                        "steady_speedup", "final_psnr",
                        "time_to_target_s", "num_primitives", "peak_gpu_memory_gb"])
+    if args.phases:
+        print_phases(runs)
     name = f"distributed_{args.device.split(':')[0]}" + (f"_{args.tag}" if args.tag else "")
     print(f"wrote {write_json(name, payload)}")
     return payload

@@ -101,6 +101,9 @@ class TrainConfig:
     # Run-to-run identical gradients on GPUs: fixed-order sums in the blend adjoint (rasterize(deterministic=True))
     # and torch.use_deterministic_algorithms; slower (docs/distributed.md, "Deterministic training").
     deterministic: bool = False
+    # Time each phase of the step (views, render + backward, all-reduce, optimizer, densify), the device synchronised
+    # at each boundary: metrics.json["phases"] per rank; slows the steps a little (train/phase_timer.py).
+    profile_phases: bool = False
 
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""

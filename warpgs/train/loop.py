@@ -228,6 +228,8 @@ class TrainingLoop:
             metrics["lpips_unavailable"] = m["lpips_unavailable"]
         if tr.strategy.schedule.auto is not None:
             metrics["schedule"] = tr.strategy.schedule.auto.summary()
+        if tr.phases.enabled:  # every rank's: a rank waiting in the all-reduce shows the others' extra work
+            metrics["phases"] = tr.ranks.all_gather_object(tr.phases.summary(), what="gathering the phase times")
         if tr.device.type == "cuda":  # rank 0's peak (with train.parallel=model: one share's)
             metrics["peak_gpu_memory_bytes"] = int(torch.cuda.max_memory_allocated(tr.device))
         metrics.update({"num_primitives": tr.num_primitives, "steps": tr.step,

@@ -13,12 +13,10 @@ import time
 
 import torch
 
-from warpgs.train import setup as train_setup
 from warpgs.train.batch import ViewPass, batch_result, batch_summary, local_sums, scalar_names
 from warpgs.train.guard import NonFiniteError
 from warpgs.train.model_parallel import render_shard, require_gaussians
-from warpgs.train.optim import update_learning_rates
-from warpgs.train.step import end_step
+from warpgs.train.step import end_step, set_step_schedule
 
 
 def check_config(cfg, world_size: int) -> None:
@@ -42,11 +40,12 @@ def train_step_sharded(trainer) -> dict:
     """train_step (train/step.py) for a model sharded over the ranks; returns the same info."""
     cfg, model, step, ranks = trainer.config, trainer.model, trainer.step, trainer.ranks
     t0 = time.perf_counter()
+    phases = trainer.phases  # train.profile_phases
+    phases.start()
     drawn = trainer.views.draw(trainer.batch_size)  # the global batch, drawn alike on every rank
     world = ranks.world_size
-    model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
-    update_learning_rates(trainer.optimizer, step, cfg.optim, trainer.extent, trainer.max_steps, trainer.lr_scale)
-    densify = trainer.strategy.schedule.densifying(step)  # the schedule decides, as in the single-process step
+    densify = set_step_schedule(trainer, step)  # as the single-process step (train.steps=auto's anneal included)
+    phases.mark("draw_views")
     passes, seen = [], []
     for start in range(0, len(drawn), world):
         cameras = [trainer.view(i) for i in drawn[start:start + world]]
@@ -54,6 +53,7 @@ def train_step_sharded(trainer) -> dict:
                                           first=not passes)
         passes.append(p)
         seen += round_seen
+    phases.mark("render_backward")  # the all-to-all exchanges of the rounds included
     names = scalar_names(passes)
     # Only the modules' gradients are summed over the ranks (the primitives' arrived through the exchange); the
     # non-finite flag rides along, so a NaN on one rank stops every rank at the same step.
@@ -63,6 +63,7 @@ def train_step_sharded(trainer) -> dict:
                                       local_sums(passes, names) + [float(trainer.stop_requested), float(not finite)],
                                       step)
     nonfinite_elsewhere, stop = sums.pop() > 0, sums.pop() > 0
+    phases.mark("all_reduce")
     summary = batch_summary(sums, names, len(drawn))
     result = batch_result(summary, passes[0].result)
     if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied
@@ -72,6 +73,7 @@ def train_step_sharded(trainer) -> dict:
                                                        "names the first offender)")
     for opt in trainer.optimizers:
         opt.step()
+    phases.mark("optimizer")
     report = None
     if densify:  # each owner its own rows in every camera, after the optimizer step as in train/step.py
         observed = (trainer.strategy.observe(model, visible=binned, viewmat=cam.viewmat, K=cam.K, width=cam.width,
@@ -82,6 +84,7 @@ def train_step_sharded(trainer) -> dict:
         report = trainer.strategy.maybe_refine(model, trainer.optimizer, step)
         if report is not None:  # refine steps are the same on every rank
             trainer.count_primitives()
+        phases.mark("densify")
     return end_step(trainer, step, t0, summary, report, passes, drawn, stop)
 
 

@@ -21,26 +21,23 @@ def train_step(trainer) -> dict:
     view on one process this is the single-view step exactly (tests/test_train_batch.py checks bit for bit)."""
     cfg, model, step = trainer.config, trainer.model, trainer.step
     t0 = time.perf_counter()
+    phases = trainer.phases  # train.profile_phases (off: every call returns at once)
+    phases.start()
     drawn = trainer.views.draw(trainer.batch_size)  # the global batch, drawn alike on every rank
     mine = [trainer.view(i) for i in drawn[trainer.ranks.shard(len(drawn))]]
-    model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
-    schedule = trainer.strategy.schedule  # train/schedule.py
-    annealed = None  # train.steps=auto anneals once densification stops
-    if schedule.auto is not None:
-        annealed = schedule.auto.means_lr(
-            step, lambda s: means_lr_at(s, cfg.optim, trainer.extent, trainer.max_steps))
-    update_learning_rates(trainer.optimizer, step, cfg.optim, trainer.extent, trainer.max_steps, trainer.lr_scale,
-                          means_lr=annealed)
-    densify = schedule.densifying(step)  # the schedule's stop, not refine_stop alone
+    densify = set_step_schedule(trainer, step)
+    phases.mark("draw_views")
     passes = []
     for view in mine:
         # Through the method, so a Trainer subclass that overrides view_pass is honoured.
         passes.append(trainer.view_pass(view, step, views_in_loss=len(drawn), densify=densify, first=not passes))
+    phases.mark("render_backward")
     names = scalar_names(passes)
     # A Ctrl-C on any rank rides along with the sums, so all ranks learn of it at the same step.
     sums = trainer.ranks.all_reduce_gradients([p for _, p in trainer.named_parameters()],
                                            local_sums(passes, names) + [float(trainer.stop_requested)], step)
     stop = trainer.ranks.enabled and sums.pop() > 0
+    phases.mark("all_reduce")
     if len(drawn) == 1:
         result, summary = passes[0].result, {"loss": passes[0].loss, "values": passes[0].values,
                                              "psnr": passes[0].psnr}
@@ -51,6 +48,7 @@ def train_step(trainer) -> dict:
         trainer.check_finite(step, result)
     for opt in trainer.optimizers:
         opt.step()
+    phases.mark("optimizer")
     report = None
     if densify:  # after the optimizer step, as 3DGS: the screen radii are those of the updated model
         observed = trainer.strategy.merge_observations(
@@ -62,7 +60,23 @@ def train_step(trainer) -> dict:
         report = trainer.strategy.maybe_refine(model, trainer.optimizer, step)
         if report is not None and trainer.ranks.enabled:
             trainer.ranks.check_same(model.num_primitives, f"the number of primitives after step {step}")
+        phases.mark("densify")
     return end_step(trainer, step, t0, summary, report, passes, drawn, stop)
+
+
+def set_step_schedule(trainer, step: int) -> bool:
+    """The step's SH degree and learning rates (train.steps=auto anneals the position rate once densification
+    stops); returns whether the step densifies (the schedule's stop, not refine_stop alone). Both steps use it."""
+    cfg, model = trainer.config, trainer.model
+    model.active_sh_degree = train_setup.active_sh_degree(step, cfg, model.max_sh_degree)
+    schedule = trainer.strategy.schedule  # train/schedule.py
+    annealed = None
+    if schedule.auto is not None:
+        annealed = schedule.auto.means_lr(
+            step, lambda s: means_lr_at(s, cfg.optim, trainer.extent, trainer.max_steps))
+    update_learning_rates(trainer.optimizer, step, cfg.optim, trainer.extent, trainer.max_steps, trainer.lr_scale,
+                          means_lr=annealed)
+    return schedule.densifying(step)
 
 
 def end_step(trainer, step: int, t0: float, summary: dict, report, passes, drawn, stop: bool) -> dict:
@@ -70,6 +84,8 @@ def end_step(trainer, step: int, t0: float, summary: dict, report, passes, drawn
     for opt in trainer.optimizers:
         opt.zero_grad(set_to_none=True)
     trainer.model.zero_grad(set_to_none=True)
+    trainer.phases.mark("zero_grad")
+    trainer.phases.end_step()
     trainer.counters.train_seconds += time.perf_counter() - t0
     trainer.counters.step = step + 1
     trainer.counters.last_loss = summary["loss"]

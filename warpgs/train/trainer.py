@@ -36,6 +36,7 @@ from torch import nn
 from warpgs.train import checkpoint as ckpt
 from warpgs.config.loader import Config, load_config
 from warpgs.train.determinism import use_deterministic_algorithms
+from warpgs.train.phase_timer import PhaseTimer
 from warpgs.train.extensions import CallbackExtension, Extension, build_extension
 from warpgs.model.gaussians import GaussianModel
 from warpgs.model.rendering import check_outputs, render_model
@@ -111,6 +112,7 @@ class Trainer:
         self.auto_steps = cfg.train.steps == "auto"
         self.max_steps = int(cfg.schedule.max_steps if self.auto_steps else cfg.train.steps)
         self.guard = NonFiniteGuard(self.named_parameters)
+        self.phases = PhaseTimer(self.device, cfg.train.profile_phases)
         self.checkpointer = Checkpointer(self.out_dir / cfg.output.checkpoint, self.device,
                                          guard=self.guard if cfg.train.nan_guard else None,
                                          write=self.ranks.is_main)
