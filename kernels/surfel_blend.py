@@ -61,7 +61,7 @@ def blend_forward(
     st = new_surfel_state(start)
     for k in range(start, end):
         g = sorted_ids[k]
-        sp = splat_point(transforms[g], means2d[g], depths[g], fx, fy, p.near)
+        sp = splat_point(transforms[g], means2d[g], depths[g], fx, fy, p.near, p.filter_inv)
         if sp[0] > q_cut[g]:  # outside the footprint: alpha would be < alpha_min, skip the exp()
             continue
         alpha = blend_alpha(opacities[g], wp.exp(-0.5 * sp[0]), p.base.alpha_max)
@@ -124,7 +124,7 @@ def blend_backward(
         g = sorted_ids[k]
         M = transforms[g]
         mean = means2d[g]
-        sp = splat_point(M, mean, depths[g], fx, fy, p.near)
+        sp = splat_point(M, mean, depths[g], fx, fy, p.near, p.filter_inv)
         if sp[0] > q_cut[g]:
             continue
         G = wp.exp(-0.5 * sp[0])

@@ -115,7 +115,7 @@ def forward_kernel(block_dim: int, num_features: int):
             # per-thread kernel: skip decisions first, then the straight-line blend).
             for j in range(wp.where(done == 0, wp.min(wp.static(block_dim), end - lo), 0)):
                 sp = splat_point(wp.tile_extract(M_t, j), wp.tile_extract(m_t, j), wp.tile_extract(z_t, j), fx, fy,
-                                 p.near)
+                                 p.near, p.filter_inv)
                 if sp[0] > wp.tile_extract(q_t, j):
                     continue
                 alpha = blend_alpha(wp.tile_extract(o_t, j), wp.exp(-0.5 * sp[0]), p.base.alpha_max)
@@ -208,7 +208,7 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deter
                 if lo + j < last:
                     M = wp.tile_extract(M_t, j)
                     mean = wp.tile_extract(m_t, j)
-                    sp = splat_point(M, mean, wp.tile_extract(z_t, j), fx, fy, p.near)
+                    sp = splat_point(M, mean, wp.tile_extract(z_t, j), fx, fy, p.near, p.filter_inv)
                     if not (sp[0] > wp.tile_extract(q_t, j)):  # the tests of the per-thread kernel, negated
                         G = wp.exp(-0.5 * sp[0])
                         o = wp.tile_extract(o_t, j)
@@ -329,7 +329,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
                 G = float(0.0)
                 blended = int(0)
                 if lo + j < last:  # the tests of the per-thread kernel
-                    sp = splat_point(M, mean, wp.tile_extract(z_t, j), fx, fy, p.near)
+                    sp = splat_point(M, mean, wp.tile_extract(z_t, j), fx, fy, p.near, p.filter_inv)
                     if not (sp[0] > wp.tile_extract(q_t, j)):
                         G = wp.exp(-0.5 * sp[0])
                         if not (blend_alpha(o, G, p.base.alpha_max) < p.base.alpha_min):

@@ -16,9 +16,9 @@ from .sh import colour_from_sh, eval_sh
 
 COLOR_DIRECT = wp.constant(0)
 COLOR_SH = wp.constant(1)
-# The screen-space fallback G = exp(-|d|^2) is a Gaussian of standard deviation 1/sqrt(2) px: in the
-# exponent -s/2 it reads s = FILTER_INV_SQUARE |d|^2.
-FILTER_INV_SQUARE = wp.constant(2.0)
+# The screen-space fallback is a Gaussian of standard deviation sigma px around the projected centre: in the
+# exponent -s/2 it reads s = |d|^2 / sigma^2 = filter_inv |d|^2. 2DGS's sigma is 1/sqrt(2) px (filter_inv 2, G =
+# exp(-|d|^2)); the kernels take filter_inv as an argument (the render op's `screen_sigma`).
 # A disk reaching closer than this fraction of its centre depth to the camera plane gets the whole screen
 # as footprint (its image is a huge ellipse or unbounded).
 FRONT_MARGIN = wp.constant(0.01)
@@ -126,6 +126,7 @@ def surfel_footprints(
     means2d: wp.array(dtype=wp.vec2),
     opacities: wp.array(dtype=float),
     valid: wp.array(dtype=wp.int32),
+    filter_inv: float,  # 1 / sigma^2 of the screen-space fallback
     width: int,
     height: int,
     tile_size: int,
@@ -177,7 +178,7 @@ def surfel_footprints(
         y_hi = 1.0e30
 
     m = means2d[i]
-    r_screen = wp.sqrt(q_max / FILTER_INV_SQUARE) * 1.001 + 0.05
+    r_screen = wp.sqrt(q_max / filter_inv) * 1.001 + 0.05
     x_lo = wp.min(x_lo, m[0] - r_screen)
     x_hi = wp.max(x_hi, m[0] + r_screen)
     y_lo = wp.min(y_lo, m[1] - r_screen)

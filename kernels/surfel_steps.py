@@ -3,8 +3,8 @@ and the block-cooperative ones (surfel_blend_gpu.py, GPUs).
 
 Per pixel and surfel: intersect the planes x = px and y = py (through the pixel's ray) in surfel coordinates,
 h_u = px M_z - M_x, h_v = py M_z - M_y, (u, v) from h_u x h_v; s3 = u^2 + v^2 at the hit (a miss, or a hit
-closer than `near`, counts as s3 = inf). The screen-space fallback s2 = 2 |pixel - centre|^2 keeps splats seen
-edge-on visible: G = exp(-min(s3, s2)/2), and the depth is the hit's camera z when s3 wins, the centre's
+closer than `near`, counts as s3 = inf). The screen-space fallback s2 = |pixel - centre|^2 / sigma^2 (2DGS: sigma
+1/sqrt(2) px; the render op's `screen_sigma`) keeps splats seen edge-on visible: G = exp(-min(s3, s2)/2), and the depth is the hit's camera z when s3 wins, the centre's
 otherwise. Then the 3DGS rules: alpha = min(0.99, o G), skip alpha < alpha_min (1/255), stop before T < t_min
 (1e-4); the thresholds and the other per-launch settings come in one `SurfelBlendParams`.
 
@@ -30,7 +30,6 @@ and is within ~10% on the backward.
 import warp as wp
 
 from .blend import BlendParams
-from .surfel_project import FILTER_INV_SQUARE
 
 # The blend adjoint is hand-written from these steps: Warp's generated adjoints are never used, so skip them.
 wp.set_module_options({"enable_backward": False})
@@ -59,10 +58,10 @@ def ray_splat(M: wp.mat33, px: float, py: float, near: float) -> wp.vec4:
 
 
 @wp.func
-def screen_weight(m: wp.vec2, px: float, py: float) -> float:
+def screen_weight(m: wp.vec2, px: float, py: float, filter_inv: float) -> float:
     dx = px - m[0]
     dy = py - m[1]
-    return FILTER_INV_SQUARE * (dx * dx + dy * dy)
+    return filter_inv * (dx * dx + dy * dy)
 
 
 # What a pixel sees of a surfel: (s, z, u, v, hit) with G = exp(-s/2) and z its depth; hit = 1 when the ray-splat
@@ -71,9 +70,10 @@ SplatPoint = wp.types.vector(length=5, dtype=float)
 
 
 @wp.func
-def splat_point(M: wp.mat33, mean: wp.vec2, center_depth: float, px: float, py: float, near: float) -> SplatPoint:
+def splat_point(M: wp.mat33, mean: wp.vec2, center_depth: float, px: float, py: float, near: float,
+                filter_inv: float) -> SplatPoint:
     hit = ray_splat(M, px, py, near)
-    s_screen = screen_weight(mean, px, py)
+    s_screen = screen_weight(mean, px, py, filter_inv)
     s = s_screen
     z = center_depth
     used = float(0.0)
@@ -102,6 +102,7 @@ class SurfelBlendParams:
     flags, thresholds) plus the surfel-only ones."""
     base: BlendParams
     near: float  # ray hits closer than this are misses
+    filter_inv: float  # 1 / sigma^2 of the screen-space fallback (2DGS: 2, sigma = 1/sqrt(2) px)
     dist_scale: float  # k of the distortion's m = -k / z
     want_normal: int
     want_median: int
@@ -333,8 +334,8 @@ def surfel_pixel_gradient(
             row[ROW_TRANSFORM + 6 + i] = d_row_z[i]
         row[ROW_HIT] = 1.0
     else:
-        # s2 = 2 |pixel - mean|^2; the depth is the centre's.
-        d_mean = -2.0 * FILTER_INV_SQUARE * d_s * wp.vec2(fx - mean[0], fy - mean[1])
+        # s2 = filter_inv |pixel - mean|^2; the depth is the centre's.
+        d_mean = -2.0 * p.filter_inv * d_s * wp.vec2(fx - mean[0], fy - mean[1])
         row[ROW_MEAN + 0] = d_mean[0]
         row[ROW_MEAN + 1] = d_mean[1]
         row[ROW_DEPTH] = d_z

@@ -67,8 +67,9 @@ def project_surfels(means, quats, scales, coeffs, viewmat, intrinsics, s: Settin
 
 
 def bin_surfels(p: SurfelProjected, opacities, s: Settings) -> Bins:
-    return bin_into_tiles(surfel_project.surfel_footprints, [p.transforms, p.means2d, opacities, p.valid], p.depths,
-                          s)
+    filter_inv = 1.0 / (s.screen_sigma * s.screen_sigma)
+    return bin_into_tiles(surfel_project.surfel_footprints, [p.transforms, p.means2d, opacities, p.valid, filter_inv],
+                          p.depths, s)
 
 
 def _blend_inputs(p: SurfelProjected, bins: Bins, opacities, features):

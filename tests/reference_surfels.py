@@ -3,8 +3,8 @@ obviousness, not speed.
 
 Every surfel is intersected with every pixel's ray; no tiles, no footprints. Blending is an explicit
 front-to-back loop with the same rules as the Warp renderer: exact ray-splat hit through the homogeneous
-transform, screen-space fallback exp(-|pixel - centre|^2) for splats seen edge-on, alpha = min(alpha_max, o G),
-skip alpha < 1/255, stop before T < 1e-4. The distortion is written as the plain pairwise sum.
+transform, screen-space fallback exp(-|pixel - centre|^2 / (2 sigma^2)) (2DGS: sigma 1/sqrt(2) px) for splats seen
+edge-on, alpha = min(alpha_max, o G), skip alpha < 1/255, stop before T < 1e-4. The distortion is written as the plain pairwise sum.
 
 At the bottom: random surfel scenes for the tests.
 """
@@ -39,7 +39,8 @@ def surfel_transforms(means, quats, scales, viewmat, K):
 
 def render_surfels_reference(means, quats, scales, opacities, colors, viewmat, K, width, height, *,
                              sh_degree=None, features=None, background=None, near=0.01, far=1e10, pixels=None,
-                             alpha_min=1.0 / 255.0, transmittance_min=1e-4, alpha_max=0.99):
+                             alpha_min=1.0 / 255.0, transmittance_min=1e-4, alpha_max=0.99,
+                             screen_sigma=0.5 ** 0.5):
     """Returns a dict of [H,W,C] float64 images: rgb, alpha, depth, inv_depth, normal, median_depth,
     distortion and (if given) features. pixels: optional [P,2] (x, y) indices; then values are [P,C]."""
     dtype, device = means.dtype, means.device
@@ -84,7 +85,7 @@ def render_surfels_reference(means, quats, scales, opacities, colors, viewmat, K
     z_hit = u * M[None, :, 2, 0] + v * M[None, :, 2, 1] + M[None, :, 2, 2]
     hit = (ok & (s3 < 1e30) & (z_hit >= near)).detach()
 
-    s2 = 2.0 * ((pix[:, None, :] - mean2d[None, :, :]) ** 2).sum(-1)  # screen-space Gaussian, sigma 1/sqrt(2) px
+    s2 = ((pix[:, None, :] - mean2d[None, :, :]) ** 2).sum(-1) / screen_sigma ** 2  # screen-space Gaussian
     use_hit = (hit & (s3 <= s2)).detach()
     s = torch.where(use_hit, s3, s2)
     z = torch.where(use_hit, z_hit, zs[None, :].expand_as(s2))

@@ -120,3 +120,25 @@ def test_alpha_clamp_is_a_setting_for_surfels_too(alpha_max):
                       weights, bg, torch.float32),
             gradients(lambda s, b: render_surfels_ref(s, background=b, alpha_max=alpha_max), scene, weights, bg,
                       torch.float64))
+
+
+@pytest.mark.parametrize("screen_sigma", [0.2, 1.5])
+def test_the_screen_space_fallback_width_is_a_setting(screen_sigma):
+    # Sub-pixel disks, where the fallback decides what is drawn: images and gradients follow the reference at another
+    # width, and the width changes the image (the setting is not ignored).
+    scene = random_surfel_scene(n=40, seed=4, num_features=2)
+    scene["scales"] *= 0.1
+    outputs = ("rgb", "alpha", "depth", "normal", "median_depth")
+    ours = render_surfels_ours(scene, outputs, screen_sigma=screen_sigma)
+    ref = render_surfels_ref(scene, screen_sigma=screen_sigma)
+    for name in outputs:
+        assert torch.allclose(getattr(ours, name).double(), ref[name], atol=5e-5), name
+    assert (render_surfels_ref(scene)["alpha"] - ref["alpha"]).abs().max() > 1e-2
+    bg = torch.tensor([0.2, 0.3, 0.4], dtype=torch.float64)
+    weights = weights_for(scene, outputs, 9)
+    compare(gradients(lambda s, b: render_surfels_ours(s, outputs, background=b, screen_sigma=screen_sigma), scene,
+                      weights, bg, torch.float32),
+            gradients(lambda s, b: render_surfels_ref(s, background=b, screen_sigma=screen_sigma), scene, weights,
+                      bg, torch.float64))
+    with pytest.raises(ValueError, match="screen_sigma: expected a positive number of pixels"):
+        render_surfels_ours(scene, outputs, screen_sigma=0.0)

@@ -13,6 +13,10 @@ GPU_FORWARD_ONLY_TILE_SIZE = 16  # GPU renders nobody differentiates (evaluation
 DEFAULT_ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
 DEFAULT_ALPHA_MAX = 0.99  # alpha is clamped here (3DGS; gsplat uses 0.999)
 DEFAULT_TRANSMITTANCE_MIN = 1.0e-4  # a pixel stops blending before its transmittance drops under this
+# Surfels: the screen-space fallback's standard deviation in pixels of the image rendered (2DGS: 1/sqrt(2)). Scaled
+# with the image by the model renders (warpgs/model/rendering.py surfel_screen_sigma): fixed in pixels, it dilates
+# every surfel seen from farther or at a lower resolution than training saw it.
+DEFAULT_SURFEL_SCREEN_SIGMA = 0.5 ** 0.5
 # The adjoint recovers each Gaussian's transmittance from the final one by division, so the final one must stay a
 # normal float32: a smaller transmittance_min (0 included) would let it underflow and corrupt the gradients.
 LOWEST_TRANSMITTANCE_MIN = 1.0e-30

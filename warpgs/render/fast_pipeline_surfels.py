@@ -50,7 +50,7 @@ def surfel_blend_params(s: Settings, want: SurfelWanted, first_tile: int) -> sur
     sp = surfel_steps.SurfelBlendParams()
     sp.base = blend_params(s, Wanted(color=want.color, depth=want.depth, inv_depth=want.inv_depth,
                                      num_features=want.num_features), first_tile)
-    sp.near, sp.dist_scale = s.near, want.distortion_scale
+    sp.near, sp.dist_scale, sp.filter_inv = s.near, want.distortion_scale, 1.0 / (s.screen_sigma * s.screen_sigma)
     sp.want_normal, sp.want_median, sp.want_distortion = int(want.normal), int(want.median), int(want.distortion)
     return sp
 
@@ -94,7 +94,8 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
         add_input_check(ws, seq, n, check)
     _stage(None, "surfel project")
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
-        ws, "surfel_footprints", surfel_project.surfel_footprints, [transforms, means2d, opacities, valid], depths,
+        ws, "surfel_footprints", surfel_project.surfel_footprints,
+        [transforms, means2d, opacities, valid, 1.0 / (s.screen_sigma * s.screen_sigma)], depths,
         s, per_call, sequence=seq)
     pairs = pair_order(ws, s, keep, n, total, sorted_ids) if deterministic else None
 
@@ -169,8 +170,8 @@ def _projection_settings(s: Settings) -> list:
 
 
 def _params(ws: Workspace, s: Settings, want: SurfelWanted, first: int):
-    key = ("surfel_blend_params", *blend_settings_key(s), s.near, want.color, want.depth, want.inv_depth,
-           want.normal, want.median, want.distortion, want.num_features, want.distortion_scale, first)
+    key = ("surfel_blend_params", *blend_settings_key(s), s.near, s.screen_sigma, want.color, want.depth,
+           want.inv_depth, want.normal, want.median, want.distortion, want.num_features, want.distortion_scale, first)
     return ws.memo(key, lambda: surfel_blend_params(s, want, first))
 
 

@@ -21,8 +21,8 @@ if _CPU_COOPERATIVE:
     wp.config.enable_cpu_blocks = True
 
 from warpgs.render.cpu_threads import cpu_threads, run_threads, tile_ranges_per_thread  # noqa: E402
-from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE,  # noqa: E402
-                                    DEFAULT_TRANSMITTANCE_MIN)
+from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_SURFEL_SCREEN_SIGMA,  # noqa: E402
+                                    DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN)
 from warpgs.kernels import binning, blend, blend_gpu, project  # noqa: E402  (after setting the log level)
 
 
@@ -38,6 +38,7 @@ class Settings:
     alpha_min: float = DEFAULT_ALPHA_MIN  # blending skips contributions below this alpha (3DGS: 1/255)
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN  # blending stops before transmittance drops under this
     alpha_max: float = DEFAULT_ALPHA_MAX  # alpha is clamped here (3DGS: 0.99, gsplat: 0.999)
+    screen_sigma: float = DEFAULT_SURFEL_SCREEN_SIGMA  # surfels: the screen-space fallback's sigma in pixels
 
     @property
     def tiles_x(self) -> int:

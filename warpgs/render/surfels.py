@@ -7,14 +7,15 @@ third rotation column is the normal) and the extra outputs normal, median_depth 
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Optional, Sequence
 
 import torch
 import warp as wp
 
 from warpgs.render import fast_pipeline_surfels as fast
-from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN,
-                                    options_for_call)
+from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_SURFEL_SCREEN_SIGMA,
+                                    DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN, options_for_call)
 from warpgs.render.empty_scene import EmptySceneFunction
 from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted
@@ -58,6 +59,7 @@ def rasterize_surfels(
     alpha_max: float = DEFAULT_ALPHA_MAX,
     check_inputs: bool = True,
     deterministic: Optional[bool] = None,
+    screen_sigma: float = DEFAULT_SURFEL_SCREEN_SIGMA,
     _pipeline_checks: bool = False,
 ) -> RenderOutput:
     """Render N 2D Gaussian surfels from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
@@ -67,7 +69,9 @@ def rasterize_surfels(
     outputs: any of rgb, alpha, depth (Σ w z / alpha, z the ray-surfel hit depth), inv_depth (Σ w / z),
     normal (Σ w n, world space, each normal facing the camera), median_depth, distortion, features.
     Only the requested outputs are computed. tile_size, max_sigmas / alpha_min / transmittance_min / alpha_max,
-    deterministic: as in `rasterize`.
+    deterministic: as in `rasterize`. screen_sigma: the standard deviation in pixels of the screen-space Gaussian
+    that stands in for a surfel seen edge-on or smaller than a pixel (2DGS's 1/sqrt(2) by default; renders of a
+    trained model scale it with the image, warpgs.model.rendering.surfel_screen_sigma).
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, False,
@@ -81,15 +85,18 @@ def rasterize_surfels(
                                         max_sigmas=max_sigmas, alpha_min=alpha_min,
                                         transmittance_min=transmittance_min, alpha_max=alpha_max,
                                         check_inputs=False, deterministic=deterministic,
-                                        _pipeline_checks=pipeline_checks)
+                                        screen_sigma=screen_sigma, _pipeline_checks=pipeline_checks)
                       for b in range(viewmat.shape[0])]
         return _stack(per_camera)
 
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
     feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
-    settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min, transmittance_min,
-                               alpha_max)
+    if not 0.0 < float(screen_sigma) < float("inf"):
+        raise ValueError(f"screen_sigma: expected a positive number of pixels, got {screen_sigma!r}")
+    settings = dataclasses.replace(raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree,
+                                                   alpha_min, transmittance_min, alpha_max),
+                                   screen_sigma=float(screen_sigma))
     wanted = SurfelWanted(
         color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
         normal="normal" in outputs, median="median_depth" in outputs, distortion="distortion" in outputs,

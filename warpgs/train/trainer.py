@@ -30,6 +30,7 @@ import threading
 from pathlib import Path
 from typing import Callable, Dict, Iterable, List, Optional, Sequence, Union
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -39,7 +40,7 @@ from warpgs.train.determinism import use_deterministic_algorithms
 from warpgs.train.phase_timer import PhaseTimer
 from warpgs.train.extensions import CallbackExtension, Extension, build_extension
 from warpgs.model.gaussians import GaussianModel
-from warpgs.model.rendering import check_outputs, render_model
+from warpgs.model.rendering import check_outputs, render_model, surfel_screen_sigma
 from warpgs.train.optim import build_optimizer
 from warpgs.train.scaling import apply_batch_scaling, lr_scale
 from warpgs.train.schedule import AutoStop, validation_split
@@ -106,6 +107,10 @@ class Trainer:
         self.scene = scene if scene is not None else self.ranks.rank0_first(
             lambda: train_setup.load_training_scene(cfg.data, self.out_dir), "loading the scene")
         self.extent = train_setup.scene_extent(self.scene, cfg.train.scene_extent)
+        # The training images' focal length (pixels; median over the training cameras): surfel renders scale their
+        # screen-space fallback from it (model/rendering.py surfel_screen_sigma).
+        self.training_focal = float(np.median([_focal(self.scene.cameras[i].K) for i in self.scene.train]
+                                              or [_focal(c.K) for c in self.scene.cameras] or [0.0]))
         self.background = train_setup.resolve_background(cfg.train.background, self.scene, self.device)
         # train.steps=auto: the run is bounded by schedule.max_steps (its learning-rate horizon) and ends when
         # train/schedule.py's rule says so; the strategy and the loop apply its decisions.
@@ -356,10 +361,15 @@ class Trainer:
         t = self.config.train
         extra = [o for e in self.extensions for o in e.outputs() if o not in outputs]
         outputs = tuple(outputs) + tuple(dict.fromkeys(extra))
+        sigma = None
+        if self.model.kind == "surfels":  # a scene view's focal from its camera on the host (no device read)
+            index, cams = getattr(view, "index", -1), self.scene.cameras
+            same = 0 <= index < len(cams) and (cams[index].width, cams[index].height) == (view.width, view.height)
+            sigma = surfel_screen_sigma(_focal(cams[index].K if same else view.K), self.training_focal)
         out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,
                            background=self.background, inputs=self.render_inputs(batch, step, outputs),
                            track_means2d=track_means2d, check_inputs=not t.nan_guard,
-                           deterministic=t.deterministic or None, **t.render_options())
+                           deterministic=t.deterministic or None, screen_sigma=sigma, **t.render_options())
         for ext in self.extensions:
             out = ext.after_render(self, out, batch, step)
         return out
@@ -459,3 +469,8 @@ class Trainer:
 def train(config=None, overrides: Sequence[str] = (), **kwargs) -> TrainResult:
     """Shorthand: Trainer(config, overrides=overrides, **kwargs).fit()."""
     return Trainer(config, overrides=overrides, **kwargs).fit()
+
+
+def _focal(K) -> float:
+    """sqrt(fx fy) of a 3x3 intrinsics matrix (numpy or torch)."""
+    return float(K[0][0] * K[1][1]) ** 0.5
