@@ -4,9 +4,10 @@ viewer or a lower-resolution video shows).
 
     python benchmarks/zoom_out.py RUN [RUN ...] [--factors 1,2,4] [--device cpu] [--tag NAME]
 
-For surfel runs each row is given twice: with the screen-space fallback scaled to the image (what the renders do,
-warpgs.model.rendering.surfel_screen_sigma) and fixed at 2DGS's 1/sqrt(2) px of every image (--fixed), which
-dilates every surfel seen smaller than in training. Writes benchmarks/results/zoom_out[_<tag>].json.
+Each run is scored twice: with the screen-space filter scaled to the image (what the renders do: surfels' fallback
+width, warpgs.model.rendering.surfel_screen_sigma; 3D Gaussians' low-pass, gaussian_low_pass) and fixed in the
+pixels of every image (2DGS's 1/sqrt(2) px, 3DGS's 0.3 px²), which dilates every primitive seen smaller than in
+training. Writes benchmarks/results/zoom_out[_<tag>].json.
 """
 from __future__ import annotations
 
@@ -51,12 +52,11 @@ def main(argv=None) -> dict:
     rows = []
     for run in args.runs:
         trainer = load_run(run, args.device)
-        modes = ["scaled", "fixed"] if trainer.model.kind == "surfels" else ["-"]
         focal = trainer.training_focal
-        for mode in modes:
-            trainer.training_focal = None if mode == "fixed" else focal  # None: the fallback's default width
+        for mode in ("scaled", "fixed"):
+            trainer.training_focal = None if mode == "fixed" else focal  # None: the ops' default filter
             row = {"run": str(run), "kind": trainer.model.kind, "primitives": trainer.model.num_primitives,
-                   "fallback": mode}
+                   "filter": mode}
             row.update({f"psnr_1/{f}": round(psnr_at(trainer, f), 3) for f in factors})
             rows.append(row)
         trainer.training_focal = focal

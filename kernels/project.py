@@ -8,7 +8,7 @@ import warp as wp
 from .gaussian_math import clamp_scale, quat_wxyz_to_rotation, rotation_of, symmetric2_inverse, translation_of
 from .sh import colour_from_sh, eval_sh
 
-LOW_PASS = wp.constant(0.3)  # px², added to the projected covariance as in 3DGS
+# The low-pass, in px², added to the projected covariance (3DGS and gsplat's eps2d: 0.3) is the `low_pass` argument.
 COLOR_DIRECT = wp.constant(0)
 COLOR_SH = wp.constant(1)
 
@@ -27,6 +27,7 @@ def project_gaussians(
     far: float,
     color_mode: int,
     sh_degree: int,
+    low_pass: float,  # px² added to the projected covariance's diagonal
     means2d: wp.array(dtype=wp.vec2),
     conics: wp.array(dtype=wp.vec3),
     cov2d: wp.array(dtype=wp.vec3),
@@ -62,9 +63,9 @@ def project_gaussians(
     M = Rq * wp.diag(wp.vec3(clamp_scale(s[0]), clamp_scale(s[1]), clamp_scale(s[2])))
     T = J * R * M
     cov = T * wp.transpose(T)
-    a = cov[0, 0] + LOW_PASS
+    a = cov[0, 0] + low_pass
     b = cov[0, 1]
-    c = cov[1, 1] + LOW_PASS
+    c = cov[1, 1] + low_pass
 
     means2d[i] = wp.vec2(fx * p[0] / zs + cx, fy * p[1] / zs + cy)
     conics[i] = symmetric2_inverse(a, b, c)

@@ -1,7 +1,7 @@
 """The oracle: a float64, brute-force, pure-torch 3D Gaussian renderer written for obviousness, not speed.
 
 Every Gaussian is evaluated at every pixel; no tiles, no culling beyond the near/far planes. It follows the
-same rules as the Warp renderer (3DGS blending, EWA projection with the 0.3 px² low-pass and the 1.3x
+same rules as the Warp renderer (3DGS blending, EWA projection with the low-pass (0.3 px² by default) and the 1.3x
 field-of-view clamp of the Jacobian, SH + 0.5 clamped at 0), so values and autograd gradients can be
 compared directly.
 """
@@ -47,7 +47,7 @@ def sh_to_rgb(sh, degree, d):
 
 def render_reference(means, quats, scales, opacities, colors, viewmat, K, width, height, *, sh_degree=None,
                      features=None, background=None, near=0.01, far=1e10, pixels=None, alpha_min=1.0 / 255.0,
-                     transmittance_min=1e-4, alpha_max=0.99):
+                     transmittance_min=1e-4, alpha_max=0.99, low_pass=0.3):
     """Returns a dict of [H,W,C] float64 images: rgb, alpha, depth, inv_depth and (if given) features.
 
     pixels: optional [P,2] integer (x, y) pixel indices; then only those are rendered and values are [P,C]
@@ -68,7 +68,7 @@ def render_reference(means, quats, scales, opacities, colors, viewmat, K, width,
                      torch.stack([zero, fy / zs, -fy * yz / zs], -1)], -2)  # [N,2,3]
     M = quat_to_rotation(quats) * torch.clamp(scales, -1e8, 1e8)[:, None, :]  # R_q diag(s)
     T = J @ R @ M
-    cov = T @ T.transpose(1, 2) + 0.3 * torch.eye(2, dtype=means.dtype, device=means.device)
+    cov = T @ T.transpose(1, 2) + low_pass * torch.eye(2, dtype=means.dtype, device=means.device)
     conic = torch.linalg.inv(cov)
     mean2d = torch.stack([fx * p[:, 0] / zs + cx, fy * p[:, 1] / zs + cy], -1)
     if mean2d.requires_grad:

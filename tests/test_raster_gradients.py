@@ -171,3 +171,26 @@ def test_alpha_clamp_is_a_setting_and_its_gradients_match_the_reference(alpha_ma
                       torch.float32),
             gradients(lambda s, b: render_ref(s, background=b, alpha_max=alpha_max), scene, weights, bg,
                       torch.float64))
+
+
+@pytest.mark.parametrize("low_pass", [0.0, 0.05, 1.2])
+def test_the_low_pass_is_a_setting_and_its_gradients_match_the_reference(low_pass):
+    # Small Gaussians, where the low-pass shapes what is drawn: images and gradients follow the reference at other
+    # values (0: none), and the value changes the image (the setting is not ignored).
+    scene = random_scene(n=40, seed=5, sh_degree=1)
+    scene["scales"] = scene["scales"] * 0.2
+    outputs = ("rgb", "alpha", "depth")
+    ours = render_ours(scene, outputs, low_pass=low_pass)
+    ref = render_ref(scene, low_pass=low_pass)
+    for name in outputs:
+        assert torch.allclose(getattr(ours, name).double(), ref[name], atol=2e-5), name
+    assert (render_ref(scene)["alpha"] - ref["alpha"]).abs().max() > 1e-2
+    g = torch.Generator().manual_seed(6)
+    weights = {n: torch.randn(scene["height"], scene["width"], c, generator=g, dtype=torch.float64)
+               for n, c in (("rgb", 3), ("alpha", 1), ("depth", 1))}
+    bg = torch.tensor([0.2, 0.3, 0.4], dtype=torch.float64)
+    compare(gradients(lambda s, b: render_ours(s, outputs, background=b, low_pass=low_pass), scene, weights, bg,
+                      torch.float32),
+            gradients(lambda s, b: render_ref(s, background=b, low_pass=low_pass), scene, weights, bg, torch.float64))
+    with pytest.raises(ValueError, match="low_pass: expected a non-negative number"):
+        render_ours(scene, outputs, low_pass=-1.0)

@@ -107,7 +107,7 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
     seq = launch_sequence(ws, on_stage)
     seq.launch("project", project.project_gaussians, n,
-               list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0),
+               list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0), s.low_pass,
                                means2d, conics, cov2d, depths, colors, valid])
     if check is not None:
         add_input_check(ws, seq, n, check)
@@ -347,9 +347,9 @@ def project_backward(ws: Workspace, frame: Frame, s: Settings, inputs, input_gra
     n = frame.n
     cov2d = ws.array("cov2d", n, wp.vec3)
     valid = ws.array("valid", n, wp.int32)
-    args = list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0),
+    args = list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0), s.low_pass,
                            frame.means2d, frame.conics, cov2d, frame.depths, frame.colors, valid]
-    adj = list(input_grads) + [0, 0, 0.0, 0.0, 0, 0, g_means2d, g_conics, None, g_depths, g_colors, None]
+    adj = list(input_grads) + [0, 0, 0.0, 0.0, 0, 0, 0.0, g_means2d, g_conics, None, g_depths, g_colors, None]
     ws.launches.launch_adjoint("project_adjoint", project.project_gaussians, n, args, adj)
     _stage(None, "project adjoint")
 

@@ -7,15 +7,15 @@ Conventions follow gsplat so users can swap: OpenCV camera (x right, y down, z f
 from __future__ import annotations
 
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Optional, Sequence
 
 import torch
 import warp as wp
 
 from warpgs.render import pipeline_gaussians as pipeline
-from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, DEPTH_EPS,
-                                    LOWEST_TRANSMITTANCE_MIN, alpha_clamp_problem, choose_tile_size,
+from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_LOW_PASS, DEFAULT_TRANSMITTANCE_MIN,
+                                    DEPTH_EPS, LOWEST_TRANSMITTANCE_MIN, alpha_clamp_problem, choose_tile_size,
                                     options_for_call)
 from warpgs.render.empty_scene import EmptySceneFunction
 from warpgs.render.gaussians_fast import FastRasterizeFunction, run_op
@@ -177,6 +177,7 @@ def rasterize(
     check_inputs: bool = True,
     track_means2d: bool = False,
     deterministic: Optional[bool] = None,
+    low_pass: float = DEFAULT_LOW_PASS,
     _means2d_probe: Optional[torch.Tensor] = None,
     _pipeline_checks: bool = False,
 ) -> RenderOutput:
@@ -196,6 +197,8 @@ def rasterize(
     deterministic: gradients bit-identical from run to run on GPUs too (a fixed-order sum instead of float atomics
     in the blend adjoint; slower, docs/distributed.md); None: the raster option's value (off unless
     WARPGS_DETERMINISTIC=1 or raster_options(deterministic=True)). The CPU's gradients are deterministic anyway.
+    low_pass: px² added to every projected covariance (3DGS's 0.3 by default, gsplat's eps2d); renders of a trained
+    model scale it with the image (warpgs.model.rendering.gaussian_low_pass).
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, False,
@@ -209,7 +212,8 @@ def rasterize(
                                 sh_degree=sh_degree, features=features, background=background, outputs=outputs,
                                 near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
                                 transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=False,
-                                deterministic=deterministic, _means2d_probe=None if probe is None else probe[b],
+                                deterministic=deterministic, low_pass=low_pass,
+                                _means2d_probe=None if probe is None else probe[b],
                                 _pipeline_checks=pipeline_checks)
                       for b in range(viewmat.shape[0])]
         out = _stack(per_camera)
@@ -222,8 +226,10 @@ def rasterize(
     n = means.shape[0]
     coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
     feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
-    settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min, transmittance_min,
-                               alpha_max)
+    if not 0.0 <= float(low_pass) < float("inf"):
+        raise ValueError(f"low_pass: expected a non-negative number of px², got {low_pass!r}")
+    settings = replace(raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,
+                                       transmittance_min, alpha_max), low_pass=float(low_pass))
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1])
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)

@@ -21,8 +21,8 @@ if _CPU_COOPERATIVE:
     wp.config.enable_cpu_blocks = True
 
 from warpgs.render.cpu_threads import cpu_threads, run_threads, tile_ranges_per_thread  # noqa: E402
-from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_SURFEL_SCREEN_SIGMA,  # noqa: E402
-                                    DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN)
+from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_LOW_PASS,  # noqa: E402
+                                    DEFAULT_SURFEL_SCREEN_SIGMA, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN)
 from warpgs.kernels import binning, blend, blend_gpu, project  # noqa: E402  (after setting the log level)
 
 
@@ -39,6 +39,7 @@ class Settings:
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN  # blending stops before transmittance drops under this
     alpha_max: float = DEFAULT_ALPHA_MAX  # alpha is clamped here (3DGS: 0.99, gsplat: 0.999)
     screen_sigma: float = DEFAULT_SURFEL_SCREEN_SIGMA  # surfels: the screen-space fallback's sigma in pixels
+    low_pass: float = DEFAULT_LOW_PASS  # 3D Gaussians: px² added to the projected covariance (3DGS, gsplat eps2d)
 
     @property
     def tiles_x(self) -> int:
@@ -108,7 +109,7 @@ def project_gaussians(means, quats, scales, opacities, coeffs, viewmat, intrinsi
         project.project_gaussians,
         dim=n,
         inputs=[means, quats, scales, coeffs, viewmat, intrinsics, s.width, s.height, s.near, s.far,
-                color_mode, max(s.sh_degree, 0)],
+                color_mode, max(s.sh_degree, 0), s.low_pass],
         outputs=[out.means2d, out.conics, out.cov2d, out.depths, out.colors, out.valid],
         device=dev,
     )

@@ -6,8 +6,9 @@ from __future__ import annotations
 import torch
 
 from warpgs.model.gaussians import GaussianModel, quat_to_rotmat
+from warpgs.render.defaults import DEFAULT_LOW_PASS
 
-LOW_PASS = 0.3  # px^2, as kernels/project.py
+LOW_PASS = DEFAULT_LOW_PASS  # px^2, what training renders add (kernels/project.py)
 
 
 def _camera_frame(means: torch.Tensor, viewmat: torch.Tensor):

@@ -40,7 +40,7 @@ from warpgs.train.determinism import use_deterministic_algorithms
 from warpgs.train.phase_timer import PhaseTimer
 from warpgs.train.extensions import CallbackExtension, Extension, build_extension
 from warpgs.model.gaussians import GaussianModel
-from warpgs.model.rendering import check_outputs, render_model, surfel_screen_sigma
+from warpgs.model.rendering import check_outputs, gaussian_low_pass, render_model, surfel_screen_sigma
 from warpgs.train.optim import build_optimizer
 from warpgs.train.scaling import apply_batch_scaling, lr_scale
 from warpgs.train.schedule import AutoStop, validation_split
@@ -361,15 +361,17 @@ class Trainer:
         t = self.config.train
         extra = [o for e in self.extensions for o in e.outputs() if o not in outputs]
         outputs = tuple(outputs) + tuple(dict.fromkeys(extra))
-        sigma = None
-        if self.model.kind == "surfels":  # a scene view's focal from its camera on the host (no device read)
-            index, cams = getattr(view, "index", -1), self.scene.cameras
-            same = 0 <= index < len(cams) and (cams[index].width, cams[index].height) == (view.width, view.height)
-            sigma = surfel_screen_sigma(_focal(cams[index].K if same else view.K), self.training_focal)
+        # The screen-space filter scaled with the image (model/rendering.py): a scene view's focal length from its
+        # camera on the host (no device read), another camera's from its K.
+        index, cams = getattr(view, "index", -1), self.scene.cameras
+        same = 0 <= index < len(cams) and (cams[index].width, cams[index].height) == (view.width, view.height)
+        focal = _focal(cams[index].K if same else view.K)
+        filters = ({"screen_sigma": surfel_screen_sigma(focal, self.training_focal)} if self.model.kind == "surfels"
+                   else {"low_pass": gaussian_low_pass(focal, self.training_focal)})
         out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,
                            background=self.background, inputs=self.render_inputs(batch, step, outputs),
                            track_means2d=track_means2d, check_inputs=not t.nan_guard,
-                           deterministic=t.deterministic or None, screen_sigma=sigma, **t.render_options())
+                           deterministic=t.deterministic or None, **filters, **t.render_options())
         for ext in self.extensions:
             out = ext.after_render(self, out, batch, step)
         return out

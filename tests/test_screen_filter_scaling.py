@@ -1,6 +1,7 @@
-"""Surfel renders of a trained model scale the screen-space fallback with the image (model/rendering.py
-surfel_screen_sigma): 2DGS's 1/sqrt(2) px at the training resolution, half of it at half the resolution, so a surfel
-seen smaller than in training is not dilated to a fixed pixel size (benchmarks/zoom_out.py measures what that does)."""
+"""Renders of a trained model scale the screen-space filter with the image (model/rendering.py): surfels their
+fallback width (2DGS's 1/sqrt(2) px at the training resolution, half of it at half the resolution), 3D Gaussians
+their low-pass (0.3 px², a quarter of it at half the resolution), so a primitive seen smaller than in training is not
+dilated to a fixed pixel size (benchmarks/zoom_out.py measures what that does)."""
 import copy
 
 import pytest
@@ -39,3 +40,27 @@ def test_trainer_renders_pass_the_scaled_width(tmp_path, monkeypatch):
     assert out.rgb.shape[:2] == (12, 16) and torch.isfinite(out.rgb).all()
     assert seen[0] == DEFAULT_SURFEL_SCREEN_SIGMA  # a training view: exactly 2DGS's width
     assert seen[1] == pytest.approx(DEFAULT_SURFEL_SCREEN_SIGMA / 2)
+
+
+def test_gaussian_renders_scale_the_low_pass(tmp_path, monkeypatch):
+    from warpgs.model.rendering import gaussian_low_pass
+    from warpgs.render.defaults import DEFAULT_LOW_PASS
+
+    assert gaussian_low_pass(400.0, 400.0) == DEFAULT_LOW_PASS
+    assert gaussian_low_pass(200.0, 400.0) == pytest.approx(DEFAULT_LOW_PASS / 4)  # px²: the square of the scale
+    scene = write_synthetic_scene(tmp_path / "scene", "orbit", RigSettings(width=32, height=24, n_orbit=8),
+                                  n_points=200)
+    trainer = Trainer(None, overrides=[f"data.path={scene}", f"output.dir={tmp_path / 'run'}", "train.steps=2",
+                                       "train.device=cpu", "train.progress=false", "eval.every=0",
+                                       "eval.lpips=false"], quiet=True)
+    seen = []
+    real = rendering.rasterize
+    monkeypatch.setattr(rendering, "rasterize", lambda **kw: seen.append(kw.get("low_pass")) or real(**kw))
+    view = trainer.scene.view(trainer.scene.train[0], trainer.device)
+    trainer.render(view)
+    half = copy.copy(view)
+    half.K = view.K.clone()
+    half.K[:2] /= 2
+    half.width, half.height = view.width // 2, view.height // 2
+    trainer.render(half)
+    assert seen[0] == DEFAULT_LOW_PASS and seen[1] == pytest.approx(DEFAULT_LOW_PASS / 4)
