@@ -31,7 +31,7 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     scene = synthetic_dir("orbit")  # 36 views at 128x96: 24 train under the 360 protocol, 5 test (0, 8, ...)
     out = tmp_path / "out"
     common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--seeds", "3",
-              "--steps", "8", "--budget", "1000", "--threads", "1", "--out", str(out)]
+              "--steps", "8", "--budget", "1000", "--threads", "1", "--out", str(out), "eval.every=4"]
     sparse.main(common + ["--dry-run"])
     listed = capsys.readouterr().out
     assert "1 runs (0 done, 1 to do)" in listed and "m360_24_orbit_baseline_s3" in listed
@@ -45,6 +45,9 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     assert (run["steps"], run["seed"], run["budget"]) == (8, 3, 1000)
     assert math.isfinite(run["psnr"]) and run["abs_rel"] is not None  # the synthetic scene carries exact depth
     assert payload["summary"]["scenes"]["orbit"]["baseline"]["psnr"] == (run["psnr"], None)
+    assert [h["step"] for h in run["history"]] == [4]  # the periodic test evaluation the override asked for
+    assert "eval.every=4" in payload["command"] and "--name t_orbit" in payload["command"]
+    assert "--worker run" in payload["runs"][0]["command"] and "--seed 3" in payload["runs"][0]["command"]
     # A second call finds every run done: nothing trains again, the table is made from the files.
     before = _runs(out)
     sparse.main(common + ["--name", "t_orbit"])
