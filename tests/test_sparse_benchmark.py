@@ -46,6 +46,7 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     assert math.isfinite(run["psnr"]) and run["abs_rel"] is not None  # the synthetic scene carries exact depth
     assert payload["summary"]["scenes"]["orbit"]["baseline"]["psnr"] == (run["psnr"], None)
     assert [h["step"] for h in run["history"]] == [4]  # the periodic test evaluation the override asked for
+    assert "--worker run" in run["command"] and run["command"].endswith("eval.every=4")  # the worker's own
     assert "eval.every=4" in payload["command"] and "--name t_orbit" in payload["command"]
     assert "--worker run" in payload["runs"][0]["command"] and "--seed 3" in payload["runs"][0]["command"]
     # A second call finds every run done: nothing trains again, the table is made from the files.
