@@ -160,6 +160,7 @@ def run_setting(key: str, preset: str, steps: int, seed: int, device: str, extra
             "coverage": depth["coverage"], "num_pairs": depth["num_pairs"], "num_primitives": result.num_primitives,
             "train_seconds": round(result.train_seconds, 1), "wall_seconds": round(time.perf_counter() - start, 1),
             "losses": [t.name for t in trainer.terms], "outputs": list(trainer.outputs),
+            "history": result.history,  # the periodic test evaluations (eval.every=N among the overrides), if any
             "per_view": {k: {**v, **depth["per_view"].get(k, {})} for k, v in m["per_view"].items()}}
 
 

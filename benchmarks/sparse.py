@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -55,10 +56,12 @@ from sparse_worker import make_prior, reference_source, train_one  # the worker 
 
 
 # --- the run files' tables ------------------------------------------------------------------------------------------
-def tables(args, runs: list[Run]) -> dict:
+def tables(args, runs: list[Run], argv=None) -> dict:
     results, missing = [], []
     for run in runs:
         recorded = read_run(args, run)
+        if recorded is not None:  # how to make the run again (one worker process)
+            recorded.setdefault("command", shlex.join(worker_cmd(args, "run", run.scene, run)))
         (results.append(recorded) if recorded is not None else missing.append(run.id))
     if not results:
         raise SystemExit(f"no run files under {Path(args.out) / 'runs'} for this plan")
@@ -70,6 +73,8 @@ def tables(args, runs: list[Run]) -> dict:
               f"{first['budget'] or 'preset'}" + (f"; missing {len(missing)}" if missing else ""))
     print_tables(summary, header)
     payload = {"protocol": args.protocol, "tag": args.tag, "about": args.proto.about, "missing": missing,
+               "command": shlex.join(["python", "benchmarks/sparse.py", *[a for a in (argv or sys.argv[1:])
+                                                                           if a not in ("--table", "--detach")]]),
                "paper_table2": PAPER_TABLE2, "summary": summary,
                "splits": {r["scene"]: {k: r[k] for k in ("size", "downscale", "train", "train_index", "test",
                                                          "test_index", "reference")} for r in results},
@@ -166,7 +171,7 @@ def main(argv=None):
     if args.dry_run:
         return dry_run(args, runs, scenes)
     if args.table:
-        return tables(args, runs)
+        return tables(args, runs, argv)
     if args.detach:
         if os.environ.get("OUT") and out.is_relative_to(Path(os.environ["OUT"]).resolve()):
             raise SystemExit("--detach: --out must not lie under $OUT, which a device empties before its next command")
@@ -187,7 +192,7 @@ def main(argv=None):
     run_jobs([Job(r.id, worker_cmd(args, "run", r.scene, r), *gpu_slot(gpus, i)) for i, r in enumerate(todo)],
              args.per_gpu, logs, summary=lambda job, log: _summary(out, job))
     print(f"all runs done in {time.perf_counter() - start:.0f} s", file=sys.stderr)
-    return tables(args, runs)
+    return tables(args, runs, argv)
 
 
 def _summary(out: Path, job: Job) -> str:

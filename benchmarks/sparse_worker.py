@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import platform
+import shlex
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -87,6 +89,7 @@ def train_one(args, run: Run) -> dict:
                "train": [loaded.names[v] for v in loaded.train], "train_index": loaded.train,
                "test": [loaded.names[v] for v in loaded.test], "test_index": loaded.test,
                "reference": reference_from, "device": args.device, "budget": budget,
+               "command": shlex.join([sys.executable, *sys.argv]),  # this worker, as its driver started it
                "schedule_overrides": ablation.schedule_overrides(steps, FULL_STEPS),
                "torch_threads": torch.get_num_threads(), "machine": platform.node(),
                "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None, **result}

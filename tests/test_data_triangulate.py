@@ -161,3 +161,29 @@ def test_every_run_finds_the_same_points(tmp_path):
     np.testing.assert_array_equal(a.rgb, b.rgb)
     for v, (seen_a, seen_b) in enumerate(zip(a.observed_by, b.observed_by)):
         np.testing.assert_array_equal(seen_a, seen_b, err_msg=f"view {v}")
+
+
+@pytest.mark.parametrize("found", [10, 50, 150])
+def test_few_triangulated_points_are_kept_when_asked_for(tmp_path, monkeypatch, capsys, found):
+    """auto wants MIN_TRIANGULATED_POINTS before it trusts triangulation over random points; model.init=triangulate
+    (the few-view presets) keeps a few dozen (3 views of LLFF's leaves give 79) and fails only below the strict
+    minimum."""
+    from warpgs.data import PointCloud
+    from warpgs.data.errors import SceneError
+    from warpgs.data.sfm import init_points as ip
+    from warpgs.data.sfm.triangulate import Triangulation
+
+    rng = np.random.default_rng(0)
+    cloud = PointCloud(rng.normal(size=(found, 3)).astype(np.float32), np.full((found, 3), 0.5, np.float32))
+    monkeypatch.setattr("warpgs.data.sfm.triangulate.triangulate_scene",
+                        lambda scene, cache_dir, **kw: Triangulation(cloud, 0.4, 0.1, False, {}))
+    scene = load_scene(synthetic_dir("orbit"), split="llff")
+    strict_ok = found >= ip.MIN_TRIANGULATED_POINTS_STRICT
+    if strict_ok:
+        assert len(ip.triangulated_points(scene, tmp_path, strict=True)[0]) == found
+    else:
+        with pytest.raises(SceneError, match=f"only {found} points"):
+            ip.triangulated_points(scene, tmp_path, strict=True)
+    auto = ip.triangulated_points(scene, tmp_path)
+    assert (auto is not None) == (found >= ip.MIN_TRIANGULATED_POINTS)
+    assert ("using random points" in capsys.readouterr().err) == (auto is None)

@@ -31,7 +31,7 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     scene = synthetic_dir("orbit")  # 36 views at 128x96: 24 train under the 360 protocol, 5 test (0, 8, ...)
     out = tmp_path / "out"
     common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--seeds", "3",
-              "--steps", "8", "--budget", "1000", "--threads", "1", "--out", str(out)]
+              "--steps", "8", "--budget", "1000", "--threads", "1", "--out", str(out), "eval.every=4"]
     sparse.main(common + ["--dry-run"])
     listed = capsys.readouterr().out
     assert "1 runs (0 done, 1 to do)" in listed and "m360_24_orbit_baseline_s3" in listed
@@ -45,6 +45,10 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     assert (run["steps"], run["seed"], run["budget"]) == (8, 3, 1000)
     assert math.isfinite(run["psnr"]) and run["abs_rel"] is not None  # the synthetic scene carries exact depth
     assert payload["summary"]["scenes"]["orbit"]["baseline"]["psnr"] == (run["psnr"], None)
+    assert [h["step"] for h in run["history"]] == [4]  # the periodic test evaluation the override asked for
+    assert "--worker run" in run["command"] and run["command"].endswith("eval.every=4")  # the worker's own
+    assert "eval.every=4" in payload["command"] and "--name t_orbit" in payload["command"]
+    assert "--worker run" in payload["runs"][0]["command"] and "--seed 3" in payload["runs"][0]["command"]
     # A second call finds every run done: nothing trains again, the table is made from the files.
     before = _runs(out)
     sparse.main(common + ["--name", "t_orbit"])
@@ -151,3 +155,34 @@ def test_trimmed_llff_copy_keeps_split_cameras_and_reference(tmp_path):
     kept = load_scene(kept_dir, downscale=2)
     assert (kept.native_cameras[0].width, kept.cameras[0].width) == (64, 32)
     assert not (kept_dir / "images_2").exists() and (kept_dir / sparse_data.REFERENCE_FILE).is_file()
+
+
+def test_prior_accuracy_scores_a_waves_priors_at_the_training_views(tmp_path, monkeypatch):
+    import sparse_prior_accuracy
+    from warpgs.data.depth.priors import write_prior
+
+    monkeypatch.setenv("OUT", str(tmp_path))
+    cams = _cameras(n=12)
+    src = _llff_with_model(tmp_path / "src", cams, _tracked_points(cams), images_bin=False)
+    scene_dir = sparse_data.prepare_llff(src, tmp_path / "scene", factor=2, jpeg_quality=98)
+    scene = load_scene(scene_dir, split="llff", n_train=3, downscale=2)
+    w, h = scene.cameras[0].width, scene.cameras[0].height
+    folder = tmp_path / "out" / "priors" / f"llff3_{scene_dir.name}"
+    args = ["--out", str(tmp_path / "out"), "--scenes", f"{scene_dir}@2", "--name", "t"]
+    with pytest.raises(SystemExit, match="no prior"):
+        sparse_prior_accuracy.main(args)
+    names = [scene.names[v] for v in scene.train]
+    reference = sparse_data.read_reference_depth(scene_dir, names, w, h)
+    for name in names:  # 10% too far at every reference point; confident on the left half only
+        z = reference[name]
+        inv = np.where(z > 0, 1.0 / (1.1 * np.where(z > 0, z, 1.0)), 0.5).astype(np.float32)
+        conf = np.zeros((h, w), np.float32)
+        conf[:, : w // 2] = 1.0
+        write_prior(folder / f"{Path(name).stem}.exr", inv, np.ones((h, w), bool), conf)
+    (folder / "prior.json").write_text("{}")
+    payload = sparse_prior_accuracy.main(args)
+    mean = payload["scenes"][scene_dir.name]["mean"]
+    assert mean["abs_rel"] == pytest.approx(0.1, rel=1e-4)  # |1.1 z - z| / z
+    assert mean["delta1"] == 1.0 and mean["point_coverage"] == 1.0 and mean["valid_pixels"] == 1.0
+    assert mean["confident_pixels"] == pytest.approx((w // 2) / w)
+    assert json.loads((tmp_path / "sparse_prior_accuracy_t.json").read_text())["scenes"].keys() == {scene_dir.name}
