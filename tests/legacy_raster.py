@@ -13,7 +13,8 @@ import warp as wp
 from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, choose_tile_size
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, _zero_grad, blended_images,
-                                     on_torch_stream, raster_settings, set_image_outputs, upstream_image_gradients)
+                                     on_torch_stream, op_inputs, raster_settings, set_image_outputs,
+                                     upstream_image_gradients)
 
 
 def warp_inputs(tensors, needs, any_grad: bool, scale_dtype):
@@ -108,9 +109,7 @@ def rasterize_legacy(means, quats, scales, opacities, colors, viewmat, K, width,
     probe = _means2d_probe
     if probe is None and track_means2d:
         probe = means.new_zeros(means.shape[0], 2, requires_grad=True)
-    n = means.shape[0]
-    coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
-    feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
+    coeffs, feats = op_inputs(means, colors, features, outputs)
     settings = raster_settings(width, height, 0.01, 1e10, tile_size, 0.0, sh_degree, DEFAULT_ALPHA_MIN,
                                DEFAULT_TRANSMITTANCE_MIN, DEFAULT_ALPHA_MAX)
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,

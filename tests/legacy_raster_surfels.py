@@ -15,7 +15,7 @@ from warpgs.render.cpu_threads import run_threads
 from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, choose_tile_size
 from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted, surfel_blend_params
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, on_torch_stream, raster_settings,
-                                     set_image_outputs)
+                                     op_inputs, set_image_outputs)
 from warpgs.render.pipeline_gaussians import (Bins, Settings, _gradient_buffers, _merge_gradient_buffers,
                                               _tile_launches, bin_into_tiles, choose_blend_kernel)
 from warpgs.render.surfels import DISTORTION_SCALE
@@ -206,9 +206,7 @@ def rasterize_surfels_legacy(means, quats, scales, opacities, colors, viewmat, K
         return _stack([rasterize_surfels_legacy(means, quats, scales, opacities, colors, viewmat[b], K[b], width,
                                                 height, tile_size=tile_size, **kw)
                        for b in range(viewmat.shape[0])])
-    n = means.shape[0]
-    coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
-    feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
+    coeffs, feats = op_inputs(means, colors, features, outputs)
     settings = raster_settings(width, height, 0.01, 1e10, tile_size, 0.0, sh_degree, DEFAULT_ALPHA_MIN,
                                DEFAULT_TRANSMITTANCE_MIN, DEFAULT_ALPHA_MAX)
     wanted = SurfelWanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,

@@ -10,26 +10,33 @@ import torch
 import warpgs.model.rendering as rendering
 from warpgs.cli.commands import resolve_config_source
 from warpgs.data.formats.synthetic import RigSettings, write_synthetic_scene
-from warpgs.model.rendering import surfel_screen_sigma
-from warpgs.render.defaults import DEFAULT_SURFEL_SCREEN_SIGMA
+from warpgs.model.rendering import gaussian_low_pass, surfel_screen_sigma
+from warpgs.render.defaults import DEFAULT_LOW_PASS, DEFAULT_SURFEL_SCREEN_SIGMA
 from warpgs.train.trainer import Trainer
 
 
-def test_the_width_follows_the_focal_length():
+def test_the_filters_follow_the_focal_length():
     assert surfel_screen_sigma(400.0, 400.0) == DEFAULT_SURFEL_SCREEN_SIGMA
     assert surfel_screen_sigma(100.0, 400.0) == pytest.approx(DEFAULT_SURFEL_SCREEN_SIGMA / 4)
     assert surfel_screen_sigma(800.0, None) == DEFAULT_SURFEL_SCREEN_SIGMA  # no training cameras known
+    assert gaussian_low_pass(400.0, 400.0) == DEFAULT_LOW_PASS
+    assert gaussian_low_pass(200.0, 400.0) == pytest.approx(DEFAULT_LOW_PASS / 4)  # px²: the square of the scale
 
 
-def test_trainer_renders_pass_the_scaled_width(tmp_path, monkeypatch):
+@pytest.mark.parametrize("preset, op, setting, default, at_half", [
+    ("surfels", "rasterize_surfels", "screen_sigma", DEFAULT_SURFEL_SCREEN_SIGMA, 0.5),
+    (None, "rasterize", "low_pass", DEFAULT_LOW_PASS, 0.25),
+])
+def test_trainer_renders_pass_the_scaled_filter(tmp_path, monkeypatch, preset, op, setting, default, at_half):
     scene = write_synthetic_scene(tmp_path / "scene", "orbit", RigSettings(width=32, height=24, n_orbit=8),
                                   n_points=200)
-    trainer = Trainer(resolve_config_source("surfels"), overrides=[f"data.path={scene}", f"output.dir={tmp_path / 'run'}", "train.steps=2",
-                                            "train.device=cpu", "train.progress=false", "eval.every=0",
-                                            "eval.lpips=false"], quiet=True)
+    trainer = Trainer(resolve_config_source(preset) if preset else None,
+                      overrides=[f"data.path={scene}", f"output.dir={tmp_path / 'run'}", "train.steps=2",
+                                 "train.device=cpu", "train.progress=false", "eval.every=0", "eval.lpips=false"],
+                      quiet=True)
     seen = []
-    real = rendering.rasterize_surfels
-    monkeypatch.setattr(rendering, "rasterize_surfels", lambda **kw: seen.append(kw.get("screen_sigma")) or real(**kw))
+    real = getattr(rendering, op)
+    monkeypatch.setattr(rendering, op, lambda **kw: seen.append(kw.get(setting)) or real(**kw))
     view = trainer.scene.view(trainer.scene.train[0], trainer.device)
     trainer.render(view)
     half = copy.copy(view)
@@ -38,29 +45,5 @@ def test_trainer_renders_pass_the_scaled_width(tmp_path, monkeypatch):
     half.width, half.height = view.width // 2, view.height // 2
     out = trainer.render(half)
     assert out.rgb.shape[:2] == (12, 16) and torch.isfinite(out.rgb).all()
-    assert seen[0] == DEFAULT_SURFEL_SCREEN_SIGMA  # a training view: exactly 2DGS's width
-    assert seen[1] == pytest.approx(DEFAULT_SURFEL_SCREEN_SIGMA / 2)
-
-
-def test_gaussian_renders_scale_the_low_pass(tmp_path, monkeypatch):
-    from warpgs.model.rendering import gaussian_low_pass
-    from warpgs.render.defaults import DEFAULT_LOW_PASS
-
-    assert gaussian_low_pass(400.0, 400.0) == DEFAULT_LOW_PASS
-    assert gaussian_low_pass(200.0, 400.0) == pytest.approx(DEFAULT_LOW_PASS / 4)  # px²: the square of the scale
-    scene = write_synthetic_scene(tmp_path / "scene", "orbit", RigSettings(width=32, height=24, n_orbit=8),
-                                  n_points=200)
-    trainer = Trainer(None, overrides=[f"data.path={scene}", f"output.dir={tmp_path / 'run'}", "train.steps=2",
-                                       "train.device=cpu", "train.progress=false", "eval.every=0",
-                                       "eval.lpips=false"], quiet=True)
-    seen = []
-    real = rendering.rasterize
-    monkeypatch.setattr(rendering, "rasterize", lambda **kw: seen.append(kw.get("low_pass")) or real(**kw))
-    view = trainer.scene.view(trainer.scene.train[0], trainer.device)
-    trainer.render(view)
-    half = copy.copy(view)
-    half.K = view.K.clone()
-    half.K[:2] /= 2
-    half.width, half.height = view.width // 2, view.height // 2
-    trainer.render(half)
-    assert seen[0] == DEFAULT_LOW_PASS and seen[1] == pytest.approx(DEFAULT_LOW_PASS / 4)
+    assert seen[0] == default  # a training view: exactly 2DGS's width / 3DGS's low-pass
+    assert seen[1] == pytest.approx(default * at_half)

@@ -224,8 +224,7 @@ def rasterize(
         probe = means.new_zeros(means.shape[0], 2, requires_grad=True)
 
     n = means.shape[0]
-    coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
-    feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
+    coeffs, feats = op_inputs(means, colors, features, outputs)
     if not 0.0 <= float(low_pass) < float("inf"):
         raise ValueError(f"low_pass: expected a non-negative number of px², got {low_pass!r}")
     settings = replace(raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,
@@ -247,6 +246,15 @@ def rasterize(
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible,
                        num_intersections=int(count), means2d=probe)
     return set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background, depth_normalized=True)
+
+
+def op_inputs(means, colors, features, outputs) -> tuple:
+    """(coeffs [N,K,3], feats [N,C]) as the kernels take them: plain colours as degree-0 coefficients, and the
+    feature columns only when "features" is rendered (else [N,0])."""
+    n = means.shape[0]
+    coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
+    feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
+    return coeffs, feats
 
 
 def _stack(per_camera: list) -> RenderOutput:

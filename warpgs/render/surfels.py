@@ -20,7 +20,7 @@ from warpgs.render.empty_scene import EmptySceneFunction
 from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, checked_call, raster_settings,
-                                     set_image_outputs)
+                                     op_inputs, set_image_outputs)
 from warpgs.render.gaussians_fast import _features_arg, device_state, run_op
 from warpgs.render.pipeline_gaussians import Settings
 from warpgs.render.validation import checks_before_render
@@ -90,8 +90,7 @@ def rasterize_surfels(
         return _stack(per_camera)
 
     n = means.shape[0]
-    coeffs = colors if colors.dim() == 3 else colors.reshape(n, 1, 3)
-    feats = features if (features is not None and "features" in outputs) else means.new_empty(n, 0)
+    coeffs, feats = op_inputs(means, colors, features, outputs)
     if not 0.0 < float(screen_sigma) < float("inf"):
         raise ValueError(f"screen_sigma: expected a positive number of pixels, got {screen_sigma!r}")
     settings = dataclasses.replace(raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree,
