@@ -51,6 +51,19 @@ def gaussian_low_pass(focal: float, training_focal: Optional[float]) -> float:
     return DEFAULT_LOW_PASS * (float(focal) / float(training_focal)) ** 2
 
 
+def screen_filter(kind: str, focal: float, training_focal: Optional[float]) -> dict:
+    """render_model's keyword for the kind's screen-space filter at this focal length: {"screen_sigma": ...} for
+    surfels, {"low_pass": ...} for 3D Gaussians."""
+    if kind == "surfels":
+        return {"screen_sigma": surfel_screen_sigma(focal, training_focal)}
+    return {"low_pass": gaussian_low_pass(focal, training_focal)}
+
+
+def focal_length(K) -> float:
+    """sqrt(fx fy) of a 3x3 intrinsics matrix (numpy or torch; a device tensor is read to the host)."""
+    return float(K[0][0] * K[1][1]) ** 0.5
+
+
 def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
                  outputs: Sequence[str] = ("rgb",), background: Optional[torch.Tensor] = None,
                  features: Optional[torch.Tensor] = None, inputs: Optional[dict] = None,

@@ -14,6 +14,7 @@ import torch
 
 from warpgs.config.loader import BACKGROUNDS, Config, DataConfig
 from warpgs.model.gaussians import MODEL_KINDS, GaussianModel
+from warpgs.model.rendering import focal_length
 
 
 def resolve_device(name: str) -> torch.device:
@@ -233,3 +234,10 @@ def active_sh_degree(step: int, config: Config, max_degree: int) -> int:
 
 def scene_extent(scene, override: Optional[float]) -> float:
     return float(override) if override else float(scene.camera_extent())
+
+
+def training_focal(scene) -> float:
+    """The median focal length (pixels, sqrt(fx fy)) of the scene's training cameras at the served resolution (all
+    cameras when none is marked for training; 0 without cameras)."""
+    cams = [scene.cameras[i] for i in scene.train] or list(scene.cameras)
+    return float(np.median([focal_length(c.K) for c in cams])) if cams else 0.0

@@ -30,7 +30,6 @@ import threading
 from pathlib import Path
 from typing import Callable, Dict, Iterable, List, Optional, Sequence, Union
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -40,7 +39,7 @@ from warpgs.train.determinism import use_deterministic_algorithms
 from warpgs.train.phase_timer import PhaseTimer
 from warpgs.train.extensions import CallbackExtension, Extension, build_extension
 from warpgs.model.gaussians import GaussianModel
-from warpgs.model.rendering import check_outputs, gaussian_low_pass, render_model, surfel_screen_sigma
+from warpgs.model.rendering import check_outputs, focal_length, render_model, screen_filter
 from warpgs.train.optim import build_optimizer
 from warpgs.train.scaling import apply_batch_scaling, lr_scale
 from warpgs.train.schedule import AutoStop, validation_split
@@ -107,10 +106,8 @@ class Trainer:
         self.scene = scene if scene is not None else self.ranks.rank0_first(
             lambda: train_setup.load_training_scene(cfg.data, self.out_dir), "loading the scene")
         self.extent = train_setup.scene_extent(self.scene, cfg.train.scene_extent)
-        # The training images' focal length (pixels; median over the training cameras): surfel renders scale their
-        # screen-space fallback from it (model/rendering.py surfel_screen_sigma).
-        self.training_focal = float(np.median([_focal(self.scene.cameras[i].K) for i in self.scene.train]
-                                              or [_focal(c.K) for c in self.scene.cameras] or [0.0]))
+        # The training images' focal length: renders scale the screen-space filter from it (model/rendering.py).
+        self.training_focal = train_setup.training_focal(self.scene)
         self.background = train_setup.resolve_background(cfg.train.background, self.scene, self.device)
         # train.steps=auto: the run is bounded by schedule.max_steps (its learning-rate horizon) and ends when
         # train/schedule.py's rule says so; the strategy and the loop apply its decisions.
@@ -365,9 +362,7 @@ class Trainer:
         # camera on the host (no device read), another camera's from its K.
         index, cams = getattr(view, "index", -1), self.scene.cameras
         same = 0 <= index < len(cams) and (cams[index].width, cams[index].height) == (view.width, view.height)
-        focal = _focal(cams[index].K if same else view.K)
-        filters = ({"screen_sigma": surfel_screen_sigma(focal, self.training_focal)} if self.model.kind == "surfels"
-                   else {"low_pass": gaussian_low_pass(focal, self.training_focal)})
+        filters = screen_filter(self.model.kind, focal_length(cams[index].K if same else view.K), self.training_focal)
         out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,
                            background=self.background, inputs=self.render_inputs(batch, step, outputs),
                            track_means2d=track_means2d, check_inputs=not t.nan_guard,
@@ -471,8 +466,3 @@ class Trainer:
 def train(config=None, overrides: Sequence[str] = (), **kwargs) -> TrainResult:
     """Shorthand: Trainer(config, overrides=overrides, **kwargs).fit()."""
     return Trainer(config, overrides=overrides, **kwargs).fit()
-
-
-def _focal(K) -> float:
-    """sqrt(fx fy) of a 3x3 intrinsics matrix (numpy or torch)."""
-    return float(K[0][0] * K[1][1]) ** 0.5
