@@ -14,9 +14,9 @@ import torch
 import warp as wp
 
 from warpgs.render import pipeline_gaussians as pipeline
-from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_LOW_PASS, DEFAULT_TRANSMITTANCE_MIN,
-                                    DEPTH_EPS, LOWEST_TRANSMITTANCE_MIN, alpha_clamp_problem, choose_tile_size,
-                                    options_for_call)
+from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_LOW_PASS, DEFAULT_SURFEL_SCREEN_SIGMA,
+                                    DEFAULT_TRANSMITTANCE_MIN, DEPTH_EPS, LOWEST_TRANSMITTANCE_MIN, alpha_clamp_problem,
+                                    choose_tile_size, options_for_call)
 from warpgs.render.empty_scene import EmptySceneFunction
 from warpgs.render.gaussians_fast import FastRasterizeFunction, run_op
 from warpgs.render.validation import (check_finite, check_same_device, check_tensor, checks_before_render,
@@ -203,7 +203,7 @@ def rasterize(
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, False,
                                       max_sigmas, alpha_min, transmittance_min, scale_dims=3,
-                                      track_means2d=track_means2d, alpha_max=alpha_max)
+                                      track_means2d=track_means2d, alpha_max=alpha_max, low_pass=low_pass)
     pipeline_checks = checks_before_render(check_inputs, _pipeline_checks, means, quats, scales, opacities, colors,
                                            features, viewmat, K, background)
     if viewmat.dim() == 3:
@@ -225,8 +225,6 @@ def rasterize(
 
     n = means.shape[0]
     coeffs, feats = op_inputs(means, colors, features, outputs)
-    if not 0.0 <= float(low_pass) < float("inf"):
-        raise ValueError(f"low_pass: expected a non-negative number of px², got {low_pass!r}")
     settings = replace(raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,
                                        transmittance_min, alpha_max), low_pass=float(low_pass))
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
@@ -270,7 +268,8 @@ def _stack(per_camera: list) -> RenderOutput:
 
 def checked_call(known_outputs, outputs, means, quats, scales, opacities, colors, viewmat, K, width, height,
                  sh_degree, features, background, near, far, tile_size, check_values, max_sigmas, alpha_min,
-                 transmittance_min, scale_dims, track_means2d=False, alpha_max=DEFAULT_ALPHA_MAX):
+                 transmittance_min, scale_dims, track_means2d=False, alpha_max=DEFAULT_ALPHA_MAX,
+                 low_pass=DEFAULT_LOW_PASS, screen_sigma=DEFAULT_SURFEL_SCREEN_SIGMA):
     """What both render ops check before rendering (a ValueError naming the argument), and the settings they
     derive: (outputs as a tuple, the tile size to use)."""
     outputs = tuple(outputs)
@@ -282,6 +281,10 @@ def checked_call(known_outputs, outputs, means, quats, scales, opacities, colors
     _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, features,
                      background, near, far, tile_size, check_values, scale_dims)
     check_blend_knobs(max_sigmas, alpha_min, transmittance_min, alpha_max)
+    if not 0.0 <= float(low_pass) < float("inf"):
+        raise ValueError(f"low_pass: expected a non-negative number of px², got {low_pass!r}")
+    if not 0.0 < float(screen_sigma) < float("inf"):
+        raise ValueError(f"screen_sigma: expected a positive number of pixels, got {screen_sigma!r}")
     grad = track_means2d or _needs_grad(means, quats, scales, opacities, colors, features, viewmat, K, background)
     return outputs, choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda")
 

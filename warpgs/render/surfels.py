@@ -75,7 +75,8 @@ def rasterize_surfels(
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, False,
-                                      max_sigmas, alpha_min, transmittance_min, scale_dims=2, alpha_max=alpha_max)
+                                      max_sigmas, alpha_min, transmittance_min, scale_dims=2, alpha_max=alpha_max,
+                                      screen_sigma=screen_sigma)
     pipeline_checks = checks_before_render(check_inputs, _pipeline_checks, means, quats, scales, opacities, colors,
                                            features, viewmat, K, background)
     if viewmat.dim() == 3:
@@ -91,8 +92,6 @@ def rasterize_surfels(
 
     n = means.shape[0]
     coeffs, feats = op_inputs(means, colors, features, outputs)
-    if not 0.0 < float(screen_sigma) < float("inf"):
-        raise ValueError(f"screen_sigma: expected a positive number of pixels, got {screen_sigma!r}")
     settings = dataclasses.replace(raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree,
                                                    alpha_min, transmittance_min, alpha_max),
                                    screen_sigma=float(screen_sigma))
