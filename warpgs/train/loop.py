@@ -163,8 +163,12 @@ class TrainingLoop:
                          train_seconds=tr.train_seconds)
             decisions += auto.observe(step, psnr, last_reset=schedule.last_reset(step - 1),
                                       scheduled_stop=schedule.scheduled_stop())
+            if tr.best_state is not None and auto.best_step == step:  # a new best: copy it (train/best_state.py)
+                tr.best_state.capture(step, tr.training_state())
         decisions += auto.check_bound(step)
         for d in decisions:
+            if d["decision"] == "stop":
+                self._end_from_best(d)
             if d["decision"] == "stop" and auto.end > step:
                 back = tr.views.restore_held_out()
                 d["views_restored"] = len(back)
@@ -172,6 +176,24 @@ class TrainingLoop:
             self.say(f"[schedule @ {step}] {d['decision'].replace('_', ' ')}: {d['reason']}")
         if decisions and self.progress is not None:
             self.progress.total = self.end()
+
+    def _end_from_best(self, decision: dict) -> None:
+        """At the rule's stop: go back to the best validated state when the latest score is more than min_gain
+        below it (schedule.keep_best); the decision records the step gone back to. The copy is dropped either
+        way: nothing is validated after the stop."""
+        tr = self.trainer
+        best, auto = tr.best_state, tr.strategy.schedule.auto
+        if best is None or best.step is None:
+            return
+        latest = auto.scores[-1] if auto.scores else None
+        if (latest is not None and best.step < tr.step
+                and latest["psnr"] < auto.best_psnr - auto.config.min_gain):
+            best.restore(tr.training_state())
+            tr.count_primitives()
+            decision["restored_step"] = best.step
+            decision["reason"] += (f"; back to the state of step {best.step} (validation {auto.best_psnr:.2f} dB "
+                                   f"against {latest['psnr']:.2f} dB now), {tr.num_primitives} primitives")
+        best.load_state_dict(None)
 
     @torch.no_grad()
     def _validation_psnr(self) -> float:

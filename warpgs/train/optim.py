@@ -211,3 +211,38 @@ def set_param_values(model: GaussianModel, optimizers: Optimizers, name: str, va
     new = nn.Parameter(values.detach().to(old.device, old.dtype).clone(), requires_grad=old.requires_grad)
     _swap(_optimizer_list(optimizers), old, new, torch.zeros_like if reset_state else (lambda v: v))
     model.params[name] = new
+
+
+def copy_parameters(model: GaussianModel, optimizer: torch.optim.Optimizer, device="cpu") -> dict:
+    """A copy of every model parameter with its optimizer state (per-row moments and scalars such as `step`) on
+    `device`: {name: {"value": tensor, "state": dict}}. load_parameters puts it back."""
+    def copy(v):
+        return v.detach().to(device, copy=True) if torch.is_tensor(v) else v
+    return {name: {"value": copy(p), "state": {k: copy(v) for k, v in optimizer.state.get(p, {}).items()}}
+            for name, p in model.params.items()}
+
+
+def load_parameters(model: GaussianModel, optimizers: Optimizers, saved: Mapping[str, dict]) -> None:
+    """Replace every model parameter by its copy from copy_parameters (the row count may differ from the model's
+    now) and its optimizer state by the copied state; each state tensor goes where that state lives now."""
+    if set(saved) != set(model.params):
+        raise ValueError(f"saved parameters {sorted(saved)} do not match the model's {sorted(model.params)}")
+    for name, old in list(model.params.items()):
+        value = saved[name]["value"]
+        if value.shape[1:] != old.shape[1:]:
+            raise ValueError(f"saved {name!r}: rows of shape {list(value.shape[1:])}, the model's are {list(old.shape[1:])}")
+        new = nn.Parameter(value.to(old.device, old.dtype, copy=True), requires_grad=old.requires_grad)
+        for opt in _optimizer_list(optimizers):
+            if not any(q is old for group in opt.param_groups for q in group["params"]):
+                continue
+            now = opt.state.pop(old, {})
+            _swap([opt], old, new, lambda v: v)  # the group now holds `new` (no state left to carry)
+            state = {}
+            for k, v in saved[name]["state"].items():
+                if torch.is_tensor(v):  # Adam's `step` stays on the device its kernel keeps it on (fused: the GPU)
+                    where = now[k].device if torch.is_tensor(now.get(k)) else (new.device if v.dim() else v.device)
+                    v = v.to(where, copy=True)
+                state[k] = v
+            if state:
+                opt.state[new] = state
+        model.params[name] = new

@@ -28,8 +28,8 @@ class TrainingState:
     """Everything a checkpoint holds, as the objects that own it (keys in brackets):
     counters [step, train_seconds, last_loss], model [model], optimizer [optimizer] and module_optimizer
     [module_optimizer] (None without modules), modules [modules], strategy [strategy], extensions [extensions],
-    views: a TrainViews [view_generator, view_queue], evaluator: an Evaluator [history], config [config];
-    plus the global RNG states [rng]."""
+    views: a TrainViews [view_generator, view_queue], evaluator: an Evaluator [history], config [config],
+    best: a BestState [best_state]; plus the global RNG states [rng]."""
     counters: RunCounters
     model: GaussianModel
     optimizer: torch.optim.Optimizer
@@ -40,6 +40,7 @@ class TrainingState:
     views: object  # TrainViews
     evaluator: object  # Evaluator
     config: object  # Config
+    best: object = None  # a BestState [best_state] (train.steps=auto with schedule.keep_best; None: not kept)
 
 
 class Checkpointer:
@@ -62,7 +63,8 @@ class Checkpointer:
                 "modules": parts.modules.state_dict(), "strategy": _to_cpu(parts.strategy.state_dict()),
                 "extensions": {f"{i}:{e.name}": e.state_dict() for i, e in enumerate(parts.extensions)},
                 "rng": ckpt.rng_state(), **parts.views.state_dict(), "train_seconds": c.train_seconds,
-                **parts.evaluator.state_dict(), "last_loss": c.last_loss, "config": parts.config.to_dict()}
+                **parts.evaluator.state_dict(), "last_loss": c.last_loss, "config": parts.config.to_dict(),
+                "best_state": None if parts.best is None else parts.best.state_dict()}
 
     def save(self, parts: TrainingState) -> Path:
         step = parts.counters.step
@@ -134,6 +136,8 @@ class Checkpointer:
         parts.counters.train_seconds = float(state.get("train_seconds", 0.0))
         parts.evaluator.load_state_dict(state)
         parts.counters.last_loss = state.get("last_loss")
+        if parts.best is not None:
+            parts.best.load_state_dict(state.get("best_state"))
         self.last_step = parts.counters.step
 
 

@@ -42,6 +42,7 @@ from warpgs.model.gaussians import GaussianModel
 from warpgs.model.rendering import check_outputs, focal_length, render_model, screen_filter
 from warpgs.train.optim import build_optimizer
 from warpgs.train.scaling import apply_batch_scaling, lr_scale
+from warpgs.train.best_state import BestState
 from warpgs.train.schedule import AutoStop, validation_split
 from warpgs.train.strategy import DensifyStrategy
 from warpgs.data.extent import scene_content_extent
@@ -172,6 +173,7 @@ class Trainer:
         if self.auto_steps:  # validation views from the training views (never the test views)
             self.strategy.schedule.auto = AutoStop(cfg.schedule)
             self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth)[1])
+        self.best_state = BestState() if self.auto_steps and cfg.schedule.keep_best else None
         self.evaluator = Evaluator(self.scene, cfg.eval, self.device, self.out_dir,
                                    render=lambda v: self.render(v, ("rgb",)).rgb, views=self.views,
                                    ranks=self.ranks, render_round=self._render_round if self.model_parallel else None)
@@ -415,7 +417,8 @@ class Trainer:
     def training_state(self) -> TrainingState:
         """The parts a checkpoint holds, as they are now."""
         return TrainingState(self.counters, self.model, self.optimizer, self.module_optimizer, self.modules,
-                             self.strategy, self.extensions, self.views, self.evaluator, self.config)
+                             self.strategy, self.extensions, self.views, self.evaluator, self.config,
+                             best=None if self.model_parallel else self.best_state)
 
     def state_dict(self) -> dict:
         return self.checkpointer.state_dict(self.training_state())
