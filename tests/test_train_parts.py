@@ -24,7 +24,7 @@ from warpgs.train.views import TrainViews
 # The keys of checkpoints written by every trainer so far, in order: old checkpoints must keep loading.
 CHECKPOINT_KEYS = ["format", "version", "step", "model", "optimizer", "module_optimizer", "modules", "strategy",
                    "extensions", "rng", "view_generator", "view_queue", "train_seconds", "history", "last_loss",
-                   "config"]
+                   "config", "best_state"]
 
 
 class FakeScene:
