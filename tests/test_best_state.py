@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from train_fixtures import quick_overrides
+from train_fixtures import Interrupt, quick_overrides
 from warpgs.model.gaussians import GaussianModel
 from warpgs.train.best_state import BestState
 from warpgs.train.loop import TrainingLoop
@@ -81,15 +81,6 @@ class Record:
     def __call__(self, trainer, step, info):
         if trainer.step in self.steps:
             self.params[trainer.step] = {n: p.detach().clone() for n, p in trainer.model.params.items()}
-
-
-class Interrupt:
-    def __init__(self, at):
-        self.at = at
-
-    def __call__(self, trainer, step, info):
-        if trainer.step == self.at:
-            raise KeyboardInterrupt
 
 
 def test_auto_run_goes_back_to_its_best_state(tmp_path, monkeypatch):

@@ -7,7 +7,7 @@ import re
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from train_fixtures import quick_overrides, small_orbit
+from train_fixtures import Interrupt, quick_overrides, small_orbit
 from warpgs.cli.commands import resolve_config_source
 from warpgs.config.loader import ConfigError, load_config
 from warpgs.train.schedule import DENSIFY, DONE, POLISH, TRAIN, AutoStop, ScheduleConfig, validation_split
@@ -205,15 +205,6 @@ def test_config_accepts_auto_and_checks_the_schedule():
 AUTO = {"train.steps": "auto", "schedule.max_steps": 200, "schedule.val_every": 20, "schedule.patience": 40,
         "schedule.settle": 20, "schedule.polish": 20, "strategy.refine_stop": 1000, "train.checkpoint_every": 0,
         "strategy.refine_stop_fraction": 0.5}  # as the gaussians preset
-
-
-class Interrupt:
-    def __init__(self, at):
-        self.at = at
-
-    def __call__(self, trainer, step, info):
-        if trainer.step == self.at:
-            raise KeyboardInterrupt
 
 
 def test_auto_run_logs_its_decisions_and_resumes_to_the_same_end(tmp_path):

@@ -30,3 +30,14 @@ def quick_overrides(out_dir, steps: int = 40, **extra) -> list:
     }
     settings.update(extra)
     return [f"{k}={'null' if v is None else v}" for k, v in settings.items()]
+
+
+class Interrupt:
+    """A step callback that raises KeyboardInterrupt (a Ctrl-C) once the trainer has done `at` steps."""
+
+    def __init__(self, at):
+        self.at = at
+
+    def __call__(self, trainer, step, info):
+        if trainer.step == self.at:
+            raise KeyboardInterrupt
