@@ -11,7 +11,6 @@ Checkpoints carry the copy (single-process and data-parallel runs), so a resumed
 would; model-parallel runs keep it in memory only (a shard's rows do not survive a change of rank count)."""
 from __future__ import annotations
 
-import copy
 from typing import Optional
 
 import torch
@@ -35,7 +34,7 @@ class BestState:
         self.params = copy_parameters(parts.model, parts.optimizer)
         self.modules = _cpu(parts.modules.state_dict()) if len(parts.modules) else None
         opt = parts.module_optimizer
-        self.module_optimizer = None if opt is None else _cpu(copy.deepcopy(opt.state_dict()))
+        self.module_optimizer = None if opt is None else _cpu(opt.state_dict())
 
     @torch.no_grad()
     def restore(self, parts) -> None:
@@ -64,7 +63,8 @@ class BestState:
 
 
 def _cpu(obj):
-    """A copy of a (nested) state dict with every tensor in CPU memory."""
+    """A copy of a (nested) state dict with every tensor copied into CPU memory (containers rebuilt, so nothing is
+    shared with the live state)."""
     if torch.is_tensor(obj):
         return obj.detach().to("cpu", copy=True)
     if isinstance(obj, dict):

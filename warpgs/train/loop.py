@@ -169,9 +169,8 @@ class TrainingLoop:
         for d in decisions:
             if d["decision"] == "stop":
                 self._end_from_best(d)
-            if d["decision"] == "stop" and auto.end > step:
-                back = tr.views.restore_held_out()
-                d["views_restored"] = len(back)
+                if auto.end > step:
+                    d["views_restored"] = len(tr.views.restore_held_out())
             tr.log.event("schedule", step, d, train_seconds=tr.train_seconds)
             self.say(f"[schedule @ {step}] {d['decision'].replace('_', ' ')}: {d['reason']}")
         if decisions and self.progress is not None:
