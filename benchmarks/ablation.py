@@ -4,7 +4,7 @@ or on a real forward-facing LLFF capture with 3 training views (--data DIR).
     python benchmarks/ablation.py                               # CPU, reduced run (500 steps, seed 0, budget 10k)
     python benchmarks/ablation.py --device cuda --steps 30000   # the full run
     python benchmarks/ablation.py --only baseline,full --seeds 0,1,2
-    python benchmarks/ablation.py --data data/fern --device cuda --seeds 0,1,2 --steps 10000   # real, 3 views
+    python benchmarks/ablation.py --data data/fern --device cuda --seeds 0,1,2   # real, 3 views, the presets' 1000 steps
 
 Synthetic: train the 9 array views; test the 4 held-out off-array views (between array positions). Every setting
 loads its preset from configs/ (sparse_baseline, sparse_wo_*, sparse_lightfield), so the table measures exactly what
@@ -22,10 +22,11 @@ data.depth_priors=estimate runs), and shared by every run that uses it. Test-vie
 of the capture's own SfM model (sparse/0/points3D.bin, every view; each point only in the views its track saw):
 sparse, and for evaluation only. The CPU default is a smoke run (300 steps); results are the GPU's.
 
-Runs shorter than the preset's steps (30k synthetic, 10k LLFF) scale the 3DGS step schedule (densification
-window, SH bands, size pruning) by steps/preset-steps with floors so a short run still densifies, and switch
-opacity resets off below a third of it (the depth-term decay always spans the whole run: it is relative to
-train.steps). The defaults used are printed and stored in the JSON. Writes
+Synthetic runs shorter than the presets' 30k steps scale the 3DGS step schedule (densification window, SH bands,
+size pruning) by steps/preset-steps with floors so a short run still densifies, and switch opacity resets off below
+a third of it (the depth-term decay always spans the whole run: it is relative to train.steps). The real-capture
+presets are the first 1000 steps of a 10k schedule with absolute horizons, so a real run of other length is that
+schedule cut or extended, unscaled (run_schedule). The defaults used are printed and stored in the JSON. Writes
 benchmarks/results/ablation_<device>_<steps>.json, or ablation_<scene>_<device>_<steps>.json with --data (or
 $OUT/...).
 """
@@ -77,7 +78,7 @@ REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
 CPU_STEPS = 500
 CPU_STEPS_REAL = 300  # a smoke run: 504x378 views cost ~1 s a step on 2 cores
 CPU_BUDGET = 10_000  # primitives, on CPU only (the presets' budget otherwise); the same for every setting
-FULL_STEPS = {"synthetic": 30_000, "real": 10_000}  # the presets' train.steps
+FULL_STEPS = {"synthetic": 30_000, "real": 1_000}  # the presets' train.steps
 
 
 def schedule_overrides(steps: int, full: int = 30_000) -> list[str]:
@@ -127,14 +128,21 @@ def setting_overrides_for_run(preset: str, setting: list, budget: Optional[int],
     return scaled + user + setting
 
 
+def run_schedule(steps: int, real: bool) -> list[str]:
+    """A shorter run's schedule overrides: the synthetic presets' 30k schedule scaled to it; the real-capture
+    presets are already the first 1000 steps of a 10k schedule (configs/sparse_llff_baseline.yaml), so a shorter
+    run is the preset's first `steps` steps, unscaled."""
+    return [] if real else schedule_overrides(steps, FULL_STEPS["synthetic"])
+
+
 def run_setting(key: str, preset: str, steps: int, seed: int, device: str, extra: list[str], workdir: Path,
-                pairs: int, full: int, marr_settings: Optional[dict] = None,
+                pairs: int, schedule: list[str], marr_settings: Optional[dict] = None,
                 reference: Optional[dict] = None) -> dict:
     """One training run. marr_settings: warpgs.losses.marr settings for this run only; reference: {test view
     name: [H, W] sparse reference depth} for views that carry none (real captures)."""
     overrides = [f"train.steps={steps}", f"train.seed={seed}", f"strategy.seed={seed}", f"train.device={device}",
                  "train.progress=false", "train.checkpoint_every=0", "eval.every=0", "eval.save_images=false",
-                 f"output.dir={workdir / f'{key}_s{seed}'}"] + schedule_overrides(steps, full) + extra
+                 f"output.dir={workdir / f'{key}_s{seed}'}"] + schedule + extra
     cfg = load_config(ROOT / "configs" / f"{preset}.yaml", overrides)
     saved = dataclasses.asdict(marr.SETTINGS)
     start = time.perf_counter()
@@ -303,11 +311,11 @@ def main(argv=None) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"ablation: {len(chosen)} settings x seeds {seeds} = {len(chosen) * len(seeds)} runs, {steps} steps on "
-          f"{args.device}, budget {budget}; schedule {schedule_overrides(steps, full) or 'the presets'}",
+          f"{args.device}, budget {budget}; schedule {run_schedule(steps, real) or 'the presets'}",
           file=sys.stderr, flush=True)
     payload = {"steps": steps, "seeds": seeds, "device": args.device,
                "torch_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
-               "schedule_overrides": schedule_overrides(steps, full), "extra_overrides": extra,
+               "schedule_overrides": run_schedule(steps, real), "extra_overrides": extra,
                "budget": budget, "prior_fill": args.prior_fill, "prior_options": prior_options, "settings": {}}
     with tempfile.TemporaryDirectory(prefix="warpgs-ablation-") as tmp:
         reference, prior_folder = None, Path(tmp) / "depth_priors"
@@ -325,7 +333,8 @@ def main(argv=None) -> dict:
                 prior = real and uses_prior(preset, extra + setting_overrides)
                 run_extra = (setting_overrides_for_run(preset, setting_overrides, budget, extra)
                              + ([f"data.depth_priors={prior_folder}"] if prior else []))
-                r = run_setting(key, preset, steps, seed, args.device, run_extra, Path(tmp), args.pairs, full,
+                r = run_setting(key, preset, steps, seed, args.device, run_extra, Path(tmp), args.pairs,
+                                run_schedule(steps, real),
                                 marr_settings, reference)
                 runs.append(r)
                 print(f"  {label:16s} seed {seed}: psnr {r['psnr']:.2f} ssim {r['ssim']:.4f} "

@@ -8,6 +8,7 @@ over scenes, and the per-term ablation beside the paper's Table 2.
         data/sparse/orchids --seeds 0,1,2 --settings paper --device cuda --gpus 0,1,2,3 --per-gpu 6 \\
         --out /tmp/sparse --name llff3 --detach
     python benchmarks/sparse.py ... --table        # only the tables, from the run files there are
+    python benchmarks/sparse.py ... --steps 10000 --table --at-step 1000   # a longer run's scores at an earlier step
 
 Protocols (every 8th view, 0, 8, 16, ... in sorted name order, tests; n_train views spread evenly over the rest
 train: warpgs.data.formats.splits.llff_split, FSGS's and DNGaussian's reader):
@@ -26,8 +27,10 @@ Depth (order, AbsRel, coverage) is scored at the capture's all-view SfM points s
 (reference_depth.npz from sparse_data.py, else sparse/0); without either only the image metrics are given. LPIPS is
 given when its weights are on disk.
 
-Runs shorter than the preset's 10k steps scale its step schedule as ablation.py does; on the CPU the primitive budget
-is 10k (prior points scaled with it) unless --budget says otherwise. Run files: <out>/runs/<protocol>_<scene>_<setting>
+Runs are the presets' 1000 steps on either device; a shorter or longer run (--steps) is the same schedule cut or
+extended (the presets give their horizons in absolute steps). On the CPU the primitive budget is 10k (prior points
+scaled with it) unless --budget says otherwise. --at-step N tabulates the held-out image scores that runs made with
+eval.every=N (their history) had at step N; depth is scored at the end of a run only, so those tables leave it out. Run files: <out>/runs/<protocol>_<scene>_<setting>
 _s<seed>.json; a run whose file exists is skipped (so a cut wave resumes), one made with other steps, budget or
 downscale is an error. The tables go to
 benchmarks/results/sparse_<name>.json (or $OUT). On a device, $OUT is emptied between commands: give --out a folder of
@@ -49,7 +52,7 @@ from typing import Optional
 import ablation
 from common import ROOT, write_json
 from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
-from sparse_runs import (CPU_STEPS, FULL_STEPS, PROTOCOLS, Protocol, Run, SceneSpec, expand_settings, load,  # the plan
+from sparse_runs import (FULL_STEPS, PROTOCOLS, Protocol, Run, SceneSpec, expand_settings, load,  # the plan
                          needs_prior, parse_scene, plan, prior_done, read_run, run_budget, run_done, run_steps)
 from sparse_tables import PAPER_TABLE2, SETTINGS, print_tables, summarise  # statistics and tables
 from sparse_worker import make_prior, reference_source, train_one  # the worker processes
@@ -62,14 +65,17 @@ def tables(args, runs: list[Run], argv=None) -> dict:
         recorded = read_run(args, run)
         if recorded is not None:  # how to make the run again (one worker process)
             recorded.setdefault("command", shlex.join(worker_cmd(args, "run", run.scene, run)))
+        if recorded is not None and args.at_step is not None:
+            recorded = at_step(recorded, args.at_step)
         (results.append(recorded) if recorded is not None else missing.append(run.id))
     if not results:
         raise SystemExit(f"no run files under {Path(args.out) / 'runs'} for this plan")
     settings = [k for k in SETTINGS if k in {r.setting for r in runs}]
     summary = summarise(results, settings)
     first = results[0]
+    scored = f" scored at step {args.at_step}" if args.at_step is not None else ""
     header = (f"\nsparse-view benchmark, protocol {args.protocol} ({args.proto.about}): "
-              f"{len(results)} of {len(runs)} runs, {first['steps']} steps, {first['device']}, budget "
+              f"{len(results)} of {len(runs)} runs, {first['steps']} steps{scored}, {first['device']}, budget "
               f"{first['budget'] or 'preset'}" + (f"; missing {len(missing)}" if missing else ""))
     print_tables(summary, header)
     payload = {"protocol": args.protocol, "tag": args.tag, "about": args.proto.about, "missing": missing,
@@ -83,6 +89,17 @@ def tables(args, runs: list[Run], argv=None) -> dict:
     return payload
 
 
+def at_step(run: dict, step: int) -> dict:
+    """The run's record with its image scores, size and time as its history has them at `step` (depth: None)."""
+    entry = next((h for h in run.get("history") or [] if h["step"] == step), None)
+    if entry is None:
+        raise SystemExit(f"--at-step {step}: run {run['id']} has no score at that step (history at "
+                         f"{[h['step'] for h in run.get('history') or []]}; made with eval.every that divides it?)")
+    return {**run, "psnr": entry["psnr"], "ssim": entry["ssim"], "lpips": entry.get("lpips"),
+            "num_primitives": entry["num_primitives"], "train_seconds": entry["train_seconds"],
+            "depth_order": None, "abs_rel": None, "coverage": None, "scored_at_step": step}
+
+
 # --- the driver ----------------------------------------------------------------------------------------------------
 def parse(argv):
     ap = argparse.ArgumentParser(description=__doc__,
@@ -92,7 +109,7 @@ def parse(argv):
     ap.add_argument("--n-train", type=int, default=None, help="training views, instead of the protocol's")
     ap.add_argument("--settings", default="main", help="setting keys and groups (main, terms, paper, all)")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
-    ap.add_argument("--steps", type=int, default=None, help=f"default: {FULL_STEPS} on CUDA, {CPU_STEPS} on CPU")
+    ap.add_argument("--steps", type=int, default=None, help=f"default: the presets' {FULL_STEPS}")
     ap.add_argument("--budget", type=int, default=None,
                     help=f"strategy.max_primitives (default: the preset's on CUDA, {ablation.CPU_BUDGET} on CPU)")
     ap.add_argument("--device", default="cpu", help="cpu (default) or cuda")
@@ -105,6 +122,8 @@ def parse(argv):
                                                  "(default: <protocol>_<device>_<steps>)")
     ap.add_argument("--dry-run", action="store_true", help="list the runs (done / to do) and the splits, run nothing")
     ap.add_argument("--table", action="store_true", help="only the tables, from the run files there are")
+    ap.add_argument("--at-step", type=int, default=None,
+                    help="with --table: the image scores each run's history has at this step")
     ap.add_argument("--detach", action="store_true", help="start the wave in its own process session and return")
     ap.add_argument("--worker", choices=("prior", "run"), help=argparse.SUPPRESS)
     ap.add_argument("--setting", help=argparse.SUPPRESS)
@@ -125,6 +144,8 @@ def parse(argv):
     seeds, gpus = parse_seeds_gpus(args.seeds, args.gpus, args.per_gpu)
     if args.gpus and not args.device.startswith("cuda"):
         raise SystemExit("--gpus: give --device cuda too")
+    if args.at_step is not None and not args.table:
+        raise SystemExit("--at-step: only with --table (it reads the histories of runs already made)")
     if any("=" not in o for o in args.overrides):
         raise SystemExit(f"overrides: expected key=value, got {args.overrides}")
     args.name = args.name or f"{args.tag}_{args.device.replace(':', '')}_{run_steps(args)}"

@@ -13,7 +13,7 @@ from typing import Optional
 
 import ablation
 from sparse_data import REFERENCE_FILE, read_reference_depth
-from sparse_runs import (FULL_STEPS, Run, SceneSpec, load, needs_prior, prior_folder, run_budget, run_file,
+from sparse_runs import (Run, SceneSpec, load, needs_prior, prior_folder, run_budget, run_file,
                          run_steps)
 from sparse_tables import SETTINGS
 
@@ -82,7 +82,7 @@ def train_one(args, run: Run) -> dict:
                 if needs_prior(run, args.overrides) else []))
     with tempfile.TemporaryDirectory(prefix="warpgs-sparse-") as tmp:
         result = ablation.run_setting(run.setting, preset, steps, run.seed, args.device, extra, Path(tmp), args.pairs,
-                                      FULL_STEPS, marr, reference)
+                                      ablation.run_schedule(steps, real=True), marr, reference)
     payload = {"id": run.id, "protocol": run.protocol, "scene": run.scene.name, "scene_path": str(run.scene.path),
                "downscale": run.scene.downscale, "n_train": args.proto.n_train, "setting": run.setting,
                "label": label, "size": [loaded.cameras[0].width, loaded.cameras[0].height],
@@ -90,7 +90,7 @@ def train_one(args, run: Run) -> dict:
                "test": [loaded.names[v] for v in loaded.test], "test_index": loaded.test,
                "reference": reference_from, "device": args.device, "budget": budget,
                "command": shlex.join([sys.executable, *sys.argv]),  # this worker, as its driver started it
-               "schedule_overrides": ablation.schedule_overrides(steps, FULL_STEPS),
+               "schedule_overrides": ablation.run_schedule(steps, real=True),
                "torch_threads": torch.get_num_threads(), "machine": platform.node(),
                "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None, **result}
     atomic_write_bytes(run_file(Path(args.out), run), json.dumps(payload, indent=1).encode())

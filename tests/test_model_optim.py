@@ -56,6 +56,17 @@ def test_position_schedule_hits_its_ends():
         means_lr_at(0, cfg, 1.0, 0)
 
 
+def test_position_schedule_of_a_longer_run():
+    """means_lr_steps: a 1000-step run on a 10k decay (configs/sparse_llff_baseline.yaml) ends at that decay's
+    step-1000 value, 10^(-0.2) of its start, not at means_lr_final."""
+    cut = OptimConfig(means_lr_steps=10_000)
+    assert means_lr_at(1000, cut, 1.0, 1000) == pytest.approx(1.6e-4 * 10 ** -0.2)
+    assert means_lr_at(1000, cut, 1.0, 1000) == means_lr_at(1000, OptimConfig(), 1.0, 10_000)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="means_lr_steps"):
+            OptimConfig(means_lr_steps=bad)
+
+
 def test_update_rows_keeps_adam_state_aligned():
     m = model()
     mlp = torch.nn.Linear(2, 2)

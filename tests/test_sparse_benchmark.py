@@ -69,7 +69,7 @@ def test_a_run_file_made_with_other_steps_is_not_reused(tmp_path):
     common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--budget", "1000",
               "--out", str(out)]
     for extra in (["--dry-run"], ["--table"]):
-        with pytest.raises(SystemExit, match="made with steps 8; this plan asks for steps 300"):
+        with pytest.raises(SystemExit, match="made with steps 8; this plan asks for steps 1000"):
             sparse.main(common + extra)
     with pytest.raises(SystemExit, match="made with budget 1000; this plan asks for budget 2000"):
         sparse.main(common[:-4] + ["--budget", "2000", "--steps", "8", "--out", str(out), "--dry-run"])

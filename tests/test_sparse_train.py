@@ -8,7 +8,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
+from train_fixtures import Interrupt
 
 from warpgs.data.depth.files import write_exr
 from warpgs.data.formats.load import load_scene
@@ -33,12 +35,12 @@ def tiny_lightfield() -> Path:
     return root
 
 
-def run(tmp_path, *extra, steps=6):
+def run(tmp_path, *extra, steps=6, callbacks=()):
     overrides = [f"data.path={tiny_lightfield()}", "data.depth_priors=priors", f"train.steps={steps}",
                  "train.device=cpu", "train.progress=false", "train.checkpoint_every=0", "eval.every=0",
                  "eval.lpips=false", "eval.save_images=false", "model.sh_degree=0", "strategy.refine_start=2",
                  "strategy.refine_every=2", "strategy.max_primitives=2000", f"output.dir={tmp_path}", *extra]
-    return Trainer(CONFIGS / "sparse_lightfield.yaml", overrides=overrides, quiet=True)
+    return Trainer(CONFIGS / "sparse_lightfield.yaml", overrides=overrides, quiet=True, callbacks=callbacks)
 
 
 def test_method_trains_with_every_term(tmp_path):
@@ -132,3 +134,25 @@ def test_prior_points_join_the_initial_model_after_the_prior_is_estimated(tmp_pa
     assert "300 from depth priors" in trainer.init_source
     info = trainer.train_step()
     assert math.isfinite(info["loss"])
+
+
+def test_a_run_cut_from_a_longer_schedule_is_that_schedules_first_steps(tmp_path):
+    """configs/sparse_llff_baseline.yaml trains the first 1000 steps of a 10k schedule: with the position lr's and
+    the depth weights' horizons set to the longer run's length, an 8-step run ends where the 20-step run is after
+    its 8th step, bit for bit (densification included: both stop it at their own end or at refine_stop)."""
+    horizon = ["optim.means_lr_steps=20"] + [f"losses.{t}.schedule=[exp,1.0,0.01,0,20]"
+                                            for t in ("depth", "depth_grad", "depth_local")]
+    cut = run(tmp_path / "cut", *horizon, steps=8)
+    cut.fit()
+    # The longer run is scored on its test views every 4 steps (the benchmark's history): scoring changes nothing.
+    longer = run(tmp_path / "long", *horizon, "eval.every=4", steps=20, callbacks=[Interrupt(8)])
+    with pytest.raises(KeyboardInterrupt):
+        longer.fit()
+    assert longer.step == cut.step == 8
+    assert cut.model.num_primitives == longer.model.num_primitives
+    for name, value in cut.model.params.items():
+        assert torch.equal(value, longer.model.params[name]), name
+    # Without the horizons the 8-step run decays both over its own length and ends elsewhere.
+    own = run(tmp_path / "own", steps=8)
+    own.fit()
+    assert not torch.equal(own.model.params["means"], cut.model.params["means"])

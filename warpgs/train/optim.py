@@ -24,6 +24,9 @@ MOMENTS = ("exp_avg", "exp_avg_sq")  # Adam's per-row state; "step" is a scalar
 class OptimConfig:
     means_lr: float = 1.6e-4  # x scene extent, at step 0
     means_lr_final: float = 1.6e-6  # x scene extent, reached at max_steps (log-linear in between)
+    # The decay's length in steps (0: the run's length). A run cut short of a longer schedule sets it to that
+    # schedule's length, so it follows the longer run's curve (3DGS's position_lr_max_steps; sparse_llff_baseline).
+    means_lr_steps: int = 0
     means_lr_delay_steps: int = 0  # optional warm-up as 3DGS's delay (0: none)
     means_lr_delay_mult: float = 0.01
     scales_lr: float = 5e-3
@@ -50,6 +53,10 @@ class OptimConfig:
         for name, v in self.extras_lr.items():
             if not (math.isfinite(float(v)) and v >= 0):
                 raise ValueError(f"extras_lr.{name}: expected a finite non-negative number, got {v}")
+        if isinstance(self.means_lr_steps, bool) or not isinstance(self.means_lr_steps, int) \
+                or self.means_lr_steps < 0:
+            raise ValueError(f"means_lr_steps: expected a non-negative integer (0: the run's length), "
+                             f"got {self.means_lr_steps!r}")
         if self.means_lr > 0 and self.means_lr_final <= 0:
             raise ValueError("means_lr_final: must be > 0 for the exponential decay (set means_lr=0 to freeze)")
 
@@ -101,7 +108,8 @@ def exponential_lr(step: int, lr_init: float, lr_final: float, max_steps: int, d
 
 def means_lr_at(step: int, config: OptimConfig, scene_extent: float, max_steps: int) -> float:
     extent = _check_extent(scene_extent)
-    return exponential_lr(step, config.means_lr * extent, config.means_lr_final * extent, max_steps,
+    return exponential_lr(step, config.means_lr * extent, config.means_lr_final * extent,
+                          config.means_lr_steps or max_steps,
                           config.means_lr_delay_steps, config.means_lr_delay_mult)
 
 
