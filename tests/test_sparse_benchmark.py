@@ -116,7 +116,7 @@ def test_tables_pair_seeds_and_average_scenes(capsys):
 
 
 def test_settings_groups_and_bad_input():
-    assert sparse_runs.expand_settings("main") == ["baseline", "full"]
+    assert sparse_runs.expand_settings("main") == ["baseline", "wo_scale", "full"]  # wo_scale: the preset
     assert sparse_runs.expand_settings("paper")[1:-1] == [f"wo_{t}" for t in ("depth", "depth_grad", "depth_local",
                                                                           "opacity", "scale", "count")]
     assert set(sparse_tables.PAPER_TABLE2) == set(sparse_runs.expand_settings("paper"))
