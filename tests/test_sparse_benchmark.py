@@ -55,6 +55,15 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     assert _runs(out) == before
     sparse.main(common + ["--dry-run"])
     assert "1 runs (1 done, 0 to do)" in capsys.readouterr().out
+    # --at-step: the tables of the scores the history has at that step (depth is scored at the end only).
+    early = sparse.main(common + ["--name", "t_orbit_4", "--table", "--at-step", "4"])
+    row = early["summary"]["scenes"]["orbit"]["baseline"]
+    assert row["psnr"] == (run["history"][0]["psnr"], None) and row["abs_rel"] == (None, None)
+    assert "scored at step 4" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no score at that step"):
+        sparse.main(common + ["--name", "t_orbit_5", "--table", "--at-step", "5"])
+    with pytest.raises(SystemExit, match="only with --table"):
+        sparse.main(common + ["--at-step", "4"])
 
 
 def test_a_run_file_made_with_other_steps_is_not_reused(tmp_path):
