@@ -78,6 +78,44 @@ class Trainer:
         cfg = self.config
         for module in cfg.imports:  # e.g. modules that register custom losses or extensions
             import_user_module(module)
+        self._join_ranks(cfg, quiet)
+        terms = resolve_terms(cfg.losses)
+
+        if out_dir is not None:
+            cfg.output.dir = str(out_dir)
+        if cfg.output.dir is None:
+            cfg.output.dir = str(Path("outputs") / train_setup.scene_label(cfg.data))
+        self.out_dir = Path(cfg.output.dir)
+        self.log = TrainLog(self.out_dir, kind=cfg.train.log if self.ranks.is_main else "none",
+                            every=cfg.train.log_every)  # files open in fit()
+        self._load_scene(cfg, scene)
+        self.guard = NonFiniteGuard(self.named_parameters)
+        self.phases = PhaseTimer(self.device, cfg.train.profile_phases)
+        self.checkpointer = Checkpointer(self.out_dir / cfg.output.checkpoint, self.device,
+                                         guard=self.guard if cfg.train.nan_guard else None,
+                                         write=self.ranks.is_main)
+
+        state = self.checkpointer.load() if resume else None
+        ckpt.seed_everything(cfg.train.seed)
+        self._build_model(cfg, state, model)
+        self._set_up_extensions(cfg, extensions, callbacks)
+        self.loss_set = LossSet(terms, always=[o for e in self.extensions for o in e.outputs()])
+        check_outputs(self.model.kind, self.outputs, "losses")
+        if "features" in self.outputs and not self.feature_names and not self.extensions:
+            raise ValueError("losses: a term needs the 'features' output but the model renders no features "
+                             "(add model.features: {name: channels} or an extension)")
+        self._build_optimizers(cfg)
+        self._set_up_views_and_evaluation(cfg)
+        self._resume_and_share_out(cfg, state)
+
+    # ----- construction, in order (__init__) ---------------------------------------------------------------------
+    def _model_device(self) -> torch.device:
+        """Where the whole model is built or loaded: train.parallel=model builds it in CPU memory, and each rank's
+        GPU then gets its share (_resume_and_share_out)."""
+        return torch.device("cpu") if self.model_parallel else self.device
+
+    def _join_ranks(self, cfg: Config, quiet: bool) -> None:
+        """Ranks and device (train/distributed.py), the console voice, the batch and parallel mode."""
         # Under torchrun (WORLD_SIZE > 1) this joins the process group; on one process `ranks` is a no-op.
         self.ranks, self.device = setup_ranks(train_setup.resolve_device(cfg.train.device),
                                               backend=cfg.train.dist_backend, timeout=cfg.train.dist_timeout)
@@ -94,15 +132,9 @@ class Trainer:
             sharded_step.check_config(cfg, self.ranks.world_size)
         if cfg.train.deterministic:
             use_deterministic_algorithms(self.device, self.model_parallel)
-        terms = resolve_terms(cfg.losses)
 
-        if out_dir is not None:
-            cfg.output.dir = str(out_dir)
-        if cfg.output.dir is None:
-            cfg.output.dir = str(Path("outputs") / train_setup.scene_label(cfg.data))
-        self.out_dir = Path(cfg.output.dir)
-        self.log = TrainLog(self.out_dir, kind=cfg.train.log if self.ranks.is_main else "none",
-                            every=cfg.train.log_every)  # files open in fit()
+    def _load_scene(self, cfg: Config, scene) -> None:
+        """The scene (given, or loaded by rank 0 first), its extents, focal length, background and step bound."""
         # Rank 0 first: loading can write caches (the built-in scene, estimated depth priors) the others then read.
         self.scene = scene if scene is not None else self.ranks.rank0_first(
             lambda: train_setup.load_training_scene(cfg.data, self.out_dir), "loading the scene")
@@ -114,16 +146,10 @@ class Trainer:
         # train/schedule.py's rule says so; the strategy and the loop apply its decisions.
         self.auto_steps = cfg.train.steps == "auto"
         self.max_steps = int(cfg.schedule.max_steps if self.auto_steps else cfg.train.steps)
-        self.guard = NonFiniteGuard(self.named_parameters)
-        self.phases = PhaseTimer(self.device, cfg.train.profile_phases)
-        self.checkpointer = Checkpointer(self.out_dir / cfg.output.checkpoint, self.device,
-                                         guard=self.guard if cfg.train.nan_guard else None,
-                                         write=self.ranks.is_main)
 
-        state = self.checkpointer.load() if resume else None
-        ckpt.seed_everything(cfg.train.seed)
-        # train.parallel=model: the whole model is built (or loaded) in CPU memory; each rank's GPU gets its share.
-        model_device = torch.device("cpu") if self.model_parallel else self.device
+    def _build_model(self, cfg: Config, state: Optional[dict], model: Optional[GaussianModel]) -> None:
+        """The model: from the checkpoint, the caller, or the config's initialisation."""
+        model_device = self._model_device()
         if state is not None:
             self.model, self.init_source = self.checkpointer.model_from(state, model_device), "checkpoint"
         elif model is not None:
@@ -134,6 +160,9 @@ class Trainer:
         if self.model.kind != cfg.model.kind:
             raise ValueError(f"model.kind: config says {cfg.model.kind!r} but the model is {self.model.kind!r}")
 
+    def _set_up_extensions(self, cfg: Config, extensions: Iterable[Extension],
+                           callbacks: Iterable[Callable]) -> None:
+        """Extensions (the config's, the caller's and the callbacks) and what they add; every rank starts alike."""
         # Extension points: extras rendered through `features`, extra modules with their own optimizer.
         self.feature_names: List[str] = [n for n in cfg.model.features]
         self.modules = nn.ModuleDict()
@@ -143,17 +172,13 @@ class Trainer:
         for ext in self.extensions:
             ext.setup(self)
         if self.ranks.enabled:  # every rank starts from rank 0's values (the same as one process would)
-            self.model = sync_model(self.ranks, self.model, model_device, via=self.device)
+            self.model = sync_model(self.ranks, self.model, self._model_device(), via=self.device)
             with torch.no_grad():
                 for name, p in self.modules.named_parameters():
                     self.ranks.broadcast_(p.data, what=f"broadcasting the initial modules.{name}")
 
-        self.loss_set = LossSet(terms, always=[o for e in self.extensions for o in e.outputs()])
-        check_outputs(self.model.kind, self.outputs, "losses")
-        if "features" in self.outputs and not self.feature_names and not self.extensions:
-            raise ValueError("losses: a term needs the 'features' output but the model renders no features "
-                             "(add model.features: {name: channels} or an extension)")
-
+    def _build_optimizers(self, cfg: Config) -> None:
+        """Adam for the model (and the extension modules), the batch's learning-rate scaling, the strategy."""
         self.optimizer = build_optimizer(self.model, cfg.optim, self.extent)
         self.module_optimizer = None
         if len(self.modules):
@@ -169,6 +194,8 @@ class Trainer:
                                         run_steps=self.max_steps)
         self.strategy.initialize(self.model)
 
+    def _set_up_views_and_evaluation(self, cfg: Config) -> None:
+        """Training views (and train.steps=auto's validation split), the evaluator, counters and the lock."""
         self.views = TrainViews(self.scene, self.device, seed=cfg.train.seed, preload=cfg.data.preload)
         if self.auto_steps:  # validation views from the training views (never the test views)
             self.strategy.schedule.auto = AutoStop(cfg.schedule)
@@ -184,6 +211,9 @@ class Trainer:
         # renders the model only while holding it, so never mid-step.
         self.lock = threading.RLock()
         self.viewer = None
+
+    def _resume_and_share_out(self, cfg: Config, state: Optional[dict]) -> None:
+        """Restore a checkpoint's state; under train.parallel=model keep this rank's share; per-rank RNG streams."""
         if state is not None:
             self.checkpointer.restore(state, self.training_state())
             saved = state.get("config", {}).get("train", {})
