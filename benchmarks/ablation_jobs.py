@@ -4,7 +4,7 @@ A 504x378 few-view run leaves an H100 mostly idle (host-bound), so six or seven 
 the time of one run alone. Each (setting, seed) is one process of benchmarks/ablation.py; its JSON and log go to a
 temporary folder, and benchmarks/ablation_merge.py pools them (so a device that returns few files returns one).
 
-    python benchmarks/ablation_jobs.py --jobs 6 --name ablation_fern_cuda_10000_seeds012 --only baseline,full \\
+    python benchmarks/ablation_jobs.py --jobs 6 --name ablation_fern_cuda_1000_seeds012 --only baseline,full \\
         --seeds 0,1,2 -- --data data/fern --device cuda --threads 2
 
 Everything after `--` goes to every ablation.py process unchanged (not --only, --seeds or --name)."""
