@@ -4,7 +4,7 @@ or on a real forward-facing LLFF capture with 3 training views (--data DIR).
     python benchmarks/ablation.py                               # CPU, reduced run (500 steps, seed 0, budget 10k)
     python benchmarks/ablation.py --device cuda --steps 30000   # the full run
     python benchmarks/ablation.py --only baseline,full --seeds 0,1,2
-    python benchmarks/ablation.py --data data/fern --device cuda --seeds 0,1,2   # real, 3 views, the presets' 1000 steps
+    python benchmarks/ablation.py --data data/fern --device cuda --seeds 0,1,2   # real, 3 views, 1000 steps
 
 Synthetic: train the 9 array views; test the 4 held-out off-array views (between array positions). Every setting
 loads its preset from configs/ (sparse_baseline, sparse_wo_*, sparse_lightfield), so the table measures exactly what
@@ -71,7 +71,8 @@ SETTINGS = [
 # every other row puts the paper's scale weight back before removing its own part.
 PRIOR_POINTS = load_config(ROOT / "configs" / "sparse_llff.yaml").model.prior_points  # the method's count
 REAL_TERMS = ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")
-PAPER_TERMS = ["losses.scale=0.008"]  # the paper's terms that the preset leaves out
+# The paper's terms that the preset leaves out, at the paper's weight (sparse_lightfield is the paper's objective).
+PAPER_TERMS = [f"losses.scale={load_config(ROOT / 'configs' / 'sparse_lightfield.yaml').losses['scale']}"]
 REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
                  + [("baseline_prior_points", "3DGS + prior points", "sparse_llff_baseline",
                      [f"model.prior_points={PRIOR_POINTS}"], {})]
@@ -306,6 +307,7 @@ def main(argv=None) -> dict:
     steps = args.steps or (full if cuda else (CPU_STEPS_REAL if real else CPU_STEPS))
     seeds = [int(s) for s in args.seeds.split(",")]
     budget = args.budget or (None if cuda else CPU_BUDGET)
+    schedule = run_schedule(steps, real)
     extra = ([f"strategy.max_primitives={budget}"] if budget else []) + list(args.overrides)
     table = REAL_SETTINGS if real else [(k, label, preset, [], {}) for k, label, preset in SETTINGS]
     chosen = table if not args.only else [s for s in table if s[0] in args.only.split(",")]
@@ -316,11 +318,11 @@ def main(argv=None) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"ablation: {len(chosen)} settings x seeds {seeds} = {len(chosen) * len(seeds)} runs, {steps} steps on "
-          f"{args.device}, budget {budget}; schedule {run_schedule(steps, real) or 'the presets'}",
+          f"{args.device}, budget {budget}; schedule {schedule or 'the presets'}",
           file=sys.stderr, flush=True)
     payload = {"steps": steps, "seeds": seeds, "device": args.device,
                "torch_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
-               "schedule_overrides": run_schedule(steps, real), "extra_overrides": extra,
+               "schedule_overrides": schedule, "extra_overrides": extra,
                "budget": budget, "prior_fill": args.prior_fill, "prior_options": prior_options, "settings": {}}
     with tempfile.TemporaryDirectory(prefix="warpgs-ablation-") as tmp:
         reference, prior_folder = None, Path(tmp) / "depth_priors"
@@ -338,8 +340,7 @@ def main(argv=None) -> dict:
                 prior = real and uses_prior(preset, extra + setting_overrides)
                 run_extra = (setting_overrides_for_run(preset, setting_overrides, budget, extra)
                              + ([f"data.depth_priors={prior_folder}"] if prior else []))
-                r = run_setting(key, preset, steps, seed, args.device, run_extra, Path(tmp), args.pairs,
-                                run_schedule(steps, real),
+                r = run_setting(key, preset, steps, seed, args.device, run_extra, Path(tmp), args.pairs, schedule,
                                 marr_settings, reference)
                 runs.append(r)
                 print(f"  {label:16s} seed {seed}: psnr {r['psnr']:.2f} ssim {r['ssim']:.4f} "

@@ -30,9 +30,9 @@ given when its weights are on disk.
 Runs are the presets' 1000 steps on either device; a shorter or longer run (--steps) is the same schedule cut or
 extended (the presets give their horizons in absolute steps). On the CPU the primitive budget is 10k (prior points
 scaled with it) unless --budget says otherwise. --at-step N tabulates the held-out image scores that runs made with
-eval.every=N (their history) had at step N; depth is scored at the end of a run only, so those tables leave it out. Run files: <out>/runs/<protocol>_<scene>_<setting>
-_s<seed>.json; a run whose file exists is skipped (so a cut wave resumes), one made with other steps, budget or
-downscale is an error. The tables go to
+eval.every=N (their history) had at step N; depth is scored at the end of a run only, so those tables leave it out.
+Run files: <out>/runs/<protocol>_<scene>_<setting>_s<seed>.json; a run whose file exists is skipped (so a cut wave
+resumes), one made with other steps, budget or downscale is an error. The tables go to
 benchmarks/results/sparse_<name>.json (or $OUT). On a device, $OUT is emptied between commands: give --out a folder of
 your own and copy the table there at the end.
 """

@@ -80,9 +80,10 @@ def train_one(args, run: Run) -> dict:
     extra = (ablation.setting_overrides_for_run(preset, setting_overrides, budget, base + list(args.overrides))
              + ([f"data.depth_priors={prior_folder(Path(args.out), run.protocol, run.scene)}"]
                 if needs_prior(run, args.overrides) else []))
+    schedule = ablation.run_schedule(steps, real=True)
     with tempfile.TemporaryDirectory(prefix="warpgs-sparse-") as tmp:
         result = ablation.run_setting(run.setting, preset, steps, run.seed, args.device, extra, Path(tmp), args.pairs,
-                                      ablation.run_schedule(steps, real=True), marr, reference)
+                                      schedule, marr, reference)
     payload = {"id": run.id, "protocol": run.protocol, "scene": run.scene.name, "scene_path": str(run.scene.path),
                "downscale": run.scene.downscale, "n_train": args.proto.n_train, "setting": run.setting,
                "label": label, "size": [loaded.cameras[0].width, loaded.cameras[0].height],
@@ -90,7 +91,7 @@ def train_one(args, run: Run) -> dict:
                "test": [loaded.names[v] for v in loaded.test], "test_index": loaded.test,
                "reference": reference_from, "device": args.device, "budget": budget,
                "command": shlex.join([sys.executable, *sys.argv]),  # this worker, as its driver started it
-               "schedule_overrides": ablation.run_schedule(steps, real=True),
+               "schedule_overrides": schedule,
                "torch_threads": torch.get_num_threads(), "machine": platform.node(),
                "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None, **result}
     atomic_write_bytes(run_file(Path(args.out), run), json.dumps(payload, indent=1).encode())
