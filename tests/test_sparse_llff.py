@@ -183,6 +183,7 @@ def test_the_preset_pair_differs_only_in_the_method():
         cfg.pop("losses")
         cfg["data"].pop("depth_priors")
         cfg["model"].pop("prior_points")
+        cfg["model"].pop("prior_points_confidence")
     assert a == b
 
 
@@ -208,6 +209,9 @@ def test_the_real_ablation_removes_each_term_once():
     # The initialisation's share: 3DGS with the method's initial points and prior, none of its losses.
     plus = [s for s in ablation.REAL_SETTINGS if s[0] == "baseline_prior_points"]
     assert plus and plus[0][2] == "sparse_llff_baseline" and ablation.uses_prior(*plus[0][2:4])
+    method_model = load_config(ROOT / "configs" / "sparse_llff.yaml").model
+    assert plus[0][3] == [f"model.prior_points={method_model.prior_points}",
+                          f"model.prior_points_confidence={method_model.prior_points_confidence}"]
     assert not ablation.uses_prior("sparse_llff_baseline", [])
     # A CPU budget scales the prior points with it (20k of 200k -> 1k of 10k), before the user's overrides.
     assert ablation.prior_points_for_budget("sparse_llff", [], 10_000) == ["model.prior_points=1000"]
