@@ -124,6 +124,13 @@ def prior_points_for_budget(preset: str, overrides: list, budget: Optional[int])
     return [f"model.prior_points={max(1, round(count * budget / cfg.strategy.max_primitives))}"]
 
 
+def user_overrides_replaced(setting: list, user: list) -> list[str]:
+    """The user's overrides whose key the setting sets itself: the setting's value is the one its runs get
+    (setting_overrides_for_run), so these do not apply to it."""
+    keys = {o.split("=", 1)[0] for o in setting}
+    return [o for o in user if o.split("=", 1)[0] in keys]
+
+
 def setting_overrides_for_run(preset: str, setting: list, budget: Optional[int], user: list) -> list[str]:
     """The overrides of one setting's run, later ones winning: the preset's prior points scaled to the budget
     (the user's overrides may change them), the user's, then the setting's own (which the user's do not undo;

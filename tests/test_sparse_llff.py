@@ -224,6 +224,10 @@ def test_the_real_ablation_removes_each_term_once():
     assert run("sparse_llff", ["model.prior_points=0"], 10_000, ["u=1"]) == ["u=1", "model.prior_points=0"]
     assert run("sparse_llff_baseline", ["model.prior_points=20000"], None, []) == ["model.prior_points=20000"]
     assert run("sparse_llff_baseline", ["model.prior_points=20000"], 10_000, []) == ["model.prior_points=1000"]
+    # ... and a user's override of a key the setting sets is named, not silently dropped.
+    replaced = ablation.user_overrides_replaced(plus[0][3], ["model.prior_points=5000", "u=1"])
+    assert replaced == ["model.prior_points=5000"]
+    assert ablation.user_overrides_replaced(["losses.depth=0"], ["model.prior_points=5000"]) == []
     # The scaled schedule of a short real run keeps the preset's shape: densify until half the run.
     assert "strategy.refine_stop=150" in ablation.schedule_overrides(300, 10_000)
     assert ablation.schedule_overrides(10_000, 10_000) == []
