@@ -131,6 +131,17 @@ def user_overrides_replaced(setting: list, user: list) -> list[str]:
     return [o for o in user if o.split("=", 1)[0] in keys]
 
 
+def warn_replaced_overrides(settings: dict, user: list) -> None:
+    """Say on stderr which of the user's overrides a setting replaces with its own value (e.g. model.prior_points
+    for baseline_prior_points), instead of letting them vanish from its runs. settings: {key: its overrides}."""
+    for key, overrides in settings.items():
+        replaced = user_overrides_replaced(overrides, user)
+        if replaced:
+            verb = "does" if len(replaced) == 1 else "do"
+            print(f"note: setting {key} sets {', '.join(o.split('=', 1)[0] for o in replaced)} itself; "
+                  f"{' '.join(replaced)} {verb} not apply to its runs", file=sys.stderr)
+
+
 def setting_overrides_for_run(preset: str, setting: list, budget: Optional[int], user: list) -> list[str]:
     """The overrides of one setting's run, later ones winning: the preset's prior points scaled to the budget
     (the user's overrides may change them), the user's, then the setting's own (which the user's do not undo;
@@ -320,6 +331,7 @@ def main(argv=None) -> dict:
     extra = ([f"strategy.max_primitives={budget}"] if budget else []) + list(args.overrides)
     table = REAL_SETTINGS if real else [(k, label, preset, [], {}) for k, label, preset in SETTINGS]
     chosen = table if not args.only else [s for s in table if s[0] in args.only.split(",")]
+    warn_replaced_overrides({key: overrides for key, _, _, overrides, _ in chosen}, list(args.overrides))
     if not chosen:
         raise SystemExit(f"--only: none of {args.only!r} is a setting")
     if real and not Path(args.data).is_dir():

@@ -180,16 +180,6 @@ def dry_run(args, runs: list[Run], scenes: list[SceneSpec]) -> None:
         print(f"  {'done ' if d else 'to do'}  {r.id}  ({SETTINGS[r.setting][1]})")
 
 
-def warn_replaced_overrides(settings: list[str], overrides: list[str]) -> None:
-    """Say which of the user's overrides a setting replaces with its own value (e.g. model.prior_points for
-    baseline_prior_points), instead of letting them vanish from its runs."""
-    for key in settings:
-        replaced = ablation.user_overrides_replaced(SETTINGS[key][2], overrides)
-        if replaced:
-            print(f"note: setting {key} sets {', '.join(o.split('=', 1)[0] for o in replaced)} itself; "
-                  f"{' '.join(replaced)} {'does' if len(replaced) == 1 else 'do'} not apply to its runs", file=sys.stderr)
-
-
 def main(argv=None):
     args, scenes, settings, seeds, gpus = parse(argv)
     if args.worker == "prior":
@@ -197,7 +187,7 @@ def main(argv=None):
     if args.worker == "run":
         return train_one(args, Run(args.tag, scenes[0], args.setting, args.seed))
     runs = plan(args.tag, scenes, settings, seeds)
-    warn_replaced_overrides(settings, args.overrides)
+    ablation.warn_replaced_overrides({key: SETTINGS[key][2] for key in settings}, args.overrides)
     out = Path(args.out).resolve()
     args.out = str(out)
     if args.dry_run:

@@ -187,6 +187,19 @@ def test_the_preset_pair_differs_only_in_the_method():
     assert a == b
 
 
+def test_the_drivers_name_an_override_that_a_setting_replaces(capsys):
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import ablation
+
+    ablation.warn_replaced_overrides({"baseline_prior_points": ["model.prior_points=20000"], "wo_depth": []},
+                                     ["model.prior_points=5000", "u=1"])
+    err = capsys.readouterr().err
+    assert "setting baseline_prior_points sets model.prior_points itself" in err and "model.prior_points=5000" in err
+    assert "wo_depth" not in err and "u=1" not in err
+
+
 def test_the_real_ablation_removes_each_term_once():
     import sys
 
