@@ -93,6 +93,27 @@ def test_plane_sweep_priors_on_the_light_field():
     assert absrel < 0.03 and delta > 0.98 and coverage > 0.9
 
 
+def test_a_view_without_sfm_points_gets_no_prior_instead_of_failing(monkeypatch, capsys):
+    """3 views around a 360° capture can leave one view with no triangulated point to bound its sweep: that view
+    gets an empty (all-invalid) prior and a note naming it; the others are swept as before. With no view bounded
+    the sweep fails, naming one."""
+    from warpgs.data import PlaneSweepStereo
+
+    path, _, _ = default_lightfield()
+    scene = load_scene(path)
+    views = list(scene.train[:3])
+    blind = views[1]
+    seen = scene.visible_points
+    monkeypatch.setattr(scene, "visible_points", lambda v: seen(v)[:0] if v == blind else seen(v))
+    estimates = PlaneSweepStereo(num_sources=2).estimate(scene, views)
+    assert not estimates[blind].valid.any() and not estimates[blind].confidence.any()
+    assert all(estimates[v].valid.mean() > 0.3 for v in views if v != blind)
+    assert repr(scene.names[blind]) in capsys.readouterr().err
+    monkeypatch.setattr(scene, "visible_points", lambda v: seen(v)[:0])
+    with pytest.raises(ValueError, match=f"{scene.names[views[0]]}.*no SfM points"):
+        PlaneSweepStereo(num_sources=2).estimate(scene, views)
+
+
 def test_priors_are_served_with_the_scene(tmp_path, monkeypatch):
     monkeypatch.setenv("WARPGS_CACHE", str(tmp_path))  # downscaled images are cached there
     path, _, _ = default_lightfield()

@@ -20,6 +20,7 @@ rules above.
 """
 from __future__ import annotations
 
+import sys
 from typing import Optional, Sequence
 
 import numpy as np
@@ -51,6 +52,13 @@ def _box(x: torch.Tensor, window: int) -> torch.Tensor:
     r = window // 2
     x = F.avg_pool2d(x, (window, 1), stride=1, padding=(r, 0), count_include_pad=False)
     return F.avg_pool2d(x, (1, window), stride=1, padding=(0, r), count_include_pad=False)
+
+
+def _no_estimate(camera: Camera) -> DepthEstimate:
+    """A view the sweep could not bound: every pixel invalid (its prior then constrains nothing)."""
+    shape = (camera.height, camera.width)
+    return DepthEstimate(inv_depth=np.zeros(shape, np.float32), valid=np.zeros(shape, bool), metric=True,
+                         confidence=np.zeros(shape, np.float32))
 
 
 class PlaneSweepStereo(DepthEstimator):
@@ -94,11 +102,16 @@ class PlaneSweepStereo(DepthEstimator):
         self.num_threads = num_threads
 
     # --- depth range ---------------------------------------------------------------------------------------
+    def has_depth_range(self, scene, view: int) -> bool:
+        """Whether depth_range can bound the view (near/far given, or at least 3 SfM points seen)."""
+        return (self.near is not None and self.far is not None) or (
+            scene.points is not None and len(scene.visible_points(view)) >= 3)
+
     def depth_range(self, scene, view: int) -> tuple[float, float]:
         """near/far given at construction, else from the depths of the SfM points the view sees."""
         if self.near is not None and self.far is not None:
             return self.near, self.far
-        if scene.points is None or len(scene.visible_points(view)) < 3:
+        if not self.has_depth_range(scene, view):
             raise ValueError(f"plane sweep for view {scene.names[view]!r}: no SfM points to bound the depth range; "
                              "pass near= and far=")
         z = scene.cameras[view].world_to_camera(scene.points.xyz[scene.visible_points(view)])[:, 2]
@@ -226,10 +239,20 @@ class PlaneSweepStereo(DepthEstimator):
             raw = {}
             # The consistency check needs the neighbours' own depth maps too (from their own neighbours).
             needed = views + [n for v in views for n in nbrs[v] if self.consistency and n not in views]
+            unbounded = [v for v in dict.fromkeys(needed) if not self.has_depth_range(scene, v)]
+            if unbounded and all(v in unbounded for v in views):
+                self.depth_range(scene, views[0])  # raises, naming the view
+            for v in unbounded:  # e.g. 3 views around a 360° capture: a view may share no triangulated point
+                print(f"depth priors: view {scene.names[v]!r} sees fewer than 3 SfM points, which bound the plane "
+                      "sweep's depth range: it gets no prior (give data.depth_prior_options near= and far= to "
+                      "sweep it)", file=sys.stderr)
             for v in dict.fromkeys(needed):
                 near_views = nbrs.get(v) or self.neighbours(scene, v, sources)
                 if not near_views:
                     raise ValueError(f"plane sweep for view {scene.names[v]!r}: no other view to match against")
+                if v in unbounded:
+                    raw[v] = _no_estimate(scene.cameras[v])
+                    continue
                 near, far = self.depth_range(scene, v)
                 raw[v] = self.sweep(scene.image_np(v)[0], scene.cameras[v],
                                     [scene.image_np(s)[0] for s in near_views], [scene.cameras[s] for s in near_views],
