@@ -119,7 +119,9 @@ def triangulated_points(scene: Scene, cache_dir: Path, *, strict: bool = False,
         tri = triangulate_scene(scene, cache_dir, **kwargs)
         least = MIN_TRIANGULATED_POINTS_STRICT if strict else MIN_TRIANGULATED_POINTS
         if len(tri.points) < least:
-            raise SceneError(cache_dir, f"triangulation found only {len(tri.points)} points (fewer than {least})")
+            hint = "; model.init=auto starts from the depth prior or random points instead" if strict else ""
+            raise SceneError(cache_dir, f"triangulation found only {len(tri.points)} points (fewer than {least})"
+                             f"{hint}")
     except (SceneError, RuntimeError, ValueError) as exc:  # pycolmap raises RuntimeError/ValueError
         if strict:
             raise
