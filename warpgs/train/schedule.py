@@ -59,13 +59,17 @@ class ScheduleConfig:
     settle: int = 1000  # no densification decision within this many steps after an opacity reset
     polish: int = 1000  # final steps with the validation views trained on too (0: they stay held out)
     keep_best: bool = True  # at the stop, go back to the best validated state if the latest is worse (best_state.py)
+    # A score that rose by more than min_gain since the previous one is not a plateau: no stop while it rises (a
+    # large capture climbs back from an opacity reset's dip for more than `patience` steps)
+    wait_while_rising: bool = False
 
     def __post_init__(self):
-        if not isinstance(self.keep_best, bool):
-            raise ValueError(f"keep_best: expected true or false, got {self.keep_best!r}")
+        for name in ("keep_best", "wait_while_rising"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: expected true or false, got {getattr(self, name)!r}")
         for f in fields(self):
             v = getattr(self, f.name)
-            if f.name == "keep_best":
+            if isinstance(v, bool) and f.name in ("keep_best", "wait_while_rising"):
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0 or v != v:
                 raise ValueError(f"{f.name}: expected a non-negative number, got {v!r}")
@@ -134,9 +138,10 @@ class AutoStop:
                                                              f"{scheduled_stop}"))
             elif last_reset is not None and step - last_reset <= cfg.settle:
                 pass  # the dip after a reset is the reset's
-            elif step - self.best_step >= cfg.patience:
+            elif step - self.best_step >= cfg.patience and not self._rising():
                 out.append(self._stop_densifying(step, psnr, self._stale(step)))
-        elif self.phase == TRAIN and step - max(self.best_step, self.densify_stop) >= cfg.patience:
+        elif (self.phase == TRAIN and step - max(self.best_step, self.densify_stop) >= cfg.patience
+              and not self._rising()):
             out.append(self._start_polish(step, psnr, self._stale(step) + f"; densification stopped at step "
                                                                           f"{self.densify_stop}"))
         return out
@@ -184,6 +189,12 @@ class AutoStop:
         self.scores, self.decisions = list(self.scores), list(self.decisions)
 
     # ----- internals -----
+    def _rising(self) -> bool:
+        """With wait_while_rising: whether the latest score beat the one before by more than min_gain."""
+        if not self.config.wait_while_rising or len(self.scores) < 2:
+            return False
+        return self.scores[-1]["psnr"] > self.scores[-2]["psnr"] + self.config.min_gain
+
     def _stale(self, step: int) -> str:
         return (f"validation PSNR has not beaten its best {self.best_psnr:.2f} dB (step {self.best_step}) by "
                 f"{self.config.min_gain:g} dB for {step - self.best_step} steps (patience {self.config.patience})")
