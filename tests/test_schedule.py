@@ -1,6 +1,7 @@
 """The run's schedule (train/schedule.py): the tail of fixed-step runs, and the train.steps=auto rule."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 
@@ -146,6 +147,29 @@ def test_the_dip_after_a_reset_is_not_a_plateau():
         return 20.0 + 0.001 * step - (1.5 * (1 - since / 800) if since < 800 else 0.0)
     rule, decisions, _ = run_rule(dip, until=14_000)
     assert decisions == [] and rule.phase == DENSIFY
+
+
+def slow_recovery(step):
+    """bonsai800 seed 1's shape: improves, then each reset costs 0.6 dB that take 3000 steps to come back (the
+    pre-reset best is beaten only after 2000 steps)."""
+    since = min([step - r for r in (3000, 6000, 9000, 12_000) if r < step], default=10_000)
+    return 28.0 + 0.0001 * step - (0.6 * (1 - since / 3000) if since < 3000 else 0.0)
+
+
+@pytest.mark.parametrize("wait", [False, True])
+def test_a_score_still_rising_is_not_a_plateau_when_asked(wait):
+    """A slow climb back from a reset beats the pre-reset best only after `patience`: the default rule stops
+    densifying there (bonsai800's seeds 1 and 3); with wait_while_rising it waits while the score rises, and a
+    falling curve (a few-view capture) still stops at the same step."""
+    cfg = dataclasses.replace(CFG, wait_while_rising=wait)
+    rule, decisions, _ = run_rule(slow_recovery, cfg=cfg, until=14_000)
+    if wait:
+        assert decisions == [] and rule.phase == DENSIFY
+    else:
+        assert decisions[0]["decision"] == "stop_densifying" and decisions[0]["step"] < 14_000
+    plain, falling, _ = run_rule(peaked)
+    waiting, falling_wait, _ = run_rule(peaked, cfg=cfg)
+    assert [d["step"] for d in falling_wait] == [d["step"] for d in falling]
 
 
 def test_gains_below_min_gain_are_a_plateau():
