@@ -279,7 +279,7 @@ def accuracy_run(args) -> dict:
             result["train_seconds"] = time.perf_counter() - t0
     if run is not None:
         trainer = load_run(run, args.device)
-        trained_settings = MeshSettings(**settings)
+        trained_settings = MeshSettings(**settings, depth=args.depth)
         mesh = mesh_trainer(trainer, trained_settings, args.device)
         result["trained_surfels"] = score(mesh, truth_pts, truth_nrm, definition.objects, rng, args.mesh_points)
         result["trained_surfels"].update(timings=trained_settings.timings, run=str(run),
@@ -328,6 +328,8 @@ def main(argv=None) -> int:
                          "train PSNR after step 1900)")
     ap.add_argument("--nc-from", type=float, default=7 / 30,
                     help="fraction of the run after which the normal-consistency term is on (2DGS: 7000 of 30000)")
+    ap.add_argument("--depth", choices=("median", "expected"), help="the surfels' rendered depth to fuse "
+                    "(default median; expected meshed worse here: docs/mesh.md)")
     ap.add_argument("--run", help="score this trained run folder instead of training one")
     ap.add_argument("--work", default="/tmp/warpgs-mesh-bench", help="scene and run folders (reused)")
     ap.add_argument("--truth-points", type=int, default=40_000)

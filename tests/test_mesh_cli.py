@@ -46,6 +46,23 @@ def test_gaussians_mesh_from_expected_depth(tmp_path, capsys):
     assert main(["--model", str(run), "--voxel", "0.1", "--radius", "2"]) == 0
     assert "expected depth" in capsys.readouterr().err
     assert len(plyfile.PlyData.read(str(run / "mesh.ply"))["face"]) > 0
+    # 3D Gaussians have no median depth to fuse: the flag is named, and no file is written
+    assert main(["--model", str(run), "--voxel", "0.1", "--radius", "2", "--depth", "median",
+                 "--out", str(tmp_path / "median.ply")]) != 0
+    assert "--depth median" in capsys.readouterr().err and not (tmp_path / "median.ply").exists()
+
+
+def test_surfels_mesh_from_either_depth(surfel_run, tmp_path):
+    """--depth picks the rendered depth fused (median by default for surfels): both mesh; the two differ."""
+    meshes = {}
+    for depth in ("median", "expected"):
+        out = tmp_path / f"{depth}.ply"
+        assert main(["--model", str(surfel_run), "--voxel", "0.1", "--radius", "2", "--depth", depth,
+                     "--out", str(out)]) == 0
+        v = plyfile.PlyData.read(str(out))["vertex"]
+        meshes[depth] = np.stack([v["x"], v["y"], v["z"]], 1)
+    assert len(meshes["median"]) > 0 and len(meshes["expected"]) > 0
+    assert meshes["median"].shape != meshes["expected"].shape or not np.allclose(meshes["median"], meshes["expected"])
 
 
 def test_ply_round_trip(tmp_path):

@@ -55,11 +55,13 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--alpha-min", type=float, default=0.5, help="pixels less opaque carry no depth (default 0.5)")
     ap.add_argument("--min-component", type=float, default=0.01,
                     help="drop pieces with fewer faces than this fraction of the largest (default 0.01; 0 keeps all)")
+    ap.add_argument("--depth", choices=("median", "expected"),
+                    help="the rendered depth to fuse (default: median for surfels, expected for 3D Gaussians)")
     ap.add_argument("--device", help="cpu, cuda, cuda:1, ... (default: the run's)")
     args = ap.parse_args(argv)
     settings = MeshSettings(voxel=args.voxel, trunc=args.trunc, depth_trunc=args.depth_trunc, radius=args.radius,
                             centre=args.center, unbounded=args.unbounded, alpha_min=args.alpha_min,
-                            min_component=args.min_component)
+                            min_component=args.min_component, depth=args.depth)
     try:
         settings.check()
     except ValueError as e:
