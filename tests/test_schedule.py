@@ -292,6 +292,26 @@ def test_the_position_lr_anneals_once_densification_stops():
     assert rule.means_lr(4500 + span, bounded) == pytest.approx(1e-6) == rule.means_lr(20_000, bounded)
 
 
+def test_the_anneal_can_follow_the_newest_best():
+    """anneal_follows_best: a run still finding new bests after densification stops keeps a decaying lr that
+    reaches the final value at its earliest end (newest best + patience + polish, at most max_steps); without new
+    bests it anneals as before."""
+    def bounded(step):
+        return 1e-4 * (1e-2) ** (step / CFG.max_steps)
+    cfg = dataclasses.replace(CFG, anneal_follows_best=True)
+    peaked_rule, _, _ = run_rule(peaked, cfg=cfg, until=4600)  # no new best after the stop at 4500
+    plain, _, _ = run_rule(peaked, until=4600)
+    for step in (4500, 5500, 7500, 9000):
+        assert peaked_rule.means_lr(step, bounded) == pytest.approx(plain.means_lr(step, bounded))
+    climbing, decisions, _ = run_rule(lambda step: 20.0 + 0.0001 * step, cfg=cfg, until=18_000)
+    assert climbing.densify_stop == 15_000 and climbing.best_step == 18_000
+    end = 18_000 + CFG.patience + CFG.polish  # the earliest end now
+    assert climbing.means_lr(18_000, bounded) > 1e-6 * 1.5  # still decaying, not at the final value
+    assert climbing.means_lr(end, bounded) == pytest.approx(1e-6)
+    far, _, _ = run_rule(lambda step: 20.0 + 0.0001 * step, cfg=cfg, until=28_500)
+    assert far.means_lr(CFG.max_steps, bounded) == pytest.approx(1e-6)  # the bound caps the anneal
+
+
 def test_an_auto_checkpoint_resumed_with_a_step_count_draws_every_training_view():
     from test_train_parts import FakeScene
     from warpgs.train.views import TrainViews

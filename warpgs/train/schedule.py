@@ -46,6 +46,7 @@ from dataclasses import dataclass, fields
 from typing import Callable, List, Optional, Sequence, Tuple
 
 DENSIFY, TRAIN, POLISH, DONE = "densify", "train", "polish", "done"
+_BOOLEAN_KEYS = ("keep_best", "wait_while_rising", "anneal_follows_best")
 
 
 @dataclass
@@ -62,14 +63,18 @@ class ScheduleConfig:
     # A score that rose by more than min_gain since the previous one is not a plateau: no stop while it rises (a
     # large capture climbs back from an opacity reset's dip for more than `patience` steps)
     wait_while_rising: bool = False
+    # The position lr's anneal after densification stops ends at the earliest end of the run: patience + polish
+    # after the densification stop (false), or after the later of that stop and the newest best (true: a run that
+    # keeps finding new bests keeps a decaying lr instead of training at the final one)
+    anneal_follows_best: bool = False
 
     def __post_init__(self):
-        for name in ("keep_best", "wait_while_rising"):
+        for name in _BOOLEAN_KEYS:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: expected true or false, got {getattr(self, name)!r}")
         for f in fields(self):
             v = getattr(self, f.name)
-            if isinstance(v, bool) and f.name in ("keep_best", "wait_while_rising"):
+            if f.name in _BOOLEAN_KEYS:
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0 or v != v:
                 raise ValueError(f"{f.name}: expected a non-negative number, got {v!r}")
@@ -160,11 +165,14 @@ class AutoStop:
     def means_lr(self, step: int, lr_at: Callable[[int], float]) -> Optional[float]:
         """The position learning rate at `step` once densification has stopped (None before: the bounded schedule
         `lr_at(step)` holds): log-linear from lr_at(densify stop) to lr_at(max_steps), the final value, over
-        patience + polish steps, then that final value."""
+        patience + polish steps (with anneal_follows_best: up to patience + polish after the later of the stop and
+        the newest best), then that final value."""
         if self.densify_stop is None:
             return None
         start = int(self.densify_stop)
         span = max(int(self.config.patience) + int(self.config.polish), 1)
+        if self.config.anneal_follows_best and self.best_step is not None:  # (a new best lifts the lr a little)
+            span = min(span + max(int(self.best_step) - start, 0), max(int(self.config.max_steps) - start, 1))
         u = min(max((step - start) / span, 0.0), 1.0)
         return lr_at(start) ** (1.0 - u) * lr_at(int(self.config.max_steps)) ** u
 
