@@ -308,7 +308,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--only", default=None, help="comma-separated subset of: " + ",".join(s[0] for s in SETTINGS)
                     + " (with --data also wo_confidence)")
     ap.add_argument("--budget", type=int, default=None,
-                    help=f"strategy.max_primitives for every setting (default: {CPU_BUDGET} on CPU, the presets' on CUDA)")
+                    help=f"strategy.max_primitives for every setting (default: {CPU_BUDGET} on CPU, the presets' "
+                         "on CUDA)")
     ap.add_argument("--pairs", type=int, default=2000, help="probe pairs per test view for the depth judgement")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--prior-fill", type=float, default=0.0,

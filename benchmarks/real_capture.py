@@ -62,7 +62,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--config", default="gaussians", help="preset or YAML (default: gaussians, the 3DGS recipe)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--steps", default="7000", help="comma-separated evaluation steps; the run goes to the largest")
-    ap.add_argument("--eval-every", type=int, default=1000, help="evaluation period; the run scores every gcd(this, each --steps mark) steps, so every mark is scored")
+    ap.add_argument("--eval-every", type=int, default=1000,
+                    help="evaluation period; the run scores every gcd(this, each --steps mark) steps, so every mark "
+                         "is scored")
     ap.add_argument("--downscale", type=int, default=None, help="data.downscale (default: the config's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--gsplat", action="store_true", help="also run the plain gsplat loop (CUDA only)")
@@ -138,7 +140,8 @@ def main(argv=None) -> dict:
                "seed": args.seed, "config": cfg.to_dict(), "runs": runs, "ms_per_step": per_step,
                "init_source": str(trainer.init_source), "gsplat_reset": args.gsplat_reset if args.gsplat else None}
     payload["loop_raster"] = args.loop_raster
-    # A video capture whose poses jump has views that contradict each other: its scores say less (docs/real_captures.md, beer).
+    # A video capture whose poses jump has views that contradict each other: its scores say less
+    # (docs/real_captures.md, beer).
     payload["pose_jumps"] = scene_pose_jumps(scene)
     if payload["pose_jumps"]:
         print(f"note: the capture's poses jump {len(payload['pose_jumps'])} times between neighbouring frames "
