@@ -129,6 +129,26 @@ def test_views_load_all_keeps_every_training_view_once_and_nothing_without_prelo
     assert TrainViews(lazy_scene, "cpu", seed=0, preload=False).load_all() == 0 and not lazy_scene.loads
 
 
+def test_views_load_all_in_threads_equals_one_by_one_and_names_a_bad_image(tmp_path):
+    """load_all decodes views in threads: the same tensors as loading them one by one, and a truncated image
+    stops it with the file's name."""
+    from data_fixtures import copy_of
+    from warpgs.data import load_scene
+    from warpgs.data.errors import SceneError
+
+    root = copy_of("orbit", tmp_path / "scene")
+    threaded = TrainViews(load_scene(root, split="llff"), "cpu", seed=0)
+    assert threaded.load_all() == len(threaded.scene.train) > 2
+    one_by_one = load_scene(root, split="llff")
+    for i in one_by_one.train:
+        assert torch.equal(threaded.view(i).image, one_by_one.view(i).image)
+    scene = load_scene(root, split="llff")
+    bad = scene.files[scene.train[3]].image
+    bad.write_bytes(bad.read_bytes()[:200])
+    with pytest.raises(SceneError, match=bad.name):
+        TrainViews(scene, "cpu", seed=0).load_all()
+
+
 def test_views_without_training_views_fail_on_draw_naming_the_scene():
     views = TrainViews(SimpleNamespace(train=[], root="/data/empty"), "cpu", seed=0)
     with pytest.raises(ValueError, match="/data/empty has no training views"):

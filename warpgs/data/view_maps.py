@@ -12,6 +12,7 @@ depth_format, prior_format, _memory / _memory_bytes (the in-memory cache) and it
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -27,6 +28,7 @@ from warpgs.data.formats.resize import (DOWNSCALE_FACTORS, downscaled_size, resi
                                         resize_nearest)
 
 _MEMORY_BUDGET_BYTES = 1 << 30
+_MEMORY_LOCK = threading.Lock()  # views may be loaded from several threads (TrainViews.load_all)
 
 
 @dataclass
@@ -79,9 +81,10 @@ class ViewMaps:
 
     def _remember(self, key, value):
         size = sum(v.nbytes for v in value if isinstance(v, np.ndarray)) if isinstance(value, tuple) else value.nbytes
-        if self._memory_bytes + size <= _MEMORY_BUDGET_BYTES:
-            self._memory[key] = value
-            self._memory_bytes += size
+        with _MEMORY_LOCK:
+            if key not in self._memory and self._memory_bytes + size <= _MEMORY_BUDGET_BYTES:
+                self._memory[key] = value
+                self._memory_bytes += size
         return value
 
     def image_np(self, i: int) -> tuple[np.ndarray, Optional[np.ndarray]]:

@@ -6,9 +6,13 @@ out for validation (`hold_out`) and may come back for the run's last steps (`res
 training list goes into checkpoints too."""
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Dict, List
 
 import torch
+
+LOAD_THREADS = 8  # views decoded at once by load_all (image decoding releases the GIL)
 
 
 class TrainViews:
@@ -60,8 +64,14 @@ class TrainViews:
         if not self.preload:
             return 0
         missing = [i for i in self.indices + self.held_out if i not in self._kept]
-        for i in missing:
-            self.view(i)
+        threads = min(LOAD_THREADS, os.cpu_count() or 1, len(missing))
+        if threads <= 1:
+            for i in missing:
+                self.view(i)
+            return len(missing)
+        with ThreadPoolExecutor(threads) as pool:  # the first bad image raises here, naming its file
+            for i, v in zip(missing, pool.map(lambda i: self.scene.view(i, self.device), missing)):
+                self._kept[i] = v
         return len(missing)
 
     def kept_or_new(self, index: int):
