@@ -1,5 +1,5 @@
 """The training views a Trainer draws from: device copies kept when data.preload (all of them loaded before the
-first step, as 3DGS does), and a seeded order reshuffled every epoch. The order's generator and queue go into
+first step, as 3DGS does, decoded in up to LOAD_THREADS threads), and a seeded order reshuffled every epoch. The order's generator and queue go into
 checkpoints, so a resumed run draws the same views. The order is global (the same on every rank of a distributed
 run), so any rank may render any view and each keeps them all. With train.steps=auto some training views are held
 out for validation (`hold_out`) and may come back for the run's last steps (`restore_held_out`); the current
@@ -69,8 +69,11 @@ class TrainViews:
             for i in missing:
                 self.view(i)
             return len(missing)
+        device = self.device
+        if device.type == "cuda" and device.index is None:  # a worker thread's current device is its own
+            device = torch.device("cuda", torch.cuda.current_device())
         with ThreadPoolExecutor(threads) as pool:  # the first bad image raises here, naming its file
-            for i, v in zip(missing, pool.map(lambda i: self.scene.view(i, self.device), missing)):
+            for i, v in zip(missing, pool.map(lambda i: self.scene.view(i, device), missing)):
                 self._kept[i] = v
         return len(missing)
 
