@@ -46,7 +46,6 @@ from dataclasses import dataclass, fields
 from typing import Callable, List, Optional, Sequence, Tuple
 
 DENSIFY, TRAIN, POLISH, DONE = "densify", "train", "polish", "done"
-_BOOLEAN_KEYS = ("keep_best", "wait_while_rising", "anneal_follows_best")
 
 
 @dataclass
@@ -69,12 +68,11 @@ class ScheduleConfig:
     anneal_follows_best: bool = False
 
     def __post_init__(self):
-        for name in _BOOLEAN_KEYS:
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name}: expected true or false, got {getattr(self, name)!r}")
         for f in fields(self):
             v = getattr(self, f.name)
-            if f.name in _BOOLEAN_KEYS:
+            if f.type in ("bool", bool):  # the switches (keep_best, wait_while_rising, anneal_follows_best)
+                if not isinstance(v, bool):
+                    raise ValueError(f"{f.name}: expected true or false, got {v!r}")
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0 or v != v:
                 raise ValueError(f"{f.name}: expected a non-negative number, got {v!r}")

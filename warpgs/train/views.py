@@ -1,9 +1,9 @@
 """The training views a Trainer draws from: device copies kept when data.preload (all of them loaded before the
-first step, as 3DGS does, decoded in up to LOAD_THREADS threads), and a seeded order reshuffled every epoch. The order's generator and queue go into
-checkpoints, so a resumed run draws the same views. The order is global (the same on every rank of a distributed
-run), so any rank may render any view and each keeps them all. With train.steps=auto some training views are held
-out for validation (`hold_out`) and may come back for the run's last steps (`restore_held_out`); the current
-training list goes into checkpoints too."""
+first step, as 3DGS does, decoded in up to LOAD_THREADS threads), and a seeded order reshuffled every epoch. The
+order's generator and queue go into checkpoints, so a resumed run draws the same views. The order is global (the
+same on every rank of a distributed run), so any rank may render any view and each keeps them all. With
+train.steps=auto some training views are held out for validation (`hold_out`) and may come back for the run's last
+steps (`restore_held_out`); the current training list goes into checkpoints too."""
 from __future__ import annotations
 
 import os
@@ -64,14 +64,12 @@ class TrainViews:
         if not self.preload:
             return 0
         missing = [i for i in self.indices + self.held_out if i not in self._kept]
-        threads = min(LOAD_THREADS, os.cpu_count() or 1, len(missing))
-        if threads <= 1:
-            for i in missing:
-                self.view(i)
-            return len(missing)
+        if not missing:
+            return 0
         device = self.device
         if device.type == "cuda" and device.index is None:  # a worker thread's current device is its own
             device = torch.device("cuda", torch.cuda.current_device())
+        threads = min(LOAD_THREADS, os.cpu_count() or 1, len(missing))
         with ThreadPoolExecutor(threads) as pool:  # the first bad image raises here, naming its file
             for i, v in zip(missing, pool.map(lambda i: self.scene.view(i, device), missing)):
                 self._kept[i] = v

@@ -238,15 +238,16 @@ class PlaneSweepStereo(DepthEstimator):
             nbrs = {v: self.neighbours(scene, v, sources) for v in views}
             raw = {}
             # The consistency check needs the neighbours' own depth maps too (from their own neighbours).
-            needed = views + [n for v in views for n in nbrs[v] if self.consistency and n not in views]
-            unbounded = [v for v in dict.fromkeys(needed) if not self.has_depth_range(scene, v)]
+            needed = list(dict.fromkeys(views + [n for v in views for n in nbrs[v]
+                                                 if self.consistency and n not in views]))
+            unbounded = [v for v in needed if not self.has_depth_range(scene, v)]
             if unbounded and all(v in unbounded for v in views):
                 self.depth_range(scene, views[0])  # raises, naming the view
             for v in unbounded:  # e.g. 3 views around a 360° capture: a view may share no triangulated point
                 print(f"depth priors: view {scene.names[v]!r} sees fewer than 3 SfM points, which bound the plane "
                       "sweep's depth range: it gets no prior (give data.depth_prior_options near= and far= to "
                       "sweep it)", file=sys.stderr)
-            for v in dict.fromkeys(needed):
+            for v in needed:
                 near_views = nbrs.get(v) or self.neighbours(scene, v, sources)
                 if not near_views:
                     raise ValueError(f"plane sweep for view {scene.names[v]!r}: no other view to match against")
