@@ -213,6 +213,18 @@ def test_validation_split_takes_training_views_only():
         validation_split([1, 2], 8)
 
 
+def test_validation_split_caps_the_views_of_a_large_capture():
+    train = list(range(1, 300))
+    full = validation_split(train, 8)[1]
+    kept, val = validation_split(train, 8, max_views=8)
+    assert len(full) == 37 and len(val) == 8 and set(val) <= set(full)
+    assert val[0] == full[0] and val[-1] >= full[-5]  # spread over the whole capture, not its first stretch
+    assert sorted(kept + val) == train
+    assert validation_split(list(range(40)), 8, max_views=8) == validation_split(list(range(40)), 8)  # under the cap
+    with pytest.raises(ValueError, match="val_max_views"):
+        ScheduleConfig(val_max_views=2.5)
+
+
 def test_config_accepts_auto_and_checks_the_schedule():
     assert load_config(resolve_config_source("gaussians")).train.steps == "auto"
     assert load_config(None, ["steps=auto"]).train.steps == "auto"

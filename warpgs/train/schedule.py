@@ -53,6 +53,9 @@ class ScheduleConfig:
     """The `schedule` section: the rule of `train.steps=auto` (module doc)."""
     max_steps: int = 30_000  # never more steps than this (polish included); the position lr decays over it
     val_nth: int = 8  # every this-many-th training view is held out for validation (at least one)
+    # At most this many validation views (0: no cap), spread over the nth-view picks: a capture of hundreds of
+    # photos needs no more to score a run, and every view held out is one the model trains on only in the polish
+    val_max_views: int = 0
     val_every: int = 500  # score the validation views every this many steps
     patience: int = 2000  # steps without a new best before densification (then training) stops
     min_gain: float = 0.02  # dB over the best that counts as a new best
@@ -79,7 +82,7 @@ class ScheduleConfig:
         for name in ("max_steps", "val_nth", "val_every", "patience"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)!r}")
-        for name in ("settle", "polish"):
+        for name in ("settle", "polish", "val_max_views"):
             if int(getattr(self, name)) != getattr(self, name):
                 raise ValueError(f"{name}: expected an integer, got {getattr(self, name)!r}")
         if self.val_nth < 2:
@@ -88,16 +91,18 @@ class ScheduleConfig:
             raise ValueError(f"polish: {self.polish} steps do not fit in max_steps={self.max_steps}")
 
 
-def validation_split(train: Sequence[int], nth: int) -> Tuple[List[int], List[int]]:
+def validation_split(train: Sequence[int], nth: int, max_views: int = 0) -> Tuple[List[int], List[int]]:
     """(kept training indices, validation indices): every nth training view from the middle of the first
-    stretch (so not the views next to an LLFF every-8th test view), at least one; a clear error when too few views
-    are left to train on."""
+    stretch (so not the views next to an LLFF every-8th test view), at least one; with max_views > 0 at most that
+    many of them, evenly spread; a clear error when too few views are left to train on."""
     train = list(train)
     if len(train) < 3:
         raise ValueError(f"train.steps=auto: needs at least 3 training views (it holds some out for validation), "
                          f"the scene has {len(train)}; give a step count instead")
     start = min(nth // 2, len(train) - 1)
     val = train[start::nth] or [train[len(train) // 2]]
+    if 0 < max_views < len(val):
+        val = [val[(k * len(val)) // max_views] for k in range(max_views)]
     held = set(val)
     return [i for i in train if i not in held], val
 
