@@ -23,7 +23,9 @@ one kind only. The rule, with patience P, settle S and min_gain g (dB):
   1. densify as the 30k schedule does (schedule.max_steps); each validation score more than g above the best so
      far is the new best;
   2. stop densifying when the best is P steps old, except within S steps after an opacity reset (the reset's
-     dip is not a plateau); the schedule's own densification stop also ends this phase;
+     dip is not a plateau) and while the latest score rose by more than g since the one before
+     (`wait_while_rising`: bonsai800's 255 views climb back from a reset for longer than P); the schedule's own
+     densification stop also ends this phase;
   3. then train without densifying; stop when there has been no new best for P steps since the later of the
      best and the densification stop (non-densifying training gets P steps to beat the best);
   4. at that stop, when the latest score is more than g below the best, the run goes back to the state of the
@@ -32,7 +34,8 @@ one kind only. The rule, with patience P, settle S and min_gain g (dB):
      no more validation), so the final model has seen every training view; then the run ends.
   The run never exceeds schedule.max_steps (polish included). Until densification stops the position learning
   rate follows the bounded run's decay (gsplat's 30k curve at the same step); from there it anneals log-linearly to
-  its final value over P + polish steps, the earliest the run can end, as a fixed run anneals over its own length
+  its final value over P + polish steps from the later of that stop and the newest best (`anneal_follows_best`),
+  the earliest the run can end, as a fixed run anneals over its own length
   (on beer's half, CPU, a fixed 3000-step run still gained 1.4 dB in its annealed last half while the auto run's
   lr, still on the bounded decay, gained nothing: docs/real_captures.md). The best state is kept (step 4): on
   phone64 the test PSNR fell 0.65-0.92 dB after the best validation score and did not come back by the stop.
@@ -53,9 +56,6 @@ class ScheduleConfig:
     """The `schedule` section: the rule of `train.steps=auto` (module doc)."""
     max_steps: int = 30_000  # never more steps than this (polish included); the position lr decays over it
     val_nth: int = 8  # every this-many-th training view is held out for validation (at least one)
-    # At most this many validation views (0: no cap), spread over the nth-view picks: a capture of hundreds of
-    # photos needs no more to score a run, and every view held out is one the model trains on only in the polish
-    val_max_views: int = 0
     val_every: int = 500  # score the validation views every this many steps
     patience: int = 2000  # steps without a new best before densification (then training) stops
     min_gain: float = 0.02  # dB over the best that counts as a new best
@@ -64,11 +64,11 @@ class ScheduleConfig:
     keep_best: bool = True  # at the stop, go back to the best validated state if the latest is worse (best_state.py)
     # A score that rose by more than min_gain since the previous one is not a plateau: no stop while it rises (a
     # large capture climbs back from an opacity reset's dip for more than `patience` steps)
-    wait_while_rising: bool = False
+    wait_while_rising: bool = True
     # The position lr's anneal after densification stops ends at the earliest end of the run: patience + polish
     # after the densification stop (false), or after the later of that stop and the newest best (true: a run that
     # keeps finding new bests keeps a decaying lr instead of training at the final one)
-    anneal_follows_best: bool = False
+    anneal_follows_best: bool = True
 
     def __post_init__(self):
         for f in fields(self):
@@ -82,7 +82,7 @@ class ScheduleConfig:
         for name in ("max_steps", "val_nth", "val_every", "patience"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)!r}")
-        for name in ("settle", "polish", "val_max_views"):
+        for name in ("settle", "polish"):
             if int(getattr(self, name)) != getattr(self, name):
                 raise ValueError(f"{name}: expected an integer, got {getattr(self, name)!r}")
         if self.val_nth < 2:
@@ -91,18 +91,16 @@ class ScheduleConfig:
             raise ValueError(f"polish: {self.polish} steps do not fit in max_steps={self.max_steps}")
 
 
-def validation_split(train: Sequence[int], nth: int, max_views: int = 0) -> Tuple[List[int], List[int]]:
+def validation_split(train: Sequence[int], nth: int) -> Tuple[List[int], List[int]]:
     """(kept training indices, validation indices): every nth training view from the middle of the first
-    stretch (so not the views next to an LLFF every-8th test view), at least one; with max_views > 0 at most that
-    many of them, evenly spread; a clear error when too few views are left to train on."""
+    stretch (so not the views next to an LLFF every-8th test view), at least one; a clear error when too few views
+    are left to train on."""
     train = list(train)
     if len(train) < 3:
         raise ValueError(f"train.steps=auto: needs at least 3 training views (it holds some out for validation), "
                          f"the scene has {len(train)}; give a step count instead")
     start = min(nth // 2, len(train) - 1)
     val = train[start::nth] or [train[len(train) // 2]]
-    if 0 < max_views < len(val):
-        val = [val[(k * len(val)) // max_views] for k in range(max_views)]
     held = set(val)
     return [i for i in train if i not in held], val
 

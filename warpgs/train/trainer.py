@@ -199,8 +199,7 @@ class Trainer:
         self.views = TrainViews(self.scene, self.device, seed=cfg.train.seed, preload=cfg.data.preload)
         if self.auto_steps:  # validation views from the training views (never the test views)
             self.strategy.schedule.auto = AutoStop(cfg.schedule)
-            self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth,
-                                                     cfg.schedule.val_max_views)[1])
+            self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth)[1])
         self.best_state = BestState() if self.auto_steps and cfg.schedule.keep_best else None
         self.evaluator = Evaluator(self.scene, cfg.eval, self.device, self.out_dir,
                                    render=lambda v: self.render(v, ("rgb",)).rgb, views=self.views,
