@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import statistics
 import sys
 import time
@@ -60,6 +61,19 @@ def time_call(fn, device: str, warmup: int = 2, repeats: int = 5) -> float:
         sync(device)
         times.append((time.perf_counter() - t0) * 1e3)
     return statistics.median(times)
+
+
+def run_host(device: str) -> dict:
+    """Where a run ran, for pairing timings: host name, GPU name and UUID (None on the CPU), and the host's 1-minute
+    load per core when it ended (other processes on the host slow a host-bound training step)."""
+    gpu = uuid = None
+    if str(device).startswith("cuda") and torch.cuda.is_available():
+        index = torch.device(device).index
+        index = torch.cuda.current_device() if index is None else index
+        gpu = torch.cuda.get_device_name(index)
+        uuid = str(getattr(torch.cuda.get_device_properties(index), "uuid", "")) or None
+    return {"hostname": socket.gethostname(), "gpu": gpu, "gpu_uuid": uuid,
+            "load_per_core": round(os.getloadavg()[0] / (os.cpu_count() or 1), 3)}
 
 
 def write_json(name: str, payload: dict) -> Path:

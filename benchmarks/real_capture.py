@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from common import ROOT, print_table, write_json
+from common import ROOT, print_table, run_host, write_json
 
 sys.path.insert(0, str(ROOT))
 
@@ -155,6 +155,7 @@ def main(argv=None) -> dict:
         print(f"time per step warpgs / gsplat = {payload['step_time_ratio']:.2f}")
     if args.device.startswith("cuda"):
         payload["gpu"] = torch.cuda.get_device_name()
+    payload["host"] = run_host(args.device)  # real_capture_seeds.py pairs timings only from the same host and GPU
     name = f"real_capture_{data.resolve().name}_{torch.device(args.device).type}" + ("_gsplat" if args.gsplat else "")
     name += f"_{args.only}_only" if args.only else ""
     if args.loop_raster != "gsplat" and args.only != "warpgs":

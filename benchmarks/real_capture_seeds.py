@@ -4,7 +4,9 @@ paired by seed (the two systems of one seed may come from one file or from two `
     python benchmarks/real_capture_seeds.py OUT_NAME benchmarks/results/real_capture_beer_*_beerB*.json
 
 With --against-best (issue 31's target for the default `train.steps=auto` run): warpgs's final PSNR against the
-best point of gsplat's curve, and warpgs's training seconds over gsplat's whole run's, per capture and seed.
+best point of gsplat's curve, and warpgs's training seconds over gsplat's whole run's, per capture and seed; a time
+ratio counts as a pair only when both runs came from one file or from the same host and GPU (real_capture.py records
+where it ran and the host's load when it ended), and the summary says how many are not.
 
 Prints one row per capture, seed and mark and a summary per capture and mark (seeds, mean, sd and standard error
 of the paired difference, the worst seed); writes benchmarks/results/OUT_NAME.json. A capture's seed may appear once
@@ -14,6 +16,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
+from typing import Optional
 from pathlib import Path
 
 from common import print_table, read_results, write_json
@@ -80,18 +83,30 @@ def against_best(payloads: list[tuple[str, dict]]) -> list[dict]:
     for name, p in payloads:
         for run in p["runs"]:
             if run["system"] in SYSTEMS:
-                finals.setdefault((Path(p["data"]).name, p["seed"]), {})[run["system"]] = run
+                finals.setdefault((Path(p["data"]).name, p["seed"]), {})[run["system"]] = (run, name, p.get("host"))
     rows = []
     for (capture, seed), slot in sorted(finals.items()):
         if len(slot) < 2:
             continue
-        w, g = slot["warpgs"], slot["gsplat"]
+        (w, w_file, w_host), (g, g_file, g_host) = slot["warpgs"], slot["gsplat"]
         best = max(g["points"], key=lambda pt: pt["psnr"])
+        loads = [h["load_per_core"] for h in (w_host, g_host) if h and h.get("load_per_core") is not None]
         rows.append({"capture": capture, "seed": seed, "warpgs_steps": w["final"].get("steps"),
                      "warpgs": w["final"]["psnr"], "gsplat_best": best["psnr"], "gsplat_best_step": best["step"],
                      "delta": w["final"]["psnr"] - best["psnr"],
-                     "time_ratio": w["final"]["train_seconds"] / g["final"]["train_seconds"]})
+                     "time_ratio": w["final"]["train_seconds"] / g["final"]["train_seconds"],
+                     "time_pair": time_pair(w_file, w_host, g_file, g_host), "max_load": max(loads, default=None)})
     return rows
+
+
+def time_pair(w_file: str, w_host: Optional[dict], g_file: str, g_host: Optional[dict]) -> Optional[bool]:
+    """Whether the two runs' times compare: one file (one process), or the same host and GPU; None when a file does
+    not say where it ran (results written before real_capture.py recorded its host)."""
+    if w_file == g_file:
+        return True
+    if not w_host or not g_host:
+        return None
+    return all(w_host.get(k) == g_host.get(k) for k in ("hostname", "gpu_uuid"))
 
 
 def best_summary(rows: list[dict]) -> list[dict]:
@@ -119,16 +134,21 @@ def main(argv=None) -> dict:
         if not rows:
             raise SystemExit("no capture and seed has both systems")
         print_table(rows, ["capture", "seed", "warpgs_steps", "warpgs", "gsplat_best", "gsplat_best_step", "delta",
-                           "time_ratio"])
+                           "time_ratio", "time_pair", "max_load"])
         stats = best_summary(rows)
         print()
         print_table(stats, ["capture", "seeds", "delta_mean", "delta_sd", "delta_se", "time_ratio_mean"])
         overall = {"delta_mean_over_captures": statistics.fmean(r["delta_mean"] for r in stats),
                    "worst_capture_delta": min(r["delta_mean"] for r in stats),
                    "time_ratio_mean_over_captures": statistics.fmean(r["time_ratio_mean"] for r in stats)}
+        overall["time_ratios_not_pairs"] = sum(r["time_pair"] is not True for r in rows)
         print(f"\nover captures: delta {overall['delta_mean_over_captures']:+.2f} dB (worst capture "
               f"{overall['worst_capture_delta']:+.2f}), time ratio {overall['time_ratio_mean_over_captures']:.2f} "
               f"(target: delta >= 0, no capture below -0.3, ratio <= 0.5)")
+        if overall["time_ratios_not_pairs"]:
+            print(f"note: {overall['time_ratios_not_pairs']} of {len(rows)} time ratios are not pairs (the two runs "
+                  "came from different hosts or GPUs, or a file does not say where it ran): the time ratio is not a "
+                  "measurement")
         payload = {"files": [f for f, _ in payloads], "mode": "against_best", "rows": rows, "summary": stats,
                    "overall": overall}
         print(f"\nwrote {write_json(args.name, payload)}")

@@ -85,3 +85,35 @@ def test_against_best_scores_the_final_model_against_gsplats_peak(tmp_path, monk
     assert by["bonsai"]["delta_mean"] == pytest.approx(-0.2) and by["bonsai"]["time_ratio_mean"] == pytest.approx(0.2)
     assert out["overall"]["worst_capture_delta"] == pytest.approx(-0.2)
     assert out["rows"][0]["gsplat_best_step"] == 3000 and out["rows"][0]["warpgs_steps"] == 6000
+
+
+def test_against_best_says_which_time_ratios_are_pairs(tmp_path, monkeypatch):
+    """A time ratio compares only runs of one host and GPU (or one file); files that do not say where they ran are
+    not counted as pairs either."""
+    monkeypatch.setenv("OUT", str(tmp_path / "out"))
+
+    def only(system, seed, host, capture="beer"):
+        final = {"psnr": 20.0, "train_seconds": 10.0 if system == "warpgs" else 40.0}
+        payload = {"data": f"/data/{capture}", "seed": seed, "runs": [
+            {"system": system, "points": [{"step": 1000, "psnr": 20.0}], "final": final}]}
+        if host:
+            payload["host"] = {"hostname": host[0], "gpu_uuid": host[1], "load_per_core": host[2]}
+        path = tmp_path / f"{capture}_{system}_{seed}.json"
+        path.write_text(json.dumps(payload))
+        return str(path)
+
+    files = [only("warpgs", 1, ("a", "GPU-0", 0.1)), only("gsplat", 1, ("a", "GPU-0", 0.6)),   # a pair
+             only("warpgs", 2, ("b", "GPU-0", 0.1)), only("gsplat", 2, ("a", "GPU-0", 0.1)),   # other host
+             only("warpgs", 3, ("a", "GPU-1", 0.1)), only("gsplat", 3, ("a", "GPU-0", 0.1)),   # other GPU
+             only("warpgs", 4, None), only("gsplat", 4, ("a", "GPU-0", 0.1))]                   # not recorded
+    out = real_capture_seeds.main(["pairs", *files, "--against-best"])
+    pairs = {r["seed"]: r["time_pair"] for r in out["rows"]}
+    assert pairs == {1: True, 2: False, 3: False, 4: None}
+    assert out["rows"][0]["max_load"] == pytest.approx(0.6) and out["rows"][3]["max_load"] == pytest.approx(0.1)
+    assert out["overall"]["time_ratios_not_pairs"] == 3
+
+
+def test_a_run_records_where_it_ran():
+    from common import run_host
+    host = run_host("cpu")
+    assert host["hostname"] and host["gpu"] is None and host["gpu_uuid"] is None and host["load_per_core"] >= 0
