@@ -7,6 +7,7 @@ import time
 import numpy as np
 import pycolmap
 import pytest
+import torch
 from PIL import Image
 
 from data_fixtures import synthetic_dir, write_rgb
@@ -187,3 +188,28 @@ def test_few_triangulated_points_are_kept_when_asked_for(tmp_path, monkeypatch, 
     auto = ip.triangulated_points(scene, tmp_path)
     assert (auto is not None) == (found >= ip.MIN_TRIANGULATED_POINTS)
     assert ("using random points" in capsys.readouterr().err) == (auto is None)
+
+
+def test_a_later_run_on_the_same_capture_reads_the_shared_cache(tmp_path, monkeypatch, capsys):
+    """The trainer caches triangulated points in $WARPGS_CACHE/triangulation too: a second run with a new output
+    folder reads them (and keeps its own copy) instead of extracting and matching features again; another set of
+    training views is another entry."""
+    monkeypatch.setenv("WARPGS_CACHE", str(tmp_path / "cache"))
+    truth = load_scene(synthetic_dir("orbit"), split="all")
+    views = list(range(8))
+    (tmp_path / "scene" / "images").mkdir(parents=True)
+    for v in views:
+        shutil.copy(truth.files[v].image, tmp_path / "scene" / "images" / truth.names[v])
+    save_poses_bounds([truth.cameras[v] for v in views], tmp_path / "scene" / "poses_bounds.npy", (1.0, 10.0))
+    scene = load_scene(tmp_path / "scene", split="all")
+    first, _, source = initial_points(scene, _config(tmp_path / "run1", "triangulate"))
+    assert "triangulate [1/3] features" in capsys.readouterr().err
+    second, _, source2 = initial_points(scene, _config(tmp_path / "run2", "triangulate"))
+    err = capsys.readouterr().err
+    assert "features" not in err and "(cached)" in err and str(tmp_path / "cache") in err
+    assert source2 == source and torch.equal(first, second)
+    assert (tmp_path / "run2" / "triangulation" / POINTS_FILE).is_file()  # the run's own copy
+    fewer = scene.with_split(views[:6], views[6:])
+    initial_points(fewer, _config(tmp_path / "run3", "triangulate"))
+    assert "triangulate [1/3] features" in capsys.readouterr().err
+    assert len(list((tmp_path / "cache" / "triangulation").iterdir())) == 2

@@ -138,14 +138,18 @@ def initial_points(scene, config: Config):
     from warpgs.data.sfm import init_points as ip
 
     how, n, seed = config.model.init, config.model.init_points, config.train.seed
-    # Points triangulated from known poses are cached in the output folder (a resumed or repeated run reuses them).
+    # Points triangulated from known poses are cached in the output folder (a resumed run reuses them) and in the
+    # user's cache (every later run on the same capture and views reuses them: minutes of features and matching).
+    from warpgs.data.cache import cache_dir
+
     tri_dir = Path(config.output.dir) / "triangulation" if config.output.dir else None
+    shared = cache_dir() / "triangulation"
     if how == "auto":
-        cloud, source = ip.initial_points(scene, n=n, seed=seed, triangulate_dir=tri_dir)
+        cloud, source = ip.initial_points(scene, n=n, seed=seed, triangulate_dir=tri_dir, shared_dir=shared)
     elif how == "triangulate":
         if tri_dir is None:
             raise ValueError("model.init: 'triangulate' needs an output folder to cache the points in")
-        cloud, source = ip.triangulated_points(scene, tri_dir, strict=True)
+        cloud, source = ip.triangulated_points(scene, tri_dir, strict=True, shared_dir=shared)
     elif how == "sfm":
         if scene.points is None or len(scene.points) == 0:
             raise ValueError(f"model.init: 'sfm' but the scene at {scene.root} has no SfM points (use auto/random)")

@@ -130,16 +130,16 @@ def triangulated_points(scene: Scene, cache_dir: Path, *, strict: bool = False,
     return tri.points, f"triangulated ({len(tri.points)} points, {tri.mean_error:.2f} px)"
 
 
-def initial_points(scene: Scene, n: int = 100_000, seed: int = 0,
-                   triangulate_dir: Optional[Path] = None) -> tuple[PointCloud, str]:
+def initial_points(scene: Scene, n: int = 100_000, seed: int = 0, triangulate_dir: Optional[Path] = None,
+                   **triangulate_options) -> tuple[PointCloud, str]:
     """(points, where they came from): "sfm", "depth_prior", "triangulated (...)" (only with triangulate_dir, the
-    folder that caches them) or "random"."""
+    folder that caches them; triangulate_options go to triangulate_from_poses, e.g. shared_dir) or "random"."""
     if scene.points is not None and len(scene.points) > 0:
         return scene.points, "sfm"
     if scene.has("depth_prior", scene.train):
         return points_from_depth(scene, n, source="prior", seed=seed), "depth_prior"
     if triangulate_dir is not None:
-        got = triangulated_points(scene, Path(triangulate_dir))
+        got = triangulated_points(scene, Path(triangulate_dir), **triangulate_options)
         if got is not None:
             return got
     return random_points(scene, n, seed=seed), "random"

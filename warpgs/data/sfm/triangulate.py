@@ -3,8 +3,11 @@ intrinsic held fixed. For scenes that come with cameras but no points (transform
 without points3D), so that training can start from real surface points instead of random ones.
 
 Only the views given (the training views by default: held-out views must not shape the model) are used.
-The result is cached in `out_dir` (points.npz + triangulation.json); the cache key covers the image files
-(path, size, modification time), the cameras and the settings, so changed images or poses triangulate again.
+The result is cached in `out_dir` (points.npz + triangulation.json) and, with `shared_dir`, also in a folder of
+shared_dir named by the cache key, which every later run on the same capture reads instead of triangulating again
+(the trainer passes $WARPGS_CACHE/triangulation: on the 2-core CPU phone64's 56 views at 1/2 took 68 s of a 90 s
+start-up). The key covers the image files (path, size, modification time), the cameras, the views' places in the
+scene and the settings, so changed images, poses or splits triangulate again.
 """
 from __future__ import annotations
 
@@ -13,6 +16,7 @@ import json
 import os
 import shutil
 import sqlite3
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +30,7 @@ from warpgs.data.sfm import features
 from warpgs.data.sfm.pairs import pose_similarity
 from warpgs.utils.progress import Stages
 
-CACHE_VERSION = 2  # 2: the same points on every run (seeded RANSAC, images numbered by name order)
+CACHE_VERSION = 3  # 2: the same points on every run (seeded RANSAC, images numbered by name order); 3: view ids
 POINTS_FILE = "points.npz"
 INFO_FILE = "triangulation.json"
 KEEP_TWO_VIEW_TRACKS_UP_TO = 4  # views; with so few, most points are seen twice only
@@ -88,7 +92,10 @@ def _save(out_dir: Path, key: str, tri: Triangulation) -> None:
     observed = tri.points.observed_by
     offsets = np.concatenate([[0], np.cumsum([len(o) for o in observed])]).astype(np.int64)
     flat = np.concatenate(observed).astype(np.int64) if observed else np.zeros(0, np.int64)
-    (out_dir / INFO_FILE).write_text(json.dumps({**tri.info, "key": key}, indent=1))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    info_tmp = out_dir / f".{INFO_FILE}.{os.getpid()}.tmp"  # runs sharing a cache may write the same entry at once
+    info_tmp.write_text(json.dumps({**tri.info, "key": key}, indent=1))
+    os.replace(info_tmp, out_dir / INFO_FILE)
     tmp = out_dir / f".{POINTS_FILE}.{os.getpid()}.tmp.npz"
     np.savez(tmp, key=np.array(key), xyz=tri.points.xyz, rgb=tri.points.rgb, obs_offsets=offsets, obs_flat=flat)
     os.replace(tmp, out_dir / POINTS_FILE)  # last: its presence with the right key means the entry is complete
@@ -174,11 +181,12 @@ def triangulate_from_poses(cameras, image_paths: Sequence[PathLike], out_dir: Pa
                            view_ids: Optional[Sequence[int]] = None, n_views: Optional[int] = None,
                            matcher: str = "auto", max_image_size: int = features.MAX_IMAGE_SIZE,
                            num_threads: int = -1, deterministic: bool = True, progress: bool = True,
-                           quiet: bool = True) -> Triangulation:
+                           quiet: bool = True, shared_dir: Optional[PathLike] = None) -> Triangulation:
     """Triangulate points seen by `cameras` (native cameras of the given image files, poses and intrinsics kept
     fixed). view_ids: the scene index of each camera (for PointCloud.observed_by over n_views scene views);
     default 0..len-1. deterministic: match on one thread, so every run finds the same points (see RANDOM_SEED);
-    False matches on num_threads, faster on many cores. Cached in out_dir (see the module docstring)."""
+    False matches on num_threads, faster on many cores. Cached in out_dir and, with shared_dir, in
+    shared_dir/<key> for later runs (see the module docstring)."""
     import pycolmap
 
     cameras, paths = list(cameras), [Path(p) for p in image_paths]
@@ -188,14 +196,18 @@ def triangulate_from_poses(cameras, image_paths: Sequence[PathLike], out_dir: Pa
     view_ids = list(range(len(cameras))) if view_ids is None else [int(v) for v in view_ids]
     n_views = len(cameras) if n_views is None else int(n_views)
     out_dir = Path(out_dir)
-    settings = {"matcher": matcher, "max_image_size": max_image_size}
+    settings = {"matcher": matcher, "max_image_size": max_image_size, "view_ids": view_ids, "n_views": n_views}
     key = cache_key(cameras, paths, settings)
     stages = Stages(["features", "matching", "triangulation"], prefix="triangulate", enabled=progress)
-    cached = _load_cached(out_dir, key, n_views)
-    if cached is not None:
-        stages.report(f"{len(cached.points)} points from {out_dir / POINTS_FILE} (cached), mean reprojection "
-                      f"error {cached.mean_error:.2f} px")
-        return cached
+    shared = Path(shared_dir) / key if shared_dir is not None else None
+    for where in (out_dir, shared):
+        cached = _load_cached(where, key, n_views) if where is not None else None
+        if cached is not None:
+            if where != out_dir:
+                _save(out_dir, key, cached)  # the run's own copy, as if it had triangulated
+            stages.report(f"{len(cached.points)} points from {where / POINTS_FILE} (cached), mean reprojection "
+                          f"error {cached.mean_error:.2f} px")
+            return cached
 
     start = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -246,6 +258,11 @@ def triangulate_from_poses(cameras, image_paths: Sequence[PathLike], out_dir: Pa
             "pairs": detail, "stage_seconds": dict(stages.times), "image_root": str(image_root)}
     tri = Triangulation(points, mean_error, seconds, False, info)
     _save(out_dir, key, tri)
+    if shared is not None:
+        try:
+            _save(shared, key, tri)
+        except OSError as exc:  # a read-only or full cache costs the next run the time, nothing else
+            print(f"triangulate: could not cache the points in {shared} ({exc})", file=sys.stderr)
     database.unlink(missing_ok=True)  # hundreds of MB for large sets; the points and the model stay
     stages.report(f"{len(points)} points, mean reprojection error {mean_error:.2f} px, {seconds:.1f} s")
     return tri
