@@ -100,6 +100,27 @@ def test_estimated_priors_are_reused_by_a_later_trainer(tmp_path, monkeypatch):
     assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "depth_priors").glob("*.exr")} == stamps
 
 
+def test_a_run_with_another_output_folder_copies_the_cached_priors(tmp_path, monkeypatch, capsys):
+    """Estimated priors are also kept in $WARPGS_CACHE/depth_priors/<key>: a new output folder on the same scene,
+    views and settings copies them instead of estimating again; other settings are another entry."""
+    monkeypatch.setenv("WARPGS_CACHE", str(tmp_path / "cache"))
+    first = run(tmp_path / "a", "data.depth_priors=estimate")
+    import warpgs.data as data
+
+    def no_estimate(*args, **kwargs):
+        raise AssertionError("the priors were estimated again")
+
+    with monkeypatch.context() as m:
+        m.setattr(data, "compute_depth_priors", no_estimate)
+        second = run(tmp_path / "b", "data.depth_priors=estimate")
+    assert "copied from" in capsys.readouterr().err
+    for v in first.scene.train:
+        a, b = first.scene.files[v].depth_prior, second.scene.files[v].depth_prior
+        assert b.parent == tmp_path / "b" / "depth_priors" and a.read_bytes() == b.read_bytes()
+    run(tmp_path / "c", "data.depth_priors=estimate", "data.depth_prior_fill=0.3")
+    assert len(list((tmp_path / "cache" / "depth_priors").iterdir())) == 2
+
+
 def test_priors_are_estimated_again_when_the_fill_changes(tmp_path):
     run(tmp_path, "data.depth_priors=estimate")
     plain = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "depth_priors").glob("*.exr")}

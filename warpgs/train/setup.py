@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import os
 import re
+import shutil
 import sys
 from pathlib import Path
 from typing import Optional
@@ -38,7 +40,8 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None):
     """The scene a config names (data.path None: the built-in synthetic scene, generated once and cached).
     data.depth_priors "estimate" runs the built-in plane-sweep stereo on the training views, aligns it to the SfM
     points and writes the priors to <out_dir>/depth_priors (never into the scene's own folder); a later Trainer on
-    the same output folder (resume, warpgs-render/eval) reuses them. Delete that folder to estimate again."""
+    the same output folder (resume, warpgs-render/eval) reuses them, and one with another output folder copies them
+    from the user's cache when the images, cameras, views, points and settings are the same (_estimated_priors)."""
     from warpgs.data import compute_depth_priors, default_scene, load_scene
     from warpgs.data.exclude import excluding
 
@@ -102,22 +105,58 @@ def plane_sweep(options: Optional[dict]):
 
 
 def _estimated_priors(scene, folder: Path, compute, estimator, fill_confidence: float = 0.0):
-    """The priors already estimated into `folder` when complete (format.json is written last) and made by the same
-    estimator settings and fill, else new ones."""
+    """The priors already estimated into `folder` when complete and made by the same estimator settings and fill;
+    else a copy of the same priors from the user's cache ($WARPGS_CACHE/depth_priors/<key>: the same images,
+    cameras, views, SfM points and settings, made by an earlier run with another output folder); else new ones,
+    copied into that cache for the next run."""
+    from warpgs.data.cache import cache_dir
+    from warpgs.data.depth.priors import prior_key
+
+    done = _complete_priors(scene, folder, estimator, fill_confidence)
+    if done is not None:
+        return done
+    shared = cache_dir() / "depth_priors" / prior_key(scene, scene.train, estimator, fill_confidence)
+    if _complete_priors(scene, shared, estimator, fill_confidence) is not None:
+        shutil.copytree(shared, folder, dirs_exist_ok=True)
+        print(f"depth priors: estimated by an earlier run on these views, copied from {shared}", file=sys.stderr)
+        return _complete_priors(scene, folder, estimator, fill_confidence)
+    made = compute(scene, estimator, out_dir=folder, fill_confidence=fill_confidence)[0]
+    _cache_folder(folder, shared)
+    return made
+
+
+def _cache_folder(folder: Path, shared: Path) -> None:
+    """Copy `folder` to `shared` through a temporary copy renamed into place, so a run reading the cache never
+    sees half a folder; a run that cached it first wins. A read-only or full cache costs the next run the time."""
+    tmp = shared.with_name(f".{shared.name}.{os.getpid()}.tmp")
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(folder, tmp)
+        if not shared.exists():
+            os.rename(tmp, shared)
+    except OSError as exc:
+        if not shared.exists():
+            print(f"depth priors: could not cache them in {shared} ({exc})", file=sys.stderr)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _complete_priors(scene, folder: Path, estimator, fill_confidence: float):
+    """The scene with the priors in `folder` when every training view has one (format.json is written last) and
+    they were made with these estimator settings and fill; else None."""
     from warpgs.data.depth.priors import estimator_settings
     from warpgs.data.errors import read_json
     from warpgs.data.formats.view_files import FORMAT_FILE
     from warpgs.data.scene import MapFormat
 
-    if (folder / FORMAT_FILE).is_file():
-        done = scene.with_depth_priors(folder, MapFormat("inverse_depth"))
-        made, settings = read_json(folder / FORMAT_FILE), estimator_settings(estimator)
-        # A folder from before settings were recorded counts as made by these ones.
-        same = (float(made.get("fill_confidence", 0.0)) == float(fill_confidence)
-                and made.get("estimator_settings", settings) == settings)
-        if same and all(done.files[v].depth_prior is not None for v in scene.train):
-            return done
-    return compute(scene, estimator, out_dir=folder, fill_confidence=fill_confidence)[0]
+    if not (folder / FORMAT_FILE).is_file():
+        return None
+    done = scene.with_depth_priors(folder, MapFormat("inverse_depth"))
+    made, settings = read_json(folder / FORMAT_FILE), estimator_settings(estimator)
+    # A folder from before settings were recorded counts as made by these ones.
+    same = (float(made.get("fill_confidence", 0.0)) == float(fill_confidence)
+            and made.get("estimator_settings", settings) == settings)
+    return done if same and all(done.files[v].depth_prior is not None for v in scene.train) else None
 
 
 def resolve_background(spec, scene, device) -> torch.Tensor:

@@ -24,6 +24,20 @@ PRIOR_FOLDER = "depth_priors"
 POINTS_FOLDER = "points"  # inside the prior folder: the training-view triangulation of a scene without points
 
 
+def prior_key(scene: Scene, views: Sequence[int], estimator: DepthEstimator, fill_confidence: float) -> str:
+    """Changes when the views' image files, their cameras at the served resolution, the scene's SfM points (the
+    alignment's reference), the estimator's settings or the fill change: the name of a shared prior folder."""
+    import hashlib
+
+    from warpgs.data.sfm.triangulate import cache_key
+
+    points = hashlib.sha1(b"" if scene.points is None else np.ascontiguousarray(scene.points.xyz).tobytes())
+    settings = {"priors": 1, "estimator": estimator.name, "estimator_settings": estimator_settings(estimator),
+                "fill_confidence": float(fill_confidence), "views": [int(v) for v in views],
+                "points": points.hexdigest()}
+    return cache_key([scene.cameras[v] for v in views], [scene.files[v].image for v in views], settings)
+
+
 def write_prior(path: Path, inv_depth: np.ndarray, valid: np.ndarray, confidence: Optional[np.ndarray] = None) -> Path:
     """An aligned inverse-depth prior as EXR: value, validity and (optional) confidence in [0, 1] channels."""
     channels = {"Z": np.where(valid, inv_depth, 0.0), depth_files._VALID_CHANNEL: valid}
