@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import os
 import re
 import shutil
 import sys
@@ -109,7 +108,7 @@ def _estimated_priors(scene, folder: Path, compute, estimator, fill_confidence: 
     else a copy of the same priors from the user's cache ($WARPGS_CACHE/depth_priors/<key>: the same images,
     cameras, views, SfM points and settings, made by an earlier run with another output folder); else new ones,
     copied into that cache for the next run."""
-    from warpgs.data.cache import cache_dir
+    from warpgs.data.cache import cache_dir, publish_folder
     from warpgs.data.depth.priors import prior_key
 
     done = _complete_priors(scene, folder, estimator, fill_confidence)
@@ -121,24 +120,8 @@ def _estimated_priors(scene, folder: Path, compute, estimator, fill_confidence: 
         print(f"depth priors: estimated by an earlier run on these views, copied from {shared}", file=sys.stderr)
         return _complete_priors(scene, folder, estimator, fill_confidence)
     made = compute(scene, estimator, out_dir=folder, fill_confidence=fill_confidence)[0]
-    _cache_folder(folder, shared)
+    publish_folder(folder, shared, what="depth priors")
     return made
-
-
-def _cache_folder(folder: Path, shared: Path) -> None:
-    """Copy `folder` to `shared` through a temporary copy renamed into place, so a run reading the cache never
-    sees half a folder; a run that cached it first wins. A read-only or full cache costs the next run the time."""
-    tmp = shared.with_name(f".{shared.name}.{os.getpid()}.tmp")
-    try:
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.copytree(folder, tmp)
-        if not shared.exists():
-            os.rename(tmp, shared)
-    except OSError as exc:
-        if not shared.exists():
-            print(f"depth priors: could not cache them in {shared} ({exc})", file=sys.stderr)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _complete_priors(scene, folder: Path, estimator, fill_confidence: float):
