@@ -24,6 +24,8 @@ equal work. Reported per run, from rank 0's log.jsonl and metrics.json:
 - phases (--phases): per rank, milliseconds a step spent drawing views, rendering + back-propagating, in the
   all-reduce, the optimizer, densification and clearing gradients (train.profile_phases: the GPU is synchronised at
   each boundary, which costs a little throughput). A rank whose all-reduce is long waits for the others.
+- stage_seconds: rank 0's wall time of the run's one-off stages (set-up before the first step, final outputs after
+  the last; warpgs/train/stage_clock.py): where wall_seconds beyond train_seconds goes.
 - peak_gpu_memory_gb: rank 0's peak of allocated GPU memory (CUDA runs). With train.parallel=model (pass it as
   an override) this is what partitioning the primitives saves per GPU.
 
@@ -130,7 +132,8 @@ def run_one(nproc: int, args, out: Path) -> dict:
                                    else None),
             "time_to_target_s": None if reached is None else reached["train_seconds"],
             "views_to_target": None if reached is None else reached["views_seen"], "evals": evals,
-            "phases": metrics.get("phases")}
+            "phases": metrics.get("phases"),
+            "stage_seconds": metrics.get("stage_seconds")}  # rank 0's set-up and final outputs, stage by stage
 
 
 def print_phases(runs: list) -> None:

@@ -46,6 +46,10 @@ def test_outputs_written(fitted):
         assert key in metrics
     assert metrics["lpips"] is None and "lpips_unavailable" in metrics
     assert metrics["steps"] == STEPS and metrics["num_primitives"] == result.num_primitives
+    # Where the run's wall time beyond training went (issue 33's start-up), stage by stage, in running order.
+    assert list(metrics["stage_seconds"]) == ["join_ranks", "load_scene", "build_model", "load_views", "share_model",
+                                              "final_checkpoint_and_ply", "final_evaluation"]
+    assert all(v >= 0 for v in metrics["stage_seconds"].values()) and metrics["stage_seconds"]["final_evaluation"] > 0
     assert sorted(p.name for p in (out / "renders" / "test").glob("*.png")) == ["orbit_000.png", "orbit_008.png"]
     assert (out / "config.yaml").is_file() and (out / "checkpoint.pt").is_file()
     assert not list(out.glob(".*.tmp"))

@@ -86,7 +86,8 @@ class TrainingLoop:
         else:
             self.say(f"warpgs: resuming at step {tr.step} from {tr.checkpoint_path}")
         t0 = time.perf_counter()
-        loaded = tr.views.load_all()  # outside the steps' clock, as gsplat's and 3DGS's loaders do
+        with tr.clock.stage("load_views"):
+            loaded = tr.views.load_all()  # outside the steps' clock, as gsplat's and 3DGS's loaders do
         if loaded:
             self.say(f"warpgs: {loaded} training views loaded onto {tr.device} in {time.perf_counter() - t0:.1f} s")
         if tr.strategy.schedule.auto is not None and tr.step > 0:  # a checkpoint written before the rule saw its step
@@ -237,12 +238,14 @@ class TrainingLoop:
     def finish(self) -> "TrainResult":
         """Final checkpoint, PLY, test renders, metrics.json and the final log entry."""
         tr, cfg = self.trainer, self.trainer.config
-        if tr.step != tr.checkpointer.last_step:
-            tr.save_checkpoint()
-        with tr.whole_model() as whole:  # train.parallel=model: the shards gathered (in CPU memory) for the file
-            if tr.ranks.is_main:
-                whole.save_ply(tr.out_dir / cfg.output.ply)
-        m = tr.evaluator.evaluate(save_images=cfg.eval.save_images, keep_images=tr.log.images)
+        with tr.clock.stage("final_checkpoint_and_ply"):
+            if tr.step != tr.checkpointer.last_step:
+                tr.save_checkpoint()
+            with tr.whole_model() as whole:  # train.parallel=model: the shards gathered (in CPU memory) for the file
+                if tr.ranks.is_main:
+                    whole.save_ply(tr.out_dir / cfg.output.ply)
+        with tr.clock.stage("final_evaluation"):
+            m = tr.evaluator.evaluate(save_images=cfg.eval.save_images, keep_images=tr.log.images)
         tr.log.eval(tr.step, m, num_primitives=tr.num_primitives, train_seconds=tr.train_seconds, final=True)
         metrics = {"split": m["split"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"]}
         if "lpips_unavailable" in m:
@@ -256,7 +259,8 @@ class TrainingLoop:
         metrics.update({"num_primitives": tr.num_primitives, "steps": tr.step,
                         "train_seconds": round(tr.train_seconds, 3), "num_views": m["num_views"],
                         "model_kind": tr.model.kind, "device": str(tr.device), "scene": str(tr.scene.root),
-                        "final_loss": tr.last_loss, "history": tr.history, "per_view": m["per_view"]})
+                        "final_loss": tr.last_loss, "history": tr.history, "per_view": m["per_view"],
+                        "stage_seconds": dict(tr.clock.seconds)})
         if tr.ranks.is_main:
             write_json(tr.out_dir / cfg.output.metrics, metrics)
         tr.ranks.barrier("waiting for rank 0 to write the final outputs")

@@ -37,6 +37,7 @@ from warpgs.train import checkpoint as ckpt
 from warpgs.config.loader import Config, load_config
 from warpgs.train.determinism import use_deterministic_algorithms
 from warpgs.train.phase_timer import PhaseTimer
+from warpgs.train.stage_clock import StageClock
 from warpgs.train.extensions import CallbackExtension, Extension, build_extension
 from warpgs.model.gaussians import GaussianModel
 from warpgs.model.rendering import check_outputs, focal_length, render_model, screen_filter
@@ -78,7 +79,9 @@ class Trainer:
         cfg = self.config
         for module in cfg.imports:  # e.g. modules that register custom losses or extensions
             import_user_module(module)
-        self._join_ranks(cfg, quiet)
+        self.clock = StageClock()  # the set-up's stages here, the final outputs' in fit (metrics.json)
+        with self.clock.stage("join_ranks"):
+            self._join_ranks(cfg, quiet)
         terms = resolve_terms(cfg.losses)
 
         if out_dir is not None:
@@ -88,7 +91,8 @@ class Trainer:
         self.out_dir = Path(cfg.output.dir)
         self.log = TrainLog(self.out_dir, kind=cfg.train.log if self.ranks.is_main else "none",
                             every=cfg.train.log_every)  # files open in fit()
-        self._load_scene(cfg, scene)
+        with self.clock.stage("load_scene"):  # with estimated depth priors
+            self._load_scene(cfg, scene)
         self.guard = NonFiniteGuard(self.named_parameters)
         self.phases = PhaseTimer(self.device, cfg.train.profile_phases)
         self.checkpointer = Checkpointer(self.out_dir / cfg.output.checkpoint, self.device,
@@ -97,7 +101,8 @@ class Trainer:
 
         state = self.checkpointer.load() if resume else None
         ckpt.seed_everything(cfg.train.seed)
-        self._build_model(cfg, state, model)
+        with self.clock.stage("build_model"):  # with its initial points (triangulated ones included)
+            self._build_model(cfg, state, model)
         self._set_up_extensions(cfg, extensions, callbacks)
         self.loss_set = LossSet(terms, always=[o for e in self.extensions for o in e.outputs()])
         check_outputs(self.model.kind, self.outputs, "losses")
@@ -105,8 +110,10 @@ class Trainer:
             raise ValueError("losses: a term needs the 'features' output but the model renders no features "
                              "(add model.features: {name: channels} or an extension)")
         self._build_optimizers(cfg)
-        self._set_up_views_and_evaluation(cfg)
-        self._resume_and_share_out(cfg, state)
+        with self.clock.stage("load_views"):
+            self._set_up_views_and_evaluation(cfg)
+        with self.clock.stage("share_model"):
+            self._resume_and_share_out(cfg, state)
 
     # ----- construction, in order (__init__) ---------------------------------------------------------------------
     def _model_device(self) -> torch.device:
