@@ -16,8 +16,8 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-from typing import Optional
 from pathlib import Path
+from typing import Optional
 
 from common import print_table, read_results, write_json
 
