@@ -61,7 +61,9 @@ def main(argv=None) -> dict:
     ap.add_argument("data", help="scene folder (COLMAP, transforms.json or LLFF)")
     ap.add_argument("--config", default="gaussians", help="preset or YAML (default: gaussians, the 3DGS recipe)")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--steps", default="7000", help="comma-separated evaluation steps; the run goes to the largest")
+    ap.add_argument("--steps", default="7000", help="comma-separated evaluation steps; the run goes to the largest "
+                                                    "(with train.steps=auto it is schedule.max_steps, whatever the "
+                                                    "overrides say)")
     ap.add_argument("--eval-every", type=int, default=1000,
                     help="evaluation period; the run scores every gcd(this, each --steps mark) steps, so every mark "
                          "is scored")
