@@ -90,6 +90,9 @@ class TrainingLoop:
             loaded = tr.views.load_all()  # outside the steps' clock, as gsplat's and 3DGS's loaders do
         if loaded:
             self.say(f"warpgs: {loaded} training views loaded onto {tr.device} in {time.perf_counter() - t0:.1f} s")
+        slow = {name: s for name, s in tr.clock.seconds.items() if s >= 1.0}
+        if slow:  # where the wait before the first step went (triangulation and estimated priors are cached after)
+            self.say("warpgs: set-up " + ", ".join(f"{name.replace('_', ' ')} {s:.1f} s" for name, s in slow.items()))
         if tr.strategy.schedule.auto is not None and tr.step > 0:  # a checkpoint written before the rule saw its step
             with tr.lock:  # (a step's hook or a second Ctrl-C stopped it): that step's validation and decisions
                 self._auto_schedule()
