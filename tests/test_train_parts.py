@@ -149,6 +149,40 @@ def test_views_load_all_in_threads_equals_one_by_one_and_names_a_bad_image(tmp_p
         TrainViews(scene, "cpu", seed=0).load_all()
 
 
+def test_kept_8bit_images_take_a_quarter_of_the_memory_and_come_back_bit_for_bit(tmp_path):
+    """Images from 8-bit files are kept as their codes and expanded to exactly the loaded float image; an image
+    with other values (FakeScene's random floats) is kept as it is."""
+    from data_fixtures import copy_of
+    from warpgs.data import load_scene
+
+    root = copy_of("orbit", tmp_path / "scene")
+    views = TrainViews(load_scene(root, split="llff"), "cpu", seed=0)
+    views.load_all()
+    fresh = load_scene(root, split="llff")
+    pixels = sum(fresh.view(i).image.numel() for i in fresh.train)
+    assert views.kept_bytes() == pixels  # one byte a value, not four
+    for i in fresh.train:
+        drawn = views.view(i).image
+        assert drawn.dtype == torch.float32 and torch.equal(drawn, fresh.view(i).image)
+    floats = TrainViews(FakeScene(), "cpu", seed=0)
+    floats.load_all()
+    assert floats.kept_bytes() == 4 * sum(floats.scene.images[i].numel() for i in floats.scene.train)
+    assert floats.view(1) is floats.view(1)
+
+
+def test_a_resized_image_is_served_with_the_values_its_cache_file_gives_later_runs(tmp_path, monkeypatch):
+    """The first run resizes in float; later runs read the 8-bit cache file. Both get the same image (and so the
+    compact 8-bit copy applies from the first run on)."""
+    from data_fixtures import copy_of
+    from warpgs.data import compact_image, load_scene
+
+    monkeypatch.setenv("WARPGS_CACHE", str(tmp_path / "cache"))
+    root = copy_of("orbit", tmp_path / "scene")
+    first = load_scene(root, split="llff", downscale=2).view(0).image
+    later = load_scene(root, split="llff", downscale=2).view(0).image
+    assert torch.equal(first, later) and compact_image.pack(first) is not None
+
+
 def test_views_without_training_views_fail_on_draw_naming_the_scene():
     views = TrainViews(SimpleNamespace(train=[], root="/data/empty"), "cpu", seed=0)
     with pytest.raises(ValueError, match="/data/empty has no training views"):

@@ -113,7 +113,8 @@ class ViewMaps:
         rgb, _ = self._to_final(i, rgb, "native", "colour")
         if alpha is not None:
             alpha, _ = self._to_final(i, alpha, "native", "colour")
-        if cached is not None:
+        if cached is not None:  # served as the 8-bit cache file will serve it: the same values in every run
+            rgb = image_io.to_float(image_io.to_uint8(rgb))
             if alpha is not None:
                 image_io.write_png(cached.with_suffix(".alpha.png"), alpha)
             image_io.write_png(cached, rgb)  # written last: its presence means the entry is complete

@@ -1,16 +1,21 @@
 """The training views a Trainer draws from: device copies kept when data.preload (all of them loaded before the
 first step, as 3DGS does, decoded in up to LOAD_THREADS threads), and a seeded order reshuffled every epoch. The
 order's generator and queue go into checkpoints, so a resumed run draws the same views. The order is global (the
-same on every rank of a distributed run), so any rank may render any view and each keeps them all. With
+same on every rank of a distributed run), so any rank may render any view and each keeps them all. Kept images
+from 8-bit files are held as their 8-bit codes (`data/compact_image.py`: a quarter of the memory) and expanded,
+bit for bit, when a view is drawn. With
 train.steps=auto some training views are held out for validation (`hold_out`) and may come back for the run's last
 steps (`restore_held_out`); the current training list goes into checkpoints too."""
 from __future__ import annotations
 
+import copy
 import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Dict, List
 
 import torch
+
+from warpgs.data import compact_image
 
 LOAD_THREADS = 8  # views decoded at once by load_all (image decoding releases the GIL)
 
@@ -54,8 +59,8 @@ class TrainViews:
             v = self.scene.view(index, self.device)
             if not self.preload:
                 return v
-            self._kept[index] = v
-        return self._kept[index]
+            self._kept[index] = _compact(v)
+        return _expanded(self._kept[index])
 
     def load_all(self) -> int:
         """With preload, every training view onto the device now: step times then time steps (a first draw of each
@@ -71,13 +76,17 @@ class TrainViews:
             device = torch.device("cuda", torch.cuda.current_device())
         threads = min(LOAD_THREADS, os.cpu_count() or 1, len(missing))
         with ThreadPoolExecutor(threads) as pool:  # the first bad image raises here, naming its file
-            for i, v in zip(missing, pool.map(lambda i: self.scene.view(i, device), missing)):
+            for i, v in zip(missing, pool.map(lambda i: _compact(self.scene.view(i, device)), missing)):
                 self._kept[i] = v
         return len(missing)
 
     def kept_or_new(self, index: int):
         """The kept copy when there is one, else a fresh view that is not kept (for evaluation)."""
-        return self._kept[index] if index in self._kept else self.scene.view(index, self.device)
+        return _expanded(self._kept[index]) if index in self._kept else self.scene.view(index, self.device)
+
+    def kept_bytes(self) -> int:
+        """Bytes of the kept views' images (as kept: 8-bit codes where they could be)."""
+        return sum(v.image.numel() * v.image.element_size() for v in self._kept.values())
 
     def next(self):
         """The next training view: a new random permutation of the training views each epoch."""
@@ -116,3 +125,22 @@ class TrainViews:
             self.held_out, self._split = list(state.get("view_held_out", [])), True
             if not split:  # an auto run's checkpoint resumed with a step count: no validation, so every view
                 self.restore_held_out()  # is drawn (appended: the queue's positions stay valid)
+
+
+def _compact(view):
+    """The view to keep: its image as 8-bit codes when it is exactly an 8-bit image (else the view itself)."""
+    codes = compact_image.pack(view.image)
+    if codes is None:
+        return view
+    kept = copy.copy(view)
+    kept.image = codes
+    return kept
+
+
+def _expanded(kept):
+    """A kept view as the loader made it (a shallow copy with the float image; the other tensors are shared)."""
+    if kept.image.dtype != torch.uint8:
+        return kept
+    view = copy.copy(kept)
+    view.image = compact_image.unpack(kept.image)
+    return view

@@ -37,7 +37,8 @@ def image_size(path: PathLike, what: str = "image") -> tuple[int, int]:
         raise SceneError(path, f"corrupt {what} header ({exc})") from exc
 
 
-def _to_float(arr: np.ndarray) -> np.ndarray:
+def to_float(arr: np.ndarray) -> np.ndarray:
+    """8/16-bit codes -> float32 in [0, 1], as images are decoded (float arrays as float32)."""
     if arr.dtype == np.uint8:
         return arr.astype(np.float32) / 255.0
     if arr.dtype == np.uint16:
@@ -57,10 +58,10 @@ def read_image(path: PathLike, background: Optional[np.ndarray] = None) -> tuple
     img = _open(path, "image")
     mode = img.mode
     if mode in ("I;16", "I;16B", "I;16L", "I"):
-        grey = _to_float(np.array(img))
+        grey = to_float(np.array(img))
         return np.repeat(grey[..., None], 3, axis=2), None
     has_alpha = mode in ("RGBA", "LA", "PA") or (mode == "P" and "transparency" in img.info)
-    arr = _to_float(np.array(img.convert("RGBA" if has_alpha else "RGB")))
+    arr = to_float(np.array(img.convert("RGBA" if has_alpha else "RGB")))
     if not has_alpha:
         return np.ascontiguousarray(arr), None
     rgb, alpha = arr[..., :3], arr[..., 3]
@@ -91,7 +92,7 @@ def read_mask_values(path: PathLike) -> np.ndarray:
     """Single-channel 8/16-bit image -> [H, W] float32 in [0, 1] (soft masks, alpha)."""
     path = Path(path)
     arr = np.array(_open(path, "mask"))
-    return _to_float(arr if arr.ndim == 2 else arr[..., 0])
+    return to_float(arr if arr.ndim == 2 else arr[..., 0])
 
 
 def to_uint8(rgb: np.ndarray) -> np.ndarray:
