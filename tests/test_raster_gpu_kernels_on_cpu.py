@@ -16,7 +16,8 @@ VARIANTS = {  # name: (environment, test files)
     "warp_sums": ({"WARPGS_BWD_KERNEL": "warp_sums"},
                   ["test_raster_forward.py", "test_raster_gradients.py",
                    "test_raster_knobs.py",  # covers the surfel kernels at other thresholds too
-                   "test_raster_degenerate.py", "test_raster_fast_path.py"]),
+                   "test_raster_degenerate.py", "test_raster_fast_path.py",
+                   "test_render_splats.py"]),  # the split op of model-parallel rendering
     "block": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "1"},
               ["test_raster_gradients.py",
                "test_raster_knobs.py::test_gaussians_gradients_follow_reference_at_other_thresholds"]),

@@ -92,10 +92,7 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     check: the input checks to run, whose error is raised at the tile-pair count's sync (before anything is sized
     from the count). deterministic: keep what a fixed-order (run-to-run identical) GPU backward needs (pair_order)."""
     _stage(on_stage, "op prologue")  # the render call's host work up to here (checks, wrapping, allocation)
-    dev = ws.device
     n = int(inputs[0].shape[0])
-    L = ws.launches
-
     per_call = keep if keep is not None else ws  # both take (name, length, dtype)
 
     means2d = per_call("means2d", n, wp.vec2)
@@ -104,17 +101,30 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     colors = per_call("colors", n, wp.vec3)
     cov2d = ws.array("cov2d", n, wp.vec3)
     valid = ws.array("valid", n, wp.int32)
-    color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
     seq = launch_sequence(ws, on_stage)
     seq.launch("project", project.project_gaussians, n,
-               list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0), s.low_pass,
-                               means2d, conics, cov2d, depths, colors, valid])
+               projection_args(s, inputs, (means2d, conics, cov2d, depths, colors, valid)))
     if check is not None:
         add_input_check(ws, seq, n, check)
     _stage(on_stage, "project")
+    return bin_and_blend(ws, s, want, (means2d, conics, cov2d, depths, colors, valid), opacities, features, outputs,
+                         keep, on_stage, seq, deterministic)
+
+
+def bin_and_blend(ws: Workspace, s: Settings, want: Wanted, projected, opacities, features, outputs,
+                  keep: Optional[Keep], on_stage: Optional[Callable[[str], None]] = None,
+                  sequence: Optional[LaunchSequence] = None, deterministic: bool = False) -> Frame:
+    """The forward after the projection: bins, sorts and blends projected Gaussians. projected: (means2d, conics,
+    cov2d, depths, colors, valid) arrays of n rows, from the projection kernel or from anywhere (render/splats.py);
+    the rest as `forward` takes it. sequence: launches already queued (run with the binning, up to the sync)."""
+    means2d, conics, cov2d, depths, colors, valid = projected
+    dev = ws.device
+    n = int(depths.shape[0])
+    L = ws.launches
+    per_call = keep if keep is not None else ws
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "footprints", binning.tile_footprints, [means2d, cov2d, opacities, valid], depths, s, per_call,
-        on_stage, sequence=seq)
+        on_stage, sequence=sequence)
     pairs = pair_order(ws, s, keep, n, total, sorted_ids) if deterministic else None
 
     npix = s.width * s.height
@@ -342,16 +352,28 @@ def run_blend_adjoint(ws: Workspace, s: Settings, key: str, fields, n: int, adj_
 def project_backward(ws: Workspace, frame: Frame, s: Settings, inputs, input_grads, projected_grads) -> None:
     """The projection's generated adjoint (what wp.Tape.backward would run). input_grads: the gradient arrays of
     `inputs` (None where not wanted); projected_grads: (means2d, conics, colors, depths) from `blend_backward`."""
-    g_means2d, g_conics, g_colors, g_depths = projected_grads
-    color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
     n = frame.n
-    cov2d = ws.array("cov2d", n, wp.vec3)
-    valid = ws.array("valid", n, wp.int32)
-    args = list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0), s.low_pass,
-                           frame.means2d, frame.conics, cov2d, frame.depths, frame.colors, valid]
-    adj = list(input_grads) + [0, 0, 0.0, 0.0, 0, 0, 0.0, g_means2d, g_conics, None, g_depths, g_colors, None]
-    ws.launches.launch_adjoint("project_adjoint", project.project_gaussians, n, args, adj)
+    outs = (frame.means2d, frame.conics, ws.array("cov2d", n, wp.vec3), frame.depths, frame.colors,
+            ws.array("valid", n, wp.int32))
+    launch_projection_adjoint(ws, "project_adjoint", s, n, inputs, outs, input_grads, projected_grads)
     _stage(None, "project adjoint")
+
+
+def projection_args(s: Settings, inputs, outs) -> list:
+    """The projection kernel's arguments: inputs (means, quats, scales, coeffs, viewmat, intrinsics), the settings,
+    outs (means2d, conics, cov2d, depths, colors, valid)."""
+    color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
+    return list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0), s.low_pass] + list(outs)
+
+
+def launch_projection_adjoint(ws: Workspace, key: str, s: Settings, n: int, inputs, outs, input_grads,
+                              projected_grads) -> None:
+    """The projection kernel's generated adjoint. outs: arrays its forward replay may write (the forward's own or
+    scratch); input_grads: the gradient arrays of `inputs` (None where not wanted), accumulated into;
+    projected_grads: upstream (means2d, conics, colors, depths)."""
+    g_means2d, g_conics, g_colors, g_depths = projected_grads
+    adj = list(input_grads) + [0, 0, 0.0, 0.0, 0, 0, 0.0, g_means2d, g_conics, None, g_depths, g_colors, None]
+    ws.launches.launch_adjoint(key, project.project_gaussians, n, projection_args(s, inputs, outs), adj)
 
 
 def _flat(ws: Workspace, name: str, a):

@@ -255,6 +255,29 @@ def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: st
     return _features_arg(None, 0, layout, state)
 
 
+def image_outputs(state: "_DeviceState", like: torch.Tensor, settings, wanted, layout: str, keep):
+    """The blend's outputs for one render: ((color, alpha, depth, inv_depth, features) fresh [H, W, C] tensors on
+    `like`'s device, empty where not wanted; zacc, the depth accumulation in `keep` (or the workspace); the arrays
+    as the blend kernels take them, `fast.forward`'s `outputs`)."""
+    ws, desc = state.ws, state.desc
+    H, W = settings.height, settings.width
+    npix, nf = H * W, wanted.num_features
+    empty = like.new_empty(0)
+    color = like.new_empty(H, W, 3) if wanted.color else empty
+    alpha = like.new_empty(H, W, 1)
+    depth = like.new_empty(H, W, 1) if wanted.depth else empty
+    inv_depth = like.new_empty(H, W, 1) if wanted.inv_depth else empty
+    # the per-thread CPU kernels accumulate features in place; the cooperative ones write every pixel
+    feats = ((like.new_zeros if layout == "rows" else like.new_empty)(H, W, nf)) if nf else empty
+    # the blend accumulates depth in `zacc`; `depth` gets it over alpha (fast.normalize_depth)
+    zacc = (keep if keep is not None else ws)("zacc", npix, float) if wanted.depth else ws.dummy(float)
+    arrays = [desc(color.view(npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3),
+              desc(alpha.view(npix), wp.float32), zacc,
+              desc(inv_depth.view(npix), wp.float32) if wanted.inv_depth else ws.dummy(float),
+              _features_arg(feats.view(npix, nf), nf, layout, state)]
+    return (color, alpha, depth, inv_depth, feats), zacc, arrays
+
+
 def input_check(state: "_DeviceState", primitives, viewmat: torch.Tensor, extra, alive: list) -> fast.InputCheck:
     """The finite-value check of a render (fast_pipeline.InputCheck). primitives: the contiguous (means, quats,
     scales, opacities, coeffs); viewmat [1, 4, 4]; extra: the caller's (features or None, K [3, 3], background or
@@ -282,8 +305,7 @@ class FastRasterizeFunction(torch.autograd.Function):
         device = means.device
         state = device_state(device)
         ws = state.ws
-        H, W = settings.height, settings.width
-        npix = H * W
+        npix = settings.width * settings.height
         nf = wanted.num_features
         layout = fast.feature_layout(state.wdev)
         (means, quats, scales, opacities, coeffs, features), viewmat, intrinsics = detached_inputs(
@@ -293,20 +315,9 @@ class FastRasterizeFunction(torch.autograd.Function):
         w_opac = desc(opacities, wp.float32)
         w_feat = _features_arg(features, nf, layout, state)
 
-        empty = means.new_empty(0)
-        color = means.new_empty(H, W, 3) if wanted.color else empty
-        alpha = means.new_empty(H, W, 1)
-        depth = means.new_empty(H, W, 1) if wanted.depth else empty
-        inv_depth = means.new_empty(H, W, 1) if wanted.inv_depth else empty
-        # the per-thread CPU kernels accumulate features in place; the cooperative ones write every pixel
-        feats = ((means.new_zeros if layout == "rows" else means.new_empty)(H, W, nf)) if nf else empty
         keep = ws.lease_frame() if any_grad else None  # back to the pool with ctx.state
-        # the blend accumulates depth in `zacc`; `depth` gets it over alpha (fast.normalize_depth)
-        zacc = (keep if keep is not None else ws)("zacc", npix, float) if wanted.depth else ws.dummy(float)
-        outputs = [desc(color.view(npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3),
-                   desc(alpha.view(npix), wp.float32), zacc,
-                   desc(inv_depth.view(npix), wp.float32) if wanted.inv_depth else ws.dummy(float),
-                   _features_arg(feats.view(npix, nf), nf, layout, state)]
+        (color, alpha, depth, inv_depth, feats), zacc, outputs = image_outputs(state, means, settings, wanted,
+                                                                               layout, keep)
 
         alive = []
         checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), viewmat,
