@@ -14,7 +14,7 @@ import torch.distributed as dist
 from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
 from warpgs.render.exchange import exchange_rows
 from warpgs.render.gaussians import RenderOutput
-from warpgs.render.splats import Splats, blend_splats, project_splats
+from warpgs.render.splats import Splats, blend_rows, project_rows
 
 
 @torch.no_grad()
@@ -60,19 +60,19 @@ def render_sharded(means, quats, scales, opacities, colors, viewmats, Ks, width,
     probe = means.new_zeros(world, means.shape[0], 2, requires_grad=True) if track_means2d else None
     sends, sent, sent_rows = [], [], []
     for j in range(world):
-        splats = project_splats(means, quats, scales, opacities, colors, viewmats[j], Ks[j], widths[j], heights[j],
-                                sh_degree=sh_degree, features=features, near=near, far=far)
+        rows, valid = project_rows(means, quats, scales, opacities, colors, viewmats[j], Ks[j], widths[j], heights[j],
+                                   sh_degree=sh_degree, features=features, near=near, far=far)
         if probe is not None:  # adds zero; its gradient is the projected centres' (as rasterize's probe)
-            splats.means2d = splats.means2d + probe[j]
-        reach = reaches_image(splats, widths[j], heights[j], alpha_min)
-        rows = reach.nonzero().squeeze(1)
+            rows = rows + torch.nn.functional.pad(probe[j], (0, rows.shape[1] - 2))
+        reach = reaches_image(Splats.unpack(rows.detach(), valid), widths[j], heights[j], alpha_min)
+        picked = reach.nonzero().squeeze(1)
         sent.append(reach)
-        sent_rows.append(rows)
-        sends.append(splats.select(rows).pack())
+        sent_rows.append(picked)
+        sends.append(rows[picked])
     received = exchange_rows(sends, group)
-    out = blend_splats(Splats.unpack(torch.cat(received)), widths[rank], heights[rank], background=background,
-                       outputs=outputs, tile_size=tile_size, alpha_min=alpha_min, transmittance_min=transmittance_min,
-                       alpha_max=alpha_max)
+    out = blend_rows(torch.cat(received), widths[rank], heights[rank], background=background, outputs=outputs,
+                     tile_size=tile_size, alpha_min=alpha_min, transmittance_min=transmittance_min,
+                     alpha_max=alpha_max)
     if probe is not None:
         out.means2d, out.sent = probe, torch.stack(sent)
         out.seen = _binned_by_camera(out.visible, [r.shape[0] for r in received], sent_rows, means.shape[0], group)
