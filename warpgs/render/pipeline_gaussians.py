@@ -1,6 +1,6 @@
 """The rasterization pipeline on Warp arrays, per call: project -> bin into tiles -> sort -> blend, and the blend
-adjoint, each stage allocating its own arrays (a wp.Tape can record the projection). The model-parallel ops
-(`splats.py`) run it, the tests' oracles (tests/legacy_raster*.py) too; the render ops run `fast_pipeline`, which
+adjoint, each stage allocating its own arrays (a wp.Tape can record the projection). The tests' oracles
+(tests/legacy_raster*.py) run it; the render ops (whole and split, `splats_fast.py`) run `fast_pipeline`, which
 takes its settings, block sizes and tile chunks from here.
 
 Torch-free: the callers convert tensors and drive these stages.
