@@ -246,7 +246,8 @@ def test_the_real_ablation_removes_each_term_once():
     assert ablation.schedule_overrides(10_000, 10_000) == []
 
 
-@pytest.mark.skipif(not (FERN / POSES_FILE).is_file(), reason="LLFF fern not present (data/ is git-ignored)")
+@pytest.mark.skipif(not (FERN / POSES_FILE).is_file() or not (FERN / "sparse/0/points3D.bin").is_file(),
+                    reason="LLFF fern with its SfM points not present (data/ is git-ignored)")
 def test_fern_protocol_and_reference():
     scene = load_scene(FERN, downscale=8, split="llff", n_train=3)
     assert (scene.train, scene.test) == ([1, 10, 19], [0, 8, 16])
