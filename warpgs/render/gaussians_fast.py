@@ -255,6 +255,28 @@ def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: st
     return _features_arg(None, 0, layout, state)
 
 
+def blend_upstream(state: "_DeviceState", layout: str, alive: list, frame, zacc, settings, wanted, grads) -> tuple:
+    """The blend adjoint's upstream (color, alpha, depth, inv_depth, features) from the op's output gradients
+    `grads` (None where the loss did not use an output), the depth's through the division by alpha first (the
+    blend accumulated `zacc`). Launches on the current stream: call inside `state.scope()`. Copies go to `alive`."""
+    g_color, g_alpha, g_depth, g_inv, g_feat = grads
+    ws = state.ws
+    npix = settings.width * settings.height
+
+    def upstream(g, name, shape, dtype):
+        return upstream_gradient(state, layout, alive, g, name, shape, dtype)
+
+    gc = upstream(g_color, "up_color", (npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3)
+    ga = upstream(g_alpha, "up_alpha", (npix,), wp.float32)
+    gd = upstream(g_depth, "up_depth", (npix,), wp.float32) if wanted.depth else ws.dummy(float)
+    gi = upstream(g_inv, "up_inv_depth", (npix,), wp.float32) if wanted.inv_depth else ws.dummy(float)
+    gf = upstream_features(state, layout, alive, g_feat, npix, wanted.num_features)
+    if wanted.depth and g_depth is not None:
+        gd, ga = fast.normalize_depth_backward(ws, gd, zacc, frame.transmittance, None if g_alpha is None else ga,
+                                               npix, DEPTH_EPS)
+    return gc, ga, gd, gi, gf
+
+
 def image_outputs(state: "_DeviceState", like: torch.Tensor, settings, wanted, layout: str, keep):
     """The blend's outputs for one render: ((color, alpha, depth, inv_depth, features) fresh [H, W, C] tensors on
     `like`'s device, empty where not wanted; zacc, the depth accumulation in `keep` (or the workspace); the arrays
@@ -347,7 +369,6 @@ class FastRasterizeFunction(torch.autograd.Function):
         device = ctx.device
         state = device_state(device)
         ws = state.ws
-        npix = settings.width * settings.height
         nf = wanted.num_features
 
         grads, g_opac, g_features = gradient_buffers(ctx.saved_tensors, ctx.camera_shapes, needs)
@@ -355,25 +376,15 @@ class FastRasterizeFunction(torch.autograd.Function):
         desc = state.desc
         alive = []  # descriptors hold no reference: contiguous copies must outlive the launches
 
-        def upstream(g, name, shape, dtype):
-            return upstream_gradient(state, layout, alive, g, name, shape, dtype)
-
-        gc = upstream(g_color, "up_color", (npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3)
-        ga = upstream(g_alpha, "up_alpha", (npix,), wp.float32)
-        gd = upstream(g_depth, "up_depth", (npix,), wp.float32) if wanted.depth else ws.dummy(float)
-        normalized_depth_grad = wanted.depth and g_depth is not None  # goes through the division's adjoint first
-        gi = upstream(g_inv, "up_inv_depth", (npix,), wp.float32) if wanted.inv_depth else ws.dummy(float)
-        gf = upstream_features(state, layout, alive, g_feat, npix, nf)
         w_opac = desc(opacities, wp.float32)
         w_feat = _features_arg(features, nf, layout, state)
         adj_opac = state.array(g_opac, g_opac.shape[0], wp.float32)
         adj_feat = feature_gradient_arg(g_features, nf, layout, state)
         probe_grad = None
         with state.scope():
-            if normalized_depth_grad:
-                gd, ga = fast.normalize_depth_backward(ws, gd, zacc, frame.transmittance,
-                                                       None if g_alpha is None else ga, npix, DEPTH_EPS)
-            projected = fast.blend_backward(ws, frame, settings, wanted, w_opac, w_feat, (gc, ga, gd, gi, gf),
+            upstream = blend_upstream(state, layout, alive, frame, zacc, settings, wanted,
+                                      (g_color, g_alpha, g_depth, g_inv, g_feat))
+            projected = fast.blend_backward(ws, frame, settings, wanted, w_opac, w_feat, upstream,
                                             adj_opac, adj_feat, features.shape[0], options.backward_kernel)
             if ctx.needs_input_grad[11]:  # dL/dmeans2d, read before the projection adjoint
                 probe_grad = state.tensor(projected[0]).view(-1, 2).clone()

@@ -16,8 +16,8 @@ import warp as wp
 from warpgs.kernels import project, splat_rows
 from warpgs.render import fast_pipeline as fast
 from warpgs.render.defaults import DEPTH_EPS
-from warpgs.render.gaussians_fast import (_features_arg, device_state, feature_gradient_arg, image_outputs,
-                                          projection_inputs, upstream_features, upstream_gradient)
+from warpgs.render.gaussians_fast import (_PROJECTION_DTYPES, _features_arg, blend_upstream, device_state,
+                                          feature_gradient_arg, image_outputs, projection_inputs)
 
 # A splat row: (first column, width, Warp dtype) of each field; the features follow from column SPLAT_COLUMNS on.
 COLUMNS = {"means2d": (0, 2, wp.vec2), "conics": (2, 3, wp.vec3), "cov2d": (5, 3, wp.vec3),
@@ -76,8 +76,8 @@ class FastProjectRowsFunction(torch.autograd.Function):
             ws = state.ws
             upstream = [_column_array(state, g_rows, name) for name in _PROJECTED_GRADS]
             scratch = [ws.array(f"split_replay_{name}", n, COLUMNS[name][2]) for name in _PROJECTED]
-            dtypes = (wp.vec3, wp.vec4, wp.vec3, wp.vec3, wp.mat44, wp.vec4)
-            input_grads = [None if g is None else state.desc(g, dt) for g, dt in zip(grads, dtypes)]
+            input_grads = [None if g is None else state.desc(g, wp.vec3 if dt is None else dt)
+                           for g, dt in zip(grads, _PROJECTION_DTYPES)]
             with state.scope():
                 fast.launch_projection_adjoint(ws, "split_project_adjoint", ctx.settings, n,
                                                projection_inputs(state, list(saved), wp.vec3),
@@ -137,27 +137,16 @@ class FastBlendRowsFunction(torch.autograd.Function):
         (rows,) = ctx.saved_tensors
         state = device_state(rows.device)
         ws, n, nf = state.ws, frame.n, wanted.num_features
-        npix = settings.width * settings.height
         g_opacities = rows.new_zeros(n)  # contiguous: the CPU threads' private sums are merged into it flat
         g_features = rows.new_zeros(n, nf)
-        alive = []
-
-        def upstream(g, name, shape, dtype):
-            return upstream_gradient(state, layout, alive, g, name, shape, dtype)
-
-        gc = upstream(g_color, "up_color", (npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3)
-        ga = upstream(g_alpha, "up_alpha", (npix,), wp.float32)
-        gd = upstream(g_depth, "up_depth", (npix,), wp.float32) if wanted.depth else ws.dummy(float)
-        gi = upstream(g_inv, "up_inv_depth", (npix,), wp.float32) if wanted.inv_depth else ws.dummy(float)
-        gf = upstream_features(state, layout, alive, g_feat, npix, nf)
+        alive = []  # descriptors hold no reference: contiguous copies must outlive the launches
         g_rows = torch.zeros_like(rows)
         with state.scope():
-            if wanted.depth and g_depth is not None:  # through the division by alpha first
-                gd, ga = fast.normalize_depth_backward(ws, gd, zacc, frame.transmittance,
-                                                       None if g_alpha is None else ga, npix, DEPTH_EPS)
+            upstream = blend_upstream(state, layout, alive, frame, zacc, settings, wanted,
+                                      (g_color, g_alpha, g_depth, g_inv, g_feat))
             projected = fast.blend_backward(
                 ws, frame, settings, wanted, opacities,
-                _features_arg(rows[:, SPLAT_COLUMNS:SPLAT_COLUMNS + nf], nf, layout, state), (gc, ga, gd, gi, gf),
+                _features_arg(rows[:, SPLAT_COLUMNS:SPLAT_COLUMNS + nf], nf, layout, state), upstream,
                 state.array(g_opacities, n, wp.float32), feature_gradient_arg(g_features, nf, layout, state), n)
             for name, a in zip(_PROJECTED_GRADS, projected):  # workspace memory: copied out before the next call
                 target = column(g_rows, name)
