@@ -1,4 +1,4 @@
-"""Structure from motion on image folders (`warpgs.data.sfm.run_sfm`): images registered, points, reprojection
+"""Structure from motion on image folders (`warpgs.data.run_sfm`): images registered, points, reprojection
 error and seconds per stage, for the "SfM that finishes" target (a ~300-photo capture registered >= 95% in
 <= 10 minutes on a 16-core machine).
 

@@ -20,7 +20,8 @@ VARIANTS = {  # name: (environment, test files)
                    "test_render_splats.py"]),  # the split op of model-parallel rendering
     "block": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "1"},
               ["test_raster_gradients.py",
-               "test_raster_knobs.py::test_gaussians_gradients_follow_reference_at_other_thresholds"]),
+               "test_raster_knobs.py::test_gaussians_gradients_follow_reference_at_other_thresholds",
+               "test_render_splats.py::test_projecting_then_blending_is_rasterize"]),
     "block-no-reduce": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "0"},
                         ["test_raster_gradients.py::test_gradients_of_all_inputs_match_reference"]),
     # the fixed-order adjoint (raster option deterministic): the float64 checks, and the default path's gradients

@@ -54,6 +54,30 @@ def test_projecting_then_blending_is_rasterize():
         torch.testing.assert_close(cut[k].grad, ref[k].grad, atol=1e-4, rtol=1e-4, msg=k)
 
 
+def test_the_split_blend_uses_the_calls_adjoint_kernel(monkeypatch):
+    # raster_options(backward_kernel=...) picks the GPU blend adjoint; the split op must pass it on as the whole
+    # op does (the gradients agree either way, so only the argument shows it).
+    from warpgs.render import fast_pipeline
+    from warpgs.render.defaults import raster_options
+    seen = []
+    real = fast_pipeline.blend_backward
+
+    def spy(*args, **kwargs):
+        seen.append(args[10] if len(args) > 10 else kwargs.get("backward_kernel", "warp_sums"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fast_pipeline, "blend_backward", spy)
+    scene = random_scene(n=32, num_features=2, seed=5)
+    whole, cut = _leaves(scene), _leaves(scene)
+    with raster_options(backward_kernel="block"):
+        _render_whole(whole, scene, scene["viewmat"]).rgb.sum().backward()
+        splats = project_splats(cut["means"], cut["quats"], cut["scales"], cut["opacities"], cut["colors"],
+                                scene["viewmat"].float(), scene["K"].float(), scene["width"], scene["height"])
+        blend_splats(Splats.unpack(splats.select(splats.valid).pack()), scene["width"], scene["height"],
+                     outputs=("rgb",)).rgb.sum().backward()
+    assert seen == ["block", "block"]
+
+
 def test_blend_splats_refuses_unknown_outputs():
     with pytest.raises(ValueError, match="outputs"):
         blend_splats(Splats.unpack(torch.zeros(0, 13)), 8, 8, outputs=("rgb", "normals"))

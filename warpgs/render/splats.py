@@ -103,7 +103,7 @@ def blend_rows(rows: torch.Tensor, width: int, height: int, *, background: Optio
                              num_features=nf)
     if rows.shape[0]:
         color, alpha, depth, inv, fout, visible = FastBlendRowsFunction.apply(
-            settings, wanted, options_for_call(None).deterministic, rows)
+            settings, wanted, options_for_call(None), rows)
     else:  # nothing reaches this camera: the blend of nothing, connected to the (empty) rows
         shapes = [(height, width, c) if want else (0,) for c, want in (
             (3, wanted.color), (1, True), (1, wanted.depth), (1, wanted.inv_depth), (nf, nf))]

@@ -96,12 +96,13 @@ class FastProjectRowsFunction(torch.autograd.Function):
 
 
 class FastBlendRowsFunction(torch.autograd.Function):
-    """apply(settings, wanted, deterministic, rows) -> (color, alpha, depth, inv_depth, features, visible) of n >= 1
+    """apply(settings, wanted, options, rows) -> (color, alpha, depth, inv_depth, features, visible) of n >= 1
     valid splat rows (features: the first wanted.num_features feature columns), as the whole op's blend gives them
-    (depth already divided by alpha; empty tensors for outputs not wanted)."""
+    (depth already divided by alpha; empty tensors for outputs not wanted). options: the RasterOptions of the call
+    (deterministic binning; the GPU blend adjoint's kernel), as the whole op takes them."""
 
     @staticmethod
-    def forward(ctx, settings, wanted, deterministic, rows):
+    def forward(ctx, settings, wanted, options, rows):
         state = device_state(rows.device)
         ws = state.ws
         rows = rows.contiguous()
@@ -120,19 +121,19 @@ class FastBlendRowsFunction(torch.autograd.Function):
             valid.fill_(1)  # every row handed in is valid (render/splats.py drops the others first)
             frame = fast.bin_and_blend(ws, settings, wanted, tuple(fields[:5]) + (valid,), fields[5],
                                        _features_arg(rows[:, SPLAT_COLUMNS:SPLAT_COLUMNS + nf], nf, layout, state),
-                                       outputs, keep, deterministic=deterministic)
+                                       outputs, keep, deterministic=options.deterministic)
             if wanted.depth:
                 fast.normalize_depth(ws, zacc, outputs[1], state.desc(depth.view(npix), wp.float32), npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
         ctx.mark_non_differentiable(visible)
         if keep is not None:
-            ctx.state = (frame, keep, zacc, settings, wanted, layout, fields[5])
+            ctx.state = (frame, keep, zacc, settings, wanted, options, layout, fields[5])
             ctx.save_for_backward(rows)  # its features columns are read in place
         return color, alpha, depth, inv_depth, feats, visible
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible):
-        frame, keep, zacc, settings, wanted, layout, opacities = ctx.state
+        frame, keep, zacc, settings, wanted, options, layout, opacities = ctx.state
         ctx.state = None
         (rows,) = ctx.saved_tensors
         state = device_state(rows.device)
@@ -147,7 +148,8 @@ class FastBlendRowsFunction(torch.autograd.Function):
             projected = fast.blend_backward(
                 ws, frame, settings, wanted, opacities,
                 _features_arg(rows[:, SPLAT_COLUMNS:SPLAT_COLUMNS + nf], nf, layout, state), upstream,
-                state.array(g_opacities, n, wp.float32), feature_gradient_arg(g_features, nf, layout, state), n)
+                state.array(g_opacities, n, wp.float32), feature_gradient_arg(g_features, nf, layout, state), n,
+                options.backward_kernel)
             for name, a in zip(_PROJECTED_GRADS, projected):  # workspace memory: copied out before the next call
                 target = column(g_rows, name)
                 target.copy_(state.tensor(a).view(target.shape))
