@@ -123,3 +123,39 @@ def test_keep_best_off_and_a_latest_score_as_good_as_the_best_keep_the_model(tmp
     monkeypatch.setattr(TrainingLoop, "_validation_psnr", scripted_validation(drop=0.01))
     flat = Trainer(None, overrides=quick_overrides(tmp_path / "flat", **AUTO), quiet=True).fit()
     assert "restored_step" not in flat.metrics["schedule"]["decisions"][-1]
+
+
+def test_host_copies_reuse_and_grow_their_buffers():
+    from warpgs.train.host_copies import GROWTH, HostCopies
+    host = HostCopies()
+    a = host.copy("a", torch.arange(12.0).view(4, 3))
+    assert torch.equal(a, torch.arange(12.0).view(4, 3))
+    storage = a.untyped_storage().data_ptr()
+    b = host.copy("a", torch.ones(3, 3))  # fewer rows (a refine pruned some): the same buffer
+    assert b.untyped_storage().data_ptr() == storage and torch.equal(b, torch.ones(3, 3))
+    c = host.copy("a", torch.full((8, 3), 2.0))  # more rows: a new buffer, with room to grow
+    assert c.untyped_storage().data_ptr() != storage and torch.equal(c, torch.full((8, 3), 2.0))
+    assert host.nbytes() == int(24 * GROWTH) * 4
+    d = host.copy("b", torch.zeros(2, dtype=torch.int64))  # another key keeps its own buffer
+    assert torch.equal(c, torch.full((8, 3), 2.0)) and d.dtype == torch.int64
+
+
+def test_the_checkpointed_best_state_holds_only_its_rows():
+    # The live copy is a view of a buffer a quarter larger; a checkpoint must not carry the spare rows.
+    model = GaussianModel.from_points(torch.randn(40, 3), torch.rand(40, 3), sh_degree=1)
+    optimizer = build_optimizer(model, None, 1.0)
+    adam_step(model, optimizer, 1)
+
+    class Parts:
+        modules, module_optimizer = torch.nn.ModuleDict(), None
+    parts = Parts()
+    parts.model, parts.optimizer = model, optimizer
+    best = BestState()
+    best.capture(7, parts)
+    saved = best.state_dict()
+    assert saved["step"] == 7
+    for name, p in model.params.items():
+        value = saved["params"][name]["value"]
+        assert torch.equal(value, p.detach())
+        assert value.untyped_storage().nbytes() == value.numel() * value.element_size()
+        assert torch.equal(saved["params"][name]["state"]["exp_avg"], optimizer.state[p]["exp_avg"])

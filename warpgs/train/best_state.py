@@ -4,7 +4,7 @@ On captures of a few dozen views the held-out quality can fall after its peak an
 stops the run: phone64 on an H100, 3 seeds, the validation best at step 3000 (just before the first opacity
 reset) for two of them, and their ends at step 8000 0.65 and 0.92 dB below step 3000 on the test views. So every
 new best validation score copies the model's parameters with their optimizer state (and the modules with theirs)
-into CPU memory; when the rule starts the polish and the latest score is more than schedule.min_gain below the
+into CPU memory (the parameters into reused page-locked buffers, without stalling the GPU: train/host_copies.py); when the rule starts the polish and the latest score is more than schedule.min_gain below the
 best, the run goes back to that copy and polishes it (`schedule.keep_best`, on by default).
 
 Checkpoints carry the copy (single-process and data-parallel runs), so a resumed run ends as the uninterrupted one
@@ -15,6 +15,7 @@ from typing import Optional
 
 import torch
 
+from warpgs.train.host_copies import HostCopies
 from warpgs.train.optim import copy_parameters, load_parameters
 
 
@@ -26,12 +27,13 @@ class BestState:
         self.params: Optional[dict] = None  # optim.copy_parameters of the model and its optimizer
         self.modules: Optional[dict] = None  # the modules' state_dict, and their optimizer's
         self.module_optimizer: Optional[dict] = None
+        self._host = HostCopies()  # the buffers self.params lives in (kept from one best to the next)
 
     @torch.no_grad()
     def capture(self, step: int, parts) -> None:
         """Copy the model, its optimizer state and the modules of `parts` (a TrainingState) as step `step`'s."""
         self.step = int(step)
-        self.params = copy_parameters(parts.model, parts.optimizer)
+        self.params = copy_parameters(parts.model, parts.optimizer, copy=self._host.copy)
         self.modules = _cpu(parts.modules.state_dict()) if len(parts.modules) else None
         opt = parts.module_optimizer
         self.module_optimizer = None if opt is None else _cpu(opt.state_dict())
@@ -42,6 +44,7 @@ class BestState:
         state, the modules, and the densification statistics sized to the restored model (zeroed)."""
         if self.params is None:
             raise RuntimeError("BestState.restore: nothing was captured")
+        self._host.wait()
         load_parameters(parts.model, parts.optimizer, self.params)
         if self.modules is not None:
             parts.modules.load_state_dict(self.modules)
@@ -52,7 +55,8 @@ class BestState:
     def state_dict(self) -> Optional[dict]:
         if self.step is None:
             return None
-        return {"step": self.step, "params": self.params, "modules": self.modules,
+        self._host.wait()  # the copies are views of larger reused buffers: a checkpoint gets their own tensors
+        return {"step": self.step, "params": _cpu(self.params), "modules": self.modules,
                 "module_optimizer": self.module_optimizer}
 
     def load_state_dict(self, state: Optional[dict]) -> None:

@@ -221,12 +221,17 @@ def set_param_values(model: GaussianModel, optimizers: Optimizers, name: str, va
     model.params[name] = new
 
 
-def copy_parameters(model: GaussianModel, optimizer: torch.optim.Optimizer, device="cpu") -> dict:
+def copy_parameters(model: GaussianModel, optimizer: torch.optim.Optimizer, device="cpu", copy=None) -> dict:
     """A copy of every model parameter with its optimizer state (per-row moments and scalars such as `step`) on
-    `device`: {name: {"value": tensor, "state": dict}}. load_parameters puts it back."""
-    def copy(v):
-        return v.detach().to(device, copy=True) if torch.is_tensor(v) else v
-    return {name: {"value": copy(p), "state": {k: copy(v) for k, v in optimizer.state.get(p, {}).items()}}
+    `device`: {name: {"value": tensor, "state": dict}}. load_parameters puts it back. copy(key, tensor), when
+    given, makes each tensor's copy instead (key: (parameter name, "value" or the state's name); e.g.
+    HostCopies.copy, train/host_copies.py)."""
+    def one(key, v):
+        if not torch.is_tensor(v):
+            return v
+        return copy(key, v) if copy is not None else v.detach().to(device, copy=True)
+    return {name: {"value": one((name, "value"), p),
+                   "state": {k: one((name, k), v) for k, v in optimizer.state.get(p, {}).items()}}
             for name, p in model.params.items()}
 
 
