@@ -179,6 +179,29 @@ def test_a_score_still_rising_is_not_a_plateau_when_asked(wait):
     assert [d["step"] for d in falling_wait] == [d["step"] for d in falling]
 
 
+def slow_scattered(step):
+    """bonsai800's solo pair: a steep rise while densifying to 15k, then +0.05 dB a 1000 steps with each score off
+    that trend by up to 0.09 dB (its 32 validation views: 30.46 at 17.5k, then 30.40, 30.42, 30.47, 30.40), so 2000
+    steps can pass without a score beating the best by min_gain."""
+    wobble = (0.07, -0.015, -0.02, 0.0, -0.09, -0.03, 0.02, -0.04)[(step // 500) % 8]
+    return 27.0 + 0.0002 * min(step, 15_000) + 0.00005 * max(step - 15_000, 0) + wobble
+
+
+@pytest.mark.parametrize("window", [False, True])
+def test_a_slow_rise_within_the_scatter_runs_on_with_window_trend(window):
+    cfg = dataclasses.replace(CFG, window_trend=window)
+    rule, decisions, end = run_rule(slow_scattered, cfg=cfg)
+    stop = decisions[-1]
+    assert decisions[0]["decision"] == "stop_densifying" and decisions[0]["step"] == 15_000
+    if window:  # the windows' means rise by 0.1 dB per 2000 steps: no stop before the bound
+        assert "reached the bound" in stop["reason"] and end == 30_000
+    else:  # a single score must beat the best by min_gain: the scatter hides the rise, the run stops early
+        assert stop["step"] < 25_000 and "has not beaten its best" in stop["reason"]
+    # A curve that falls after an early peak stops where it did without the check (the best is old by then).
+    plain = run_rule(peaked)[1]
+    assert [d["step"] for d in run_rule(peaked, cfg=cfg)[1]] == [d["step"] for d in plain]
+
+
 def test_gains_below_min_gain_are_a_plateau():
     rule, decisions, _ = run_rule(lambda step: 25.0 + 1e-6 * step, until=8000)  # 0.0005 dB per validation
     assert rule.best_step == 500 and decisions[0]["decision"] == "stop_densifying"
