@@ -4,8 +4,9 @@ On captures of a few dozen views the held-out quality can fall after its peak an
 stops the run: phone64 on an H100, 3 seeds, the validation best at step 3000 (just before the first opacity
 reset) for two of them, and their ends at step 8000 0.65 and 0.92 dB below step 3000 on the test views. So every
 new best validation score copies the model's parameters with their optimizer state (and the modules with theirs)
-into CPU memory (the parameters into reused page-locked buffers, without stalling the GPU: train/host_copies.py); when the rule starts the polish and the latest score is more than schedule.min_gain below the
-best, the run goes back to that copy and polishes it (`schedule.keep_best`, on by default).
+into CPU memory (the parameters into reused page-locked buffers, without stalling the GPU: train/host_copies.py);
+when the rule starts the polish and the latest score is more than schedule.min_gain below the best, the run goes
+back to that copy and polishes it (`schedule.keep_best`, on by default).
 
 Checkpoints carry the copy (single-process and data-parallel runs), so a resumed run ends as the uninterrupted one
 would; model-parallel runs keep it in memory only (a shard's rows do not survive a change of rank count)."""

@@ -3,8 +3,8 @@
 A `train.steps=auto` run copies its whole model with the Adam moments to host memory at every new best validation
 score (train/best_state.py); on a large capture that is every 500 steps. Copied into fresh pageable memory, 708 MB
 (a million primitives) took 0.53 s on an H200, the GPU idle meanwhile; into page-locked buffers, enqueued without a
-host sync, 0.013 s (benchmarks/best_state_copy.py, best_state_copy_cuda_h200.json). The buffers are kept and grown by a quarter beyond the need,
-so a model that densifies does not allocate at every copy. Tensors not on a CUDA device are copied synchronously
+host sync, 0.013 s (benchmarks/best_state_copy.py, best_state_copy_cuda_h200.json). The buffers are kept and grown
+by a quarter beyond the need, so a model that densifies does not allocate at every copy. Tensors not on a CUDA device are copied synchronously
 into the same kind of buffers (unpinned)."""
 from __future__ import annotations
 
