@@ -1,4 +1,6 @@
 """COLMAP models through pycolmap: round trips, splits, downscaling with a disk cache, undistortion."""
+import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -145,6 +147,18 @@ def test_downscale_area_average_and_disk_cache(tmp_path, monkeypatch, factor):
     ref = read_image(tmp_path / "images/img_1.png")[0]
     np.testing.assert_allclose(fresh, ref.reshape(48 // factor, factor, 64 // factor, factor, 3).mean((1, 3)),
                                atol=0.5 / 255 + 1e-6)
+
+
+def test_a_cached_image_read_again_is_marked_used(tmp_path, monkeypatch):
+    # warpgs-cache --max-gb drops the least recently used entries: a read must renew the entry's time.
+    monkeypatch.setenv("WARPGS_CACHE", str(tmp_path / "cache"))
+    _pycolmap_model(tmp_path, binary=False)
+    load_colmap(tmp_path, undistort=False).downscaled(2).image(0)
+    (cached,) = list((tmp_path / "cache" / "images").rglob("*.png"))
+    old = time.time() - 7 * 86400
+    os.utime(cached, (old, old))
+    load_colmap(tmp_path, undistort=False).downscaled(2).image(0)
+    assert cached.stat().st_mtime > old + 86400
 
 
 def test_undistortion_matches_pycolmap(tmp_path, monkeypatch):

@@ -20,7 +20,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from warpgs.data.cache import cache_dir, file_key
+from warpgs.data.cache import cache_dir, file_key, touch
 from warpgs.data.depth import files as depth_io
 from warpgs.data.errors import MissingSceneFile, SceneError
 from warpgs.data.formats import image_io
@@ -105,6 +105,7 @@ class ViewMaps:
             alpha_path = cached.with_suffix(".alpha.png")
             alpha = image_io.read_mask_values(alpha_path) if alpha_path.is_file() else None
             if rgb.shape[:2] == (cam.height, cam.width):
+                touch(cached)  # used now (warpgs-cache drops the least recently used entries first)
                 return self._remember(("image", i), (rgb, alpha))
         rgb, alpha = image_io.read_image(path, self.background)
         if rgb.shape[:2] != (native.height, native.width):

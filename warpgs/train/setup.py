@@ -108,7 +108,7 @@ def _estimated_priors(scene, folder: Path, compute, estimator, fill_confidence: 
     else a copy of the same priors from the user's cache ($WARPGS_CACHE/depth_priors/<key>: the same images,
     cameras, views, SfM points and settings, made by an earlier run with another output folder); else new ones,
     copied into that cache for the next run."""
-    from warpgs.data.cache import cache_dir, publish_folder
+    from warpgs.data.cache import cache_dir, publish_folder, touch
     from warpgs.data.depth.priors import prior_key
 
     done = _complete_priors(scene, folder, estimator, fill_confidence)
@@ -117,6 +117,7 @@ def _estimated_priors(scene, folder: Path, compute, estimator, fill_confidence: 
     shared = cache_dir() / "depth_priors" / prior_key(scene, scene.train, estimator, fill_confidence)
     if _complete_priors(scene, shared, estimator, fill_confidence) is not None:
         shutil.copytree(shared, folder, dirs_exist_ok=True)
+        touch(shared)
         print(f"depth priors: estimated by an earlier run on these views, copied from {shared}", file=sys.stderr)
         return _complete_priors(scene, folder, estimator, fill_confidence)
     made = compute(scene, estimator, out_dir=folder, fill_confidence=fill_confidence)[0]

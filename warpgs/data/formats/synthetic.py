@@ -29,7 +29,7 @@ import numpy as np
 from warpgs.data.formats import raytrace
 
 from warpgs.data.formats import textures
-from warpgs.data.cache import cache_dir
+from warpgs.data.cache import cache_dir, touch
 from warpgs.data.camera import Camera, intrinsics_matrix, look_at
 from warpgs.data.formats.colmap import save_colmap
 from warpgs.data.depth.files import write_exr, write_exr_channels
@@ -223,6 +223,7 @@ def default_scene(kind: str = "lightfield", width: int = 128, height: int = 96) 
     each renders into a private folder and the first to finish publishes it."""
     target = cache_dir() / "synthetic" / f"{kind}_{width}x{height}_v{GENERATOR_VERSION}"
     if (target / "synthetic.json").is_file():
+        touch(target)  # used now (warpgs-cache drops the least recently used entries first)
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))

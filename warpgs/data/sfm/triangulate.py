@@ -24,6 +24,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from warpgs.data.cache import touch
 from warpgs.data.errors import PathLike, SceneError
 from warpgs.data.points import PointCloud
 from warpgs.data.sfm import features
@@ -205,6 +206,7 @@ def triangulate_from_poses(cameras, image_paths: Sequence[PathLike], out_dir: Pa
         if cached is not None:
             if where != out_dir:
                 _save(out_dir, key, cached)  # the run's own copy, as if it had triangulated
+                touch(where)  # the shared entry is used now (warpgs-cache drops the least recently used first)
             stages.report(f"{len(cached.points)} points from {where / POINTS_FILE} (cached), mean reprojection "
                           f"error {cached.mean_error:.2f} px")
             return cached
