@@ -31,7 +31,10 @@ def _ago(seconds: float) -> str:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    ap = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0].split(": ", 1)[1])
+    ap = argparse.ArgumentParser(
+        prog=PROG, description="What the derived-file cache holds (resized images, depth priors, triangulated "
+                               "points, generated scenes), and freeing it. Every entry is made again by the next "
+                               "run that needs it; do not clear entries while a run is reading them.")
     ap.add_argument("--clear", nargs="*", metavar="KIND",
                     help=f"delete every entry, or those of the kinds named ({', '.join(KINDS)})")
     ap.add_argument("--max-gb", type=float, metavar="G",

@@ -16,7 +16,8 @@ from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAUL
 from warpgs.render.empty_scene import EmptySceneFunction
 from warpgs.render.gaussians import (OUTPUTS, RenderOutput, _intrinsics_vector, check_blend_knobs, checked_call,
                                      raster_settings, set_image_outputs)
-from warpgs.render.splats_fast import SPLAT_COLUMNS, FastBlendRowsFunction, FastProjectRowsFunction
+from warpgs.render.splats_fast import (COLUMNS, SPLAT_COLUMNS, FastBlendRowsFunction, FastProjectRowsFunction,
+                                       column)
 
 # Packed splat rows (pack / unpack, and what ranks exchange): means2d 2, conics 3, cov2d 3, depth 1, colour 3,
 # opacity 1, then the features (splats_fast.COLUMNS).
@@ -47,8 +48,9 @@ class Splats:
         """The inverse of pack (views of the rows' columns); valid None: every row is valid."""
         if valid is None:
             valid = torch.ones(rows.shape[0], dtype=torch.bool, device=rows.device)
-        return Splats(means2d=rows[:, 0:2], conics=rows[:, 2:5], cov2d=rows[:, 5:8].detach(), depths=rows[:, 8],
-                      colors=rows[:, 9:12], valid=valid, opacities=rows[:, 12], features=rows[:, SPLAT_COLUMNS:])
+        fields = {name: column(rows, name) for name in COLUMNS}  # the layout splats_fast defines
+        fields["cov2d"] = fields["cov2d"].detach()
+        return Splats(**fields, valid=valid, features=rows[:, SPLAT_COLUMNS:])
 
     def select(self, rows: torch.Tensor) -> "Splats":
         return Splats(*(getattr(self, f)[rows] for f in ("means2d", "conics", "cov2d", "depths", "colors", "valid",
