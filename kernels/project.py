@@ -13,8 +13,9 @@ COLOR_DIRECT = wp.constant(0)
 COLOR_SH = wp.constant(1)
 
 
-@wp.kernel
-def project_gaussians(
+@wp.func
+def project_one(
+    i: int,
     means: wp.array(dtype=wp.vec3),
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec3),
@@ -35,7 +36,7 @@ def project_gaussians(
     colors: wp.array(dtype=wp.vec3),
     valid: wp.array(dtype=wp.int32),
 ):
-    i = wp.tid()
+    """Projects Gaussian i (the body of both kernels below)."""
     V = viewmat[0]
     R = rotation_of(V)
     t = translation_of(V)
@@ -82,3 +83,72 @@ def project_gaussians(
 
     ok = z >= near and z <= far and wp.isfinite(a) and wp.isfinite(c)
     valid[i] = wp.where(ok, 1, 0)
+
+
+@wp.kernel
+def project_gaussians(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
+    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    color_mode: int,
+    sh_degree: int,
+    low_pass: float,  # px² added to the projected covariance's diagonal
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    cov2d: wp.array(dtype=wp.vec3),
+    depths: wp.array(dtype=float),
+    colors: wp.array(dtype=wp.vec3),
+    valid: wp.array(dtype=wp.int32),
+):
+    project_one(wp.tid(), means, quats, scales, coeffs, viewmat, intrinsics, width, height, near, far, color_mode,
+                sh_degree, low_pass, means2d, conics, cov2d, depths, colors, valid)
+
+
+@wp.func
+def reached(g_means2d: wp.vec2, g_conics: wp.vec3, g_colors: wp.vec3, g_depth: float) -> bool:
+    """Whether a Gaussian has any upstream gradient (NaN counts as one, so it still propagates)."""
+    return (g_means2d[0] != 0.0 or g_means2d[1] != 0.0 or g_conics[0] != 0.0 or g_conics[1] != 0.0
+            or g_conics[2] != 0.0 or g_colors[0] != 0.0 or g_colors[1] != 0.0 or g_colors[2] != 0.0
+            or g_depth != 0.0)
+
+
+@wp.kernel
+def project_gaussians_reached(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
+    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    color_mode: int,
+    sh_degree: int,
+    low_pass: float,  # px² added to the projected covariance's diagonal
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    cov2d: wp.array(dtype=wp.vec3),
+    depths: wp.array(dtype=float),
+    colors: wp.array(dtype=wp.vec3),
+    valid: wp.array(dtype=wp.int32),
+    g_means2d: wp.array(dtype=wp.vec2),  # upstream gradients of the outputs (read only)
+    g_conics: wp.array(dtype=wp.vec3),
+    g_colors: wp.array(dtype=wp.vec3),
+    g_depths: wp.array(dtype=float),
+):
+    """project_gaussians for the Gaussians with an upstream gradient only. Its generated adjoint is the projection's
+    adjoint: a Gaussian that reached no pixel (culled, off screen, behind the camera: often most of a 360° scene)
+    has a zero adjoint, so it skips the replay and the 16 SH rows' gradient writes instead of computing zeros."""
+    i = wp.tid()
+    if reached(g_means2d[i], g_conics[i], g_colors[i], g_depths[i]):
+        project_one(i, means, quats, scales, coeffs, viewmat, intrinsics, width, height, near, far, color_mode,
+                    sh_degree, low_pass, means2d, conics, cov2d, depths, colors, valid)

@@ -368,12 +368,14 @@ def projection_args(s: Settings, inputs, outs) -> list:
 
 def launch_projection_adjoint(ws: Workspace, key: str, s: Settings, n: int, inputs, outs, input_grads,
                               projected_grads) -> None:
-    """The projection kernel's generated adjoint. outs: arrays its forward replay may write (the forward's own or
-    scratch); input_grads: the gradient arrays of `inputs` (None where not wanted), accumulated into;
-    projected_grads: upstream (means2d, conics, colors, depths)."""
+    """The projection kernel's generated adjoint, run only for the Gaussians with an upstream gradient
+    (`project_gaussians_reached`). outs: arrays its forward replay may write (the forward's own or scratch);
+    input_grads: the gradient arrays of `inputs` (None where not wanted), accumulated into; projected_grads:
+    upstream (means2d, conics, colors, depths), also read to pick the Gaussians."""
     g_means2d, g_conics, g_colors, g_depths = projected_grads
     adj = list(input_grads) + [0, 0, 0.0, 0.0, 0, 0, 0.0, g_means2d, g_conics, None, g_depths, g_colors, None]
-    ws.launches.launch_adjoint(key, project.project_gaussians, n, projection_args(s, inputs, outs), adj)
+    args = projection_args(s, inputs, outs) + [g_means2d, g_conics, g_colors, g_depths]
+    ws.launches.launch_adjoint(key, project.project_gaussians_reached, n, args, adj + [None] * 4)
 
 
 def _flat(ws: Workspace, name: str, a):

@@ -1,0 +1,102 @@
+"""The 3D projection's adjoint, run for every Gaussian (`project_gaussians`) against run only for those with an
+upstream gradient (`project_gaussians_reached`, what the renderer launches), in one process, for several fractions
+of Gaussians that reach a pixel (a 360° capture sees a part of its Gaussians from any one camera).
+
+    python benchmarks/project_adjoint.py                              # CPU, 100k Gaussians, SH degree 3
+    python benchmarks/project_adjoint.py --device cuda --n 1000000 --repeats 50
+
+Writes benchmarks/results/project_adjoint_<device>.json (or $OUT/...).
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+
+import numpy as np
+import warp as wp
+
+from common import ROOT, time_call, write_json
+
+sys.path.insert(0, str(ROOT))
+
+from kernels import project  # noqa: E402
+
+
+def arrays(n: int, device: str, camera_grads: bool, seed: int = 0) -> dict:
+    """Random Gaussians in front of a camera at the origin (OpenCV, looking down +z), SH degree 3; camera_grads:
+    the camera's gradients are wanted too (pose optimisation: every Gaussian adds into one matrix)."""
+    rng = np.random.default_rng(seed)
+    means = np.c_[rng.uniform(-2, 2, (n, 2)), rng.uniform(2, 6, n)].astype(np.float32)
+    quats = rng.normal(size=(n, 4)).astype(np.float32)
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    a = lambda x, dt: wp.array(x, dtype=dt, device=device)  # noqa: E731
+    z = lambda dt: wp.zeros(n, dtype=dt, device=device)  # noqa: E731
+    return dict(
+        means=a(means, wp.vec3), quats=a(quats, wp.vec4),
+        scales=a(rng.uniform(-4, -2, (n, 3)).astype(np.float32), wp.vec3),
+        coeffs=wp.array(rng.normal(0, 0.2, (n, 16, 3)).astype(np.float32), dtype=wp.vec3, device=device),
+        viewmat=a(np.eye(4, dtype=np.float32)[None], wp.mat44),
+        intrinsics=a(np.array([[800.0, 800.0, 640.0, 360.0]], np.float32), wp.vec4),
+        outs=[z(wp.vec2), z(wp.vec3), z(wp.vec3), z(float), z(wp.vec3), z(wp.int32)],
+        grads=[z(wp.vec3), z(wp.vec4), z(wp.vec3), wp.zeros((n, 16), dtype=wp.vec3, device=device)]
+        + ([wp.zeros(1, dtype=wp.mat44, device=device), wp.zeros(1, dtype=wp.vec4, device=device)] if camera_grads
+           else [None, None]))
+
+
+def upstream(n: int, fraction: float, device: str, seed: int = 1) -> list:
+    """Gradients of (means2d, conics, colors, depths): random for `fraction` of the Gaussians, zero elsewhere."""
+    rng = np.random.default_rng(seed)
+    hit = (rng.random(n) < fraction).astype(np.float32)
+    g = lambda k: (rng.normal(size=(n, k)) * hit[:, None]).astype(np.float32)  # noqa: E731
+    return [wp.array(g(2), dtype=wp.vec2, device=device), wp.array(g(3), dtype=wp.vec3, device=device),
+            wp.array(g(3), dtype=wp.vec3, device=device), wp.array(g(1)[:, 0], dtype=float, device=device)]
+
+
+def launcher(kernel, A: dict, g: list, n: int, device: str):
+    settings = [1280, 720, 0.01, 1e10, project.COLOR_SH, 3, 0.3]
+    inputs = [A["means"], A["quats"], A["scales"], A["coeffs"], A["viewmat"], A["intrinsics"]] + settings + A["outs"]
+    g_means2d, g_conics, g_colors, g_depths = g
+    adj = A["grads"] + [0, 0, 0.0, 0.0, 0, 0, 0.0, g_means2d, g_conics, None, g_depths, g_colors, None]
+    if kernel is project.project_gaussians_reached:
+        inputs, adj = inputs + g, adj + [None] * 4
+
+    def run():
+        wp.launch(kernel, dim=n, inputs=inputs, adj_inputs=adj, adjoint=True, device=device)
+    return run
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--n", type=int, default=100000)
+    ap.add_argument("--fractions", default="1,0.5,0.2", help="fractions of Gaussians with an upstream gradient")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds")
+    ap.add_argument("--camera-grads", action="store_true", help="also differentiate the camera (pose optimisation)")
+    args = ap.parse_args(argv)
+    wp.init()
+    A = arrays(args.n, args.device, args.camera_grads)
+    rows = []
+    for fraction in (float(f) for f in args.fractions.split(",")):
+        g = upstream(args.n, fraction, args.device)
+        runs = {"all": launcher(project.project_gaussians, A, g, args.n, args.device),
+                "reached": launcher(project.project_gaussians_reached, A, g, args.n, args.device)}
+        rounds = {name: [] for name in runs}
+        for _ in range(args.rounds):  # interleaved, median of the rounds' medians
+            for name, run in runs.items():
+                rounds[name].append(time_call(run, args.device, repeats=args.repeats))
+        times = {name: statistics.median(t) for name, t in rounds.items()}
+        rows.append({"fraction": fraction, "ms_all": times["all"], "ms_reached": times["reached"],
+                     "ratio": times["reached"] / times["all"]})
+        print(f"{args.n} Gaussians, {fraction:.0%} reached: every row {rows[-1]['ms_all']:.3f} ms, "
+              f"reached rows only {rows[-1]['ms_reached']:.3f} ms ({rows[-1]['ratio']:.2f}x)")
+    result = {"device": args.device, "n": args.n, "sh_degree": 3, "camera_grads": args.camera_grads, "repeats": args.repeats, "rounds": args.rounds, "rows": rows}
+    if args.device.startswith("cuda"):
+        result["gpu"] = wp.get_device(args.device).name
+    write_json(f"project_adjoint_{args.device.split(':')[0]}" + ("_camera" if args.camera_grads else ""), result)
+    return result
+
+
+if __name__ == "__main__":
+    main()
