@@ -1,6 +1,7 @@
 """The 3D projection's adjoint, run for every Gaussian (`project_gaussians`) against run only for those with an
 upstream gradient (`project_gaussians_reached`, what the renderer launches), in one process, for several fractions
-of Gaussians that reach a pixel (a 360° capture sees a part of its Gaussians from any one camera).
+of Gaussians that reach a pixel (a 360° capture sees a part of its Gaussians from any one camera). With
+--camera-grads the camera is differentiated too, also with one camera row per Gaussian (what the renderer does then).
 
     python benchmarks/project_adjoint.py                              # CPU, 100k Gaussians, SH degree 3
     python benchmarks/project_adjoint.py --device cuda --n 1000000 --repeats 50
@@ -53,16 +54,25 @@ def upstream(n: int, fraction: float, device: str, seed: int = 1) -> list:
             wp.array(g(3), dtype=wp.vec3, device=device), wp.array(g(1)[:, 0], dtype=float, device=device)]
 
 
-def launcher(kernel, A: dict, g: list, n: int, device: str):
+def launcher(kernel, A: dict, g: list, n: int, device: str, camera_rows: bool = False):
+    """The adjoint launch; camera_rows: one camera copy and gradient row per Gaussian, summed after (what the
+    renderer does when the camera's gradient is wanted, render/camera_rows.py)."""
     settings = [1280, 720, 0.01, 1e10, project.COLOR_SH, 3, 0.3]
-    inputs = [A["means"], A["quats"], A["scales"], A["coeffs"], A["viewmat"], A["intrinsics"]] + settings + A["outs"]
+    camera, g_camera = [A["viewmat"], A["intrinsics"]], A["grads"][4:]
+    if camera_rows:
+        camera = [wp.array(np.repeat(a.numpy(), n, 0), dtype=a.dtype, device=device) for a in camera]
+        g_camera = [wp.zeros(n, dtype=a.dtype, device=device) for a in camera]
+    inputs = [A["means"], A["quats"], A["scales"], A["coeffs"]] + camera + settings + A["outs"]
     g_means2d, g_conics, g_colors, g_depths = g
-    adj = A["grads"] + [0, 0, 0.0, 0.0, 0, 0, 0.0, g_means2d, g_conics, None, g_depths, g_colors, None]
+    adj = A["grads"][:4] + g_camera + [0, 0, 0.0, 0.0, 0, 0, 0.0, g_means2d, g_conics, None, g_depths, g_colors, None]
     if kernel is project.project_gaussians_reached:
         inputs, adj = inputs + g, adj + [None] * 4
 
     def run():
         wp.launch(kernel, dim=n, inputs=inputs, adj_inputs=adj, adjoint=True, device=device)
+        if camera_rows:
+            for rows in g_camera:
+                wp.to_torch(rows).sum(0)
     return run
 
 
@@ -82,15 +92,19 @@ def main(argv=None) -> dict:
         g = upstream(args.n, fraction, args.device)
         runs = {"all": launcher(project.project_gaussians, A, g, args.n, args.device),
                 "reached": launcher(project.project_gaussians_reached, A, g, args.n, args.device)}
+        if args.camera_grads:
+            runs["reached_rows"] = launcher(project.project_gaussians_reached, A, g, args.n, args.device, True)
         rounds = {name: [] for name in runs}
         for _ in range(args.rounds):  # interleaved, median of the rounds' medians
             for name, run in runs.items():
                 rounds[name].append(time_call(run, args.device, repeats=args.repeats))
         times = {name: statistics.median(t) for name, t in rounds.items()}
         rows.append({"fraction": fraction, "ms_all": times["all"], "ms_reached": times["reached"],
-                     "ratio": times["reached"] / times["all"]})
+                     "ratio": times["reached"] / times["all"]}
+                    | ({"ms_reached_camera_rows": times["reached_rows"]} if args.camera_grads else {}))
         print(f"{args.n} Gaussians, {fraction:.0%} reached: every row {rows[-1]['ms_all']:.3f} ms, "
-              f"reached rows only {rows[-1]['ms_reached']:.3f} ms ({rows[-1]['ratio']:.2f}x)")
+              f"reached rows only {rows[-1]['ms_reached']:.3f} ms ({rows[-1]['ratio']:.2f}x)"
+              + (f"; with a camera row per Gaussian {times['reached_rows']:.3f} ms" if args.camera_grads else ""))
     result = {"device": args.device, "n": args.n, "sh_degree": 3, "camera_grads": args.camera_grads, "repeats": args.repeats, "rounds": args.rounds, "rows": rows}
     if args.device.startswith("cuda"):
         result["gpu"] = wp.get_device(args.device).name

@@ -20,8 +20,8 @@ def project_one(
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec3),
     coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
-    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
-    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    viewmat: wp.array(dtype=wp.mat44),  # [1] or [N] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] or [N] (fx, fy, cx, cy)
     width: int,
     height: int,
     near: float,
@@ -37,10 +37,12 @@ def project_one(
     valid: wp.array(dtype=wp.int32),
 ):
     """Projects Gaussian i (the body of both kernels below)."""
-    V = viewmat[0]
+    # One camera, or one copy per Gaussian (the adjoint with camera gradients: each adds into its own row, not all
+    # into one matrix with atomics; render/camera_rows.py)
+    V = viewmat[wp.min(i, viewmat.shape[0] - 1)]
     R = rotation_of(V)
     t = translation_of(V)
-    intr = intrinsics[0]
+    intr = intrinsics[wp.min(i, intrinsics.shape[0] - 1)]
     fx = intr[0]
     fy = intr[1]
     cx = intr[2]
@@ -91,8 +93,8 @@ def project_gaussians(
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec3),
     coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
-    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
-    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    viewmat: wp.array(dtype=wp.mat44),  # [1] or [N] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] or [N] (fx, fy, cx, cy)
     width: int,
     height: int,
     near: float,
@@ -125,8 +127,8 @@ def project_gaussians_reached(
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec3),
     coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
-    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
-    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    viewmat: wp.array(dtype=wp.mat44),  # [1] or [N] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] or [N] (fx, fy, cx, cy)
     width: int,
     height: int,
     near: float,

@@ -22,6 +22,12 @@ def _exact(options) -> bool:
     return DEVICE == "cpu" and not (COOPERATIVE and options.get("backward_kernel", "block") != "block")
 
 
+def _exact_grad(options, name) -> bool:
+    """As _exact, but the camera's gradients: the fast path sums one row per Gaussian (render/camera_rows.py) where
+    the oracle adds them with atomics, so they agree to float rounding."""
+    return _exact(options) and name not in ("viewmat", "K")
+
+
 def _leaves(scene, requires_grad=True):
     return {k: (scene[k].detach().float().to(DEVICE).requires_grad_(requires_grad)
                 if scene.get(k) is not None else None) for k in INPUTS}
@@ -70,7 +76,7 @@ def test_fast_path_matches_legacy_path(options, sh_degree, num_features, tile):
         _assert_same(getattr(out, name), getattr(ref, name), name)
     assert out.num_intersections == ref.num_intersections
     for name, g in ref_grads.items():
-        _assert_same(grads[name], g, f"grad {name}", _exact(options))
+        _assert_same(grads[name], g, f"grad {name}", _exact_grad(options, name))
 
 
 def test_gaussians_that_reach_no_pixel_skip_the_projection_adjoint_and_get_zero_gradients():
@@ -85,7 +91,7 @@ def test_gaussians_that_reach_no_pixel_skip_the_projection_adjoint_and_get_zero_
     ref, ref_grads = _run(scene, outputs, op=rasterize_legacy)
     out, grads = _run(scene, outputs, PATHS[0])
     for name, g in ref_grads.items():
-        _assert_same(grads[name], g, f"grad {name}", _exact(PATHS[0]))
+        _assert_same(grads[name], g, f"grad {name}", _exact_grad(PATHS[0], name))
     assert torch.all(grads["means"][gone] == 0) and torch.all(grads["colors"][gone] == 0)
     kept = torch.ones(60, dtype=torch.bool)
     kept[gone] = False
@@ -178,7 +184,7 @@ def test_growing_and_shrinking_scenes_between_calls():
         out, grads = _run(scene, ("rgb", "alpha"))
         _assert_same(out.rgb.detach(), ref.rgb.detach(), f"rgb n={n}")
         for name, g in ref_grads.items():
-            _assert_same(grads[name], g, f"grad {name} n={n}")
+            _assert_same(grads[name], g, f"grad {name} n={n}", _exact_grad({}, name))
 
 
 def test_empty_and_fully_culled_scenes():
@@ -220,7 +226,7 @@ def test_expanded_and_unused_upstream_gradients():
         (out.rgb.sum() + out.depth.sum() + out.features[..., 1].sum()).backward()  # alpha unused
         results.append({k: v.grad for k, v in leaves.items() if v is not None})
     for name, g in results[0].items():
-        _assert_same(results[1][name], g, f"grad {name}")
+        _assert_same(results[1][name], g, f"grad {name}", _exact_grad({}, name))
 
 
 def test_outputs_the_loss_never_touches_get_no_gradient_buffers():
@@ -234,7 +240,7 @@ def test_outputs_the_loss_never_touches_get_no_gradient_buffers():
         out.rgb.sum().backward()
         results.append({k: v.grad for k, v in leaves.items() if v is not None})
     for name, g in results[0].items():
-        _assert_same(results[1][name], g, f"grad {name}")
+        _assert_same(results[1][name], g, f"grad {name}", _exact_grad({}, name))
 
 
 def test_intrinsics_changed_in_place_are_seen():
@@ -270,7 +276,7 @@ def test_depth_division_kernel_matches_torch(with_alpha):
         results.append((out.depth.detach(), {k: v.grad for k, v in leaves.items() if v is not None}))
     _assert_same(results[1][0], results[0][0], "depth")
     for name, g in results[0][1].items():
-        _assert_same(results[1][1][name], g, f"grad {name}")
+        _assert_same(results[1][1][name], g, f"grad {name}", _exact_grad({}, name))
 
 
 def test_removed_and_unknown_raster_options_are_named():

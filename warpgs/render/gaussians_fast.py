@@ -22,7 +22,9 @@ import torch
 import warp as wp
 
 from warpgs.render import fast_pipeline as fast
+from warpgs.render.camera_rows import camera_rows
 from warpgs.render.defaults import DEPTH_EPS
+from warpgs.render.pipeline_gaussians import _cooperative
 from warpgs.render.validation import raise_flagged
 from warpgs.render.workspace import Workspace
 
@@ -389,9 +391,19 @@ class FastRasterizeFunction(torch.autograd.Function):
             if ctx.needs_input_grad[11]:  # dL/dmeans2d, read before the projection adjoint
                 probe_grad = state.tensor(projected[0]).view(-1, 2).clone()
             if any(needs[i] for i in (0, 1, 2, 4, 6, 7)):
-                inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec3)
-                fast.project_backward(ws, frame, settings, inputs, projection_gradients(state, grads, wp.vec3),
-                                      projected)
+                camera, rows = (viewmat, intrinsics), None
+                if (needs[6] or needs[7]) and _cooperative(state.wdev):  # GPU: a camera row per Gaussian, not
+                    # atomics that all queue on one matrix (CPU threads add without contention)
+                    rows = camera_rows(frame.n, viewmat, intrinsics, needs[6], needs[7])
+                    camera = (rows.viewmat, rows.intrinsics)
+                inputs = projection_inputs(state, (means, quats, scales, coeffs) + camera, wp.vec3)
+                input_grads = projection_gradients(state, grads, wp.vec3)
+                if rows is not None:
+                    input_grads[4:] = [None if g is None else state.desc(g, dt)
+                                       for g, dt in ((rows.g_viewmat, wp.mat44), (rows.g_intrinsics, wp.vec4))]
+                fast.project_backward(ws, frame, settings, inputs, input_grads, projected)
+                if rows is not None:
+                    rows.add_into(grads[6], grads[7])
         ctx.state = None
         grads[3] = g_opac if needs[3] else None
         grads[5] = g_features if needs[5] else None
