@@ -30,8 +30,9 @@ def homogeneous_pixel(v: wp.vec3, fx: float, fy: float, cx: float, cy: float) ->
     return wp.vec3(fx * v[0] + cx * v[2], fy * v[1] + cy * v[2], v[2])
 
 
-@wp.kernel
-def project_surfels(
+@wp.func
+def project_surfel(
+    i: int,
     means: wp.array(dtype=wp.vec3),
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec2),
@@ -49,7 +50,7 @@ def project_surfels(
     colors: wp.array(dtype=wp.vec3),
     valid: wp.array(dtype=wp.int32),
 ):
-    i = wp.tid()
+    """Projects surfel i (the body of both kernels below)."""
     V = viewmat[0]
     R = rotation_of(V)
     t = translation_of(V)
@@ -93,6 +94,73 @@ def project_surfels(
 
     ok = z >= near and z <= far and wp.isfinite(col_u[0] + col_u[1] + col_v[0] + col_v[1] + col_c[0] + col_c[1])
     valid[i] = wp.where(ok, 1, 0)
+
+@wp.kernel
+def project_surfels(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec2),
+    coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
+    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    near: float,
+    far: float,
+    color_mode: int,
+    sh_degree: int,
+    transforms: wp.array(dtype=wp.mat33),  # rows: homogeneous x, y, z as linear functions of (u, v, 1)
+    means2d: wp.array(dtype=wp.vec2),
+    depths: wp.array(dtype=float),  # camera z of the centre (sort key, depth under the screen-space fallback)
+    normals: wp.array(dtype=wp.vec3),  # world space, flipped to face the camera
+    colors: wp.array(dtype=wp.vec3),
+    valid: wp.array(dtype=wp.int32),
+):
+    project_surfel(wp.tid(), means, quats, scales, coeffs, viewmat, intrinsics, near, far, color_mode, sh_degree,
+                   transforms, means2d, depths, normals, colors, valid)
+
+
+@wp.func
+def nonzero3(v: wp.vec3) -> bool:
+    return v[0] != 0.0 or v[1] != 0.0 or v[2] != 0.0  # NaN counts as non-zero
+
+
+@wp.func
+def surfel_reached(g_transform: wp.mat33, g_mean2d: wp.vec2, g_depth: float, g_normal: wp.vec3,
+                   g_color: wp.vec3) -> bool:
+    """Whether a surfel has any upstream gradient."""
+    return (nonzero3(g_transform[0]) or nonzero3(g_transform[1]) or nonzero3(g_transform[2]) or g_mean2d[0] != 0.0
+            or g_mean2d[1] != 0.0 or g_depth != 0.0 or nonzero3(g_normal) or nonzero3(g_color))
+
+
+@wp.kernel
+def project_surfels_reached(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec2),
+    coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
+    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    near: float,
+    far: float,
+    color_mode: int,
+    sh_degree: int,
+    transforms: wp.array(dtype=wp.mat33),  # rows: homogeneous x, y, z as linear functions of (u, v, 1)
+    means2d: wp.array(dtype=wp.vec2),
+    depths: wp.array(dtype=float),  # camera z of the centre (sort key, depth under the screen-space fallback)
+    normals: wp.array(dtype=wp.vec3),  # world space, flipped to face the camera
+    colors: wp.array(dtype=wp.vec3),
+    valid: wp.array(dtype=wp.int32),
+    g_transforms: wp.array(dtype=wp.mat33),  # upstream gradients of the outputs (read only)
+    g_means2d: wp.array(dtype=wp.vec2),
+    g_depths: wp.array(dtype=float),
+    g_normals: wp.array(dtype=wp.vec3),
+    g_colors: wp.array(dtype=wp.vec3),
+):
+    """project_surfels for the surfels with an upstream gradient only: its generated adjoint is the projection's
+    adjoint without the replay and SH gradient writes of surfels that reached no pixel (kernels/project.py)."""
+    i = wp.tid()
+    if surfel_reached(g_transforms[i], g_means2d[i], g_depths[i], g_normals[i], g_colors[i]):
+        project_surfel(i, means, quats, scales, coeffs, viewmat, intrinsics, near, far, color_mode, sh_degree,
+                       transforms, means2d, depths, normals, colors, valid)
 
 
 @wp.func

@@ -153,14 +153,17 @@ def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelW
 
 
 def project_backward(ws: Workspace, frame: SurfelFrame, s: Settings, inputs, input_grads, projected_grads) -> None:
-    """The projection's generated adjoint (what wp.Tape.backward would run). input_grads: the gradient arrays of
-    `inputs` (None where not wanted); projected_grads: what `blend_backward` returned."""
+    """The projection's generated adjoint (what wp.Tape.backward would run), for the surfels with an upstream
+    gradient only (`project_surfels_reached`). input_grads: the gradient arrays of `inputs` (None where not wanted);
+    projected_grads: what `blend_backward` returned."""
     g_transforms, g_means2d, g_depths, g_colors, g_normals = projected_grads
     valid = ws.array("surfel_valid", frame.n, wp.int32)
     args = list(inputs) + _projection_settings(s) + [frame.transforms, frame.means2d, frame.depths, frame.normals,
                                                      frame.colors, valid]
     adj = list(input_grads) + [0.0, 0.0, 0, 0, g_transforms, g_means2d, g_depths, g_normals, g_colors, None]
-    ws.launches.launch_adjoint("surfel_project_adjoint", surfel_project.project_surfels, frame.n, args, adj)
+    args += [g_transforms, g_means2d, g_depths, g_normals, g_colors]
+    ws.launches.launch_adjoint("surfel_project_adjoint", surfel_project.project_surfels_reached, frame.n, args,
+                               adj + [None] * 5)
     _stage(None, "surfel project adjoint")
 
 
