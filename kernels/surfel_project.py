@@ -37,8 +37,8 @@ def project_surfel(
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec2),
     coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
-    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
-    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    viewmat: wp.array(dtype=wp.mat44),  # [1] or [N] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] or [N] (fx, fy, cx, cy)
     near: float,
     far: float,
     color_mode: int,
@@ -51,10 +51,10 @@ def project_surfel(
     valid: wp.array(dtype=wp.int32),
 ):
     """Projects surfel i (the body of both kernels below)."""
-    V = viewmat[0]
+    V = viewmat[wp.min(i, viewmat.shape[0] - 1)]  # one camera, or a copy per surfel (kernels/project.py)
     R = rotation_of(V)
     t = translation_of(V)
-    intr = intrinsics[0]
+    intr = intrinsics[wp.min(i, intrinsics.shape[0] - 1)]
     fx = intr[0]
     fy = intr[1]
     cx = intr[2]
@@ -101,8 +101,8 @@ def project_surfels(
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec2),
     coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
-    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
-    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    viewmat: wp.array(dtype=wp.mat44),  # [1] or [N] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] or [N] (fx, fy, cx, cy)
     near: float,
     far: float,
     color_mode: int,
@@ -137,8 +137,8 @@ def project_surfels_reached(
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec2),
     coeffs: wp.array2d(dtype=wp.vec3),  # [N, K]: K=1 plain colours, K>=(d+1)^2 SH
-    viewmat: wp.array(dtype=wp.mat44),  # [1] world -> camera (OpenCV)
-    intrinsics: wp.array(dtype=wp.vec4),  # [1] (fx, fy, cx, cy)
+    viewmat: wp.array(dtype=wp.mat44),  # [1] or [N] world -> camera (OpenCV)
+    intrinsics: wp.array(dtype=wp.vec4),  # [1] or [N] (fx, fy, cx, cy)
     near: float,
     far: float,
     color_mode: int,

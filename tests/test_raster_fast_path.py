@@ -23,9 +23,9 @@ def _exact(options) -> bool:
 
 
 def _exact_grad(options, name) -> bool:
-    """As _exact, but the camera's gradients: the fast path sums one row per Gaussian (render/camera_rows.py) where
-    the oracle adds them with atomics, so they agree to float rounding."""
-    return _exact(options) and name not in ("viewmat", "K")
+    """As _exact, but with the cooperative kernels the camera's gradients are summed from one row per Gaussian
+    (render/camera_rows.py) where the oracle adds them with atomics, so they agree to float rounding."""
+    return _exact(options) and not (COOPERATIVE and name in ("viewmat", "K"))
 
 
 def _leaves(scene, requires_grad=True):

@@ -2,6 +2,8 @@
 differentiates every surfel output as the per-call op of tests/legacy_raster_surfels.py (the oracle) does, and
 reusing scratch memory across calls (surfel and 3D renders sharing one workspace) never corrupts a render whose
 backward is still pending."""
+import os
+
 import pytest
 import torch
 
@@ -12,6 +14,7 @@ from reference_surfels import ALL_OUTPUTS, CHANNELS, random_surfel_scene
 from warpgs import rasterize, rasterize_surfels
 
 INPUTS = ("means", "quats", "scales", "opacities", "colors", "features", "viewmat", "K")
+CAMERA_ROWS = DEVICE != "cpu" or os.environ.get("WARPGS_CPU_COOPERATIVE") == "1"  # render/camera_rows.py in use
 
 
 def _leaves(scene, requires_grad=True):
@@ -48,8 +51,8 @@ def _assert_same_run(run, ref, outputs):
         assert_same_result(getattr(out, name), getattr(ref_out, name), name)
     assert out.num_intersections == ref_out.num_intersections
     assert grads.keys() == ref_grads.keys()
-    for name, g in ref_grads.items():
-        assert_same_result(grads[name], g, f"grad {name}")
+    for name, g in ref_grads.items():  # the camera's: summed from per-surfel rows where the oracle adds atomically
+        assert_same_result(grads[name], g, f"grad {name}", not (CAMERA_ROWS and name in ("viewmat", "K")))
 
 
 @pytest.mark.parametrize("sh_degree,num_features,tile", [(None, 0, 8), (2, 3, 8), (None, 2, 16), (1, 0, 4)])
@@ -157,4 +160,4 @@ def test_expanded_upstream_gradients():
         (out.rgb.sum() + out.normal[..., 2].sum() + out.features[..., 1].sum()).backward()  # alpha unused
         results.append({k: v.grad for k, v in leaves.items() if v is not None})
     for name, g in results[0].items():
-        assert_same_result(results[1][name], g, f"grad {name}")
+        assert_same_result(results[1][name], g, f"grad {name}", not (CAMERA_ROWS and name in ("viewmat", "K")))

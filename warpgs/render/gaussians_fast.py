@@ -201,6 +201,27 @@ def projection_gradients(state: "_DeviceState", grads, scale_dtype) -> list:
             for g, dt, v in zip(picked, _PROJECTION_DTYPES, _CAMERA_VIEWS)]
 
 
+def projection_adjoint(state: "_DeviceState", backward, frame, settings, tensors, grads, needs, projected,
+                       scale_dtype) -> None:
+    """Runs `backward` (a pipeline's project_backward) on the projection inputs `tensors` (means, quats, scales,
+    coeffs, viewmat, intrinsics) with the op's eight input gradients. On GPUs (the cooperative kernels) a wanted
+    camera gradient goes through one camera row per primitive (camera_rows.py), not atomics that all queue on one
+    matrix; CPU threads add without contention and keep the single matrix."""
+    means, quats, scales, coeffs, viewmat, intrinsics = tensors
+    rows = None
+    if (needs[6] or needs[7]) and _cooperative(state.wdev):
+        rows = camera_rows(frame.n, viewmat, intrinsics, needs[6], needs[7])
+        viewmat, intrinsics = rows.viewmat, rows.intrinsics
+    inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), scale_dtype)
+    input_grads = projection_gradients(state, grads, scale_dtype)
+    if rows is not None:
+        input_grads[4:] = [None if g is None else state.desc(g, dt)
+                           for g, dt in ((rows.g_viewmat, wp.mat44), (rows.g_intrinsics, wp.vec4))]
+    backward(state.ws, frame, settings, inputs, input_grads, projected)
+    if rows is not None:
+        rows.add_into(grads[6], grads[7])
+
+
 def gradient_buffers(saved, camera_shapes, needs):
     """(grads, opacity gradient, feature gradient): the op's eight input gradients (zeros where `needs`, else None)
     from its saved (means, quats, scales, opacities, coeffs, features, ...) and the camera's shapes, and the two
@@ -391,19 +412,9 @@ class FastRasterizeFunction(torch.autograd.Function):
             if ctx.needs_input_grad[11]:  # dL/dmeans2d, read before the projection adjoint
                 probe_grad = state.tensor(projected[0]).view(-1, 2).clone()
             if any(needs[i] for i in (0, 1, 2, 4, 6, 7)):
-                camera, rows = (viewmat, intrinsics), None
-                if (needs[6] or needs[7]) and _cooperative(state.wdev):  # GPU: a camera row per Gaussian, not
-                    # atomics that all queue on one matrix (CPU threads add without contention)
-                    rows = camera_rows(frame.n, viewmat, intrinsics, needs[6], needs[7])
-                    camera = (rows.viewmat, rows.intrinsics)
-                inputs = projection_inputs(state, (means, quats, scales, coeffs) + camera, wp.vec3)
-                input_grads = projection_gradients(state, grads, wp.vec3)
-                if rows is not None:
-                    input_grads[4:] = [None if g is None else state.desc(g, dt)
-                                       for g, dt in ((rows.g_viewmat, wp.mat44), (rows.g_intrinsics, wp.vec4))]
-                fast.project_backward(ws, frame, settings, inputs, input_grads, projected)
-                if rows is not None:
-                    rows.add_into(grads[6], grads[7])
+                projection_adjoint(state, fast.project_backward, frame, settings,
+                                   (means, quats, scales, coeffs, viewmat, intrinsics), grads, needs, projected,
+                                   wp.vec3)
         ctx.state = None
         grads[3] = g_opac if needs[3] else None
         grads[5] = g_features if needs[5] else None

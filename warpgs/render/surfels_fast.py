@@ -11,7 +11,7 @@ from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.fast_pipeline import feature_layout, normalize_depth, normalize_depth_backward
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
-                                          gradient_buffers, input_check, projection_gradients, projection_inputs,
+                                          gradient_buffers, input_check, projection_adjoint, projection_inputs,
                                           upstream_features, upstream_gradient)
 
 ALPHA, DEPTH = (next(i for i, (name, _, _) in enumerate(IMAGES) if name == n) for n in ("alpha", "depth"))
@@ -96,9 +96,9 @@ class FastSurfelsFunction(torch.autograd.Function):
                                             feature_gradient_arg(g_features, nf, layout, state), features.shape[0],
                                             options.surfel_backward_kernel)
             if any(needs[i] for i in (0, 1, 2, 4, 6, 7)):
-                inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec2)
-                fast.project_backward(ws, frame, settings, inputs, projection_gradients(state, grads, wp.vec2),
-                                      projected)
+                projection_adjoint(state, fast.project_backward, frame, settings,
+                                   (means, quats, scales, coeffs, viewmat, intrinsics), grads, needs, projected,
+                                   wp.vec2)
         ctx.state = None
         grads[3] = g_opac if needs[3] else None
         grads[5] = g_features if needs[5] else None
