@@ -20,9 +20,10 @@ from warpgs.render.gaussians_fast import (_PROJECTION_DTYPES, _features_arg, ble
                                           feature_gradient_arg, image_outputs, projection_inputs)
 
 # A splat row: (first column, width, Warp dtype) of each field; the features follow from column SPLAT_COLUMNS on.
-COLUMNS = {"means2d": (0, 2, wp.vec2), "conics": (2, 3, wp.vec3), "cov2d": (5, 3, wp.vec3),
-           "depths": (8, 1, wp.float32), "colors": (9, 3, wp.vec3), "opacities": (12, 1, wp.float32)}
-SPLAT_COLUMNS = 13
+_DTYPES = {"means2d": wp.vec2, "conics": wp.vec3, "cov2d": wp.vec3, "depths": wp.float32, "colors": wp.vec3,
+           "opacities": wp.float32}
+COLUMNS = {name: (*splat_rows.LAYOUT[name], dtype) for name, dtype in _DTYPES.items()}  # (first, width, dtype)
+SPLAT_COLUMNS = splat_rows.SPLAT_COLUMNS
 _PROJECTED = ("means2d", "conics", "cov2d", "depths", "colors")  # the projection kernel's outputs, in its order
 _PROJECTED_GRADS = ("means2d", "conics", "colors", "depths")  # what its adjoint and the blend adjoint exchange
 
