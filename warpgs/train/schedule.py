@@ -28,8 +28,8 @@ one kind only. The rule, with patience P, settle S and min_gain g (dB):
      densification stop also ends this phase;
   3. then train without densifying; stop when there has been no new best for P steps since the later of the
      best and the densification stop (non-densifying training gets P steps to beat the best); with
-     `window_trend` (on in the preset), not while a best under 2P steps old has the mean of the last P steps' scores above the mean
-     of the P steps before by more than g (a slow rise hidden in the scores' scatter);
+     `window_trend` (on in the preset), not while a best under 2P steps old has the mean of the last P steps'
+     scores above the mean of the P steps before by more than g (a slow rise hidden in the scores' scatter);
   4. at that stop, when the latest score is more than g below the best, the run goes back to the state of the
      best score (`schedule.keep_best`; train/best_state.py keeps a copy of it);
   5. polish: the validation views go back into the training views for `schedule.polish` steps (no densification,
