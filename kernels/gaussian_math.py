@@ -1,4 +1,4 @@
-"""Small differentiable helpers shared by the projection kernels (quaternions, 2x2 inverses)."""
+"""Small differentiable helpers shared by the projection kernels (quaternions, 2x2 inverses, gradient tests)."""
 import warp as wp
 
 # Largest |scale| we feed into the covariance: beyond it a Gaussian already covers the whole screen
@@ -51,3 +51,15 @@ def rotation_of(viewmat: wp.mat44) -> wp.mat33:
 @wp.func
 def translation_of(viewmat: wp.mat44) -> wp.vec3:
     return wp.vec3(viewmat[0, 3], viewmat[1, 3], viewmat[2, 3])
+
+
+@wp.func
+def nonzero2(v: wp.vec2) -> bool:
+    """Any component non-zero (NaN counts: a NaN gradient still propagates)."""
+    return v[0] != 0.0 or v[1] != 0.0
+
+
+@wp.func
+def nonzero3(v: wp.vec3) -> bool:
+    """Any component non-zero (NaN counts: a NaN gradient still propagates)."""
+    return v[0] != 0.0 or v[1] != 0.0 or v[2] != 0.0

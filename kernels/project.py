@@ -5,7 +5,8 @@ finite values (they receive a zero adjoint because they never reach a tile).
 """
 import warp as wp
 
-from .gaussian_math import clamp_scale, quat_wxyz_to_rotation, rotation_of, symmetric2_inverse, translation_of
+from .gaussian_math import (clamp_scale, nonzero2, nonzero3, quat_wxyz_to_rotation, rotation_of, symmetric2_inverse,
+                            translation_of)
 from .sh import colour_from_sh, eval_sh
 
 # The low-pass, in px², added to the projected covariance (3DGS and gsplat's eps2d: 0.3) is the `low_pass` argument.
@@ -116,9 +117,7 @@ def project_gaussians(
 @wp.func
 def reached(g_means2d: wp.vec2, g_conics: wp.vec3, g_colors: wp.vec3, g_depth: float) -> bool:
     """Whether a Gaussian has any upstream gradient (NaN counts as one, so it still propagates)."""
-    return (g_means2d[0] != 0.0 or g_means2d[1] != 0.0 or g_conics[0] != 0.0 or g_conics[1] != 0.0
-            or g_conics[2] != 0.0 or g_colors[0] != 0.0 or g_colors[1] != 0.0 or g_colors[2] != 0.0
-            or g_depth != 0.0)
+    return nonzero2(g_means2d) or nonzero3(g_conics) or nonzero3(g_colors) or g_depth != 0.0
 
 
 @wp.kernel

@@ -11,7 +11,7 @@ surfel plane exactly through M (no affine approximation).
 """
 import warp as wp
 
-from .gaussian_math import clamp_scale, quat_wxyz_to_rotation, rotation_of, translation_of
+from .gaussian_math import clamp_scale, nonzero2, nonzero3, quat_wxyz_to_rotation, rotation_of, translation_of
 from .sh import colour_from_sh, eval_sh
 
 COLOR_DIRECT = wp.constant(0)
@@ -95,6 +95,7 @@ def project_surfel(
     ok = z >= near and z <= far and wp.isfinite(col_u[0] + col_u[1] + col_v[0] + col_v[1] + col_c[0] + col_c[1])
     valid[i] = wp.where(ok, 1, 0)
 
+
 @wp.kernel
 def project_surfels(
     means: wp.array(dtype=wp.vec3),
@@ -119,16 +120,11 @@ def project_surfels(
 
 
 @wp.func
-def nonzero3(v: wp.vec3) -> bool:
-    return v[0] != 0.0 or v[1] != 0.0 or v[2] != 0.0  # NaN counts as non-zero
-
-
-@wp.func
 def surfel_reached(g_transform: wp.mat33, g_mean2d: wp.vec2, g_depth: float, g_normal: wp.vec3,
                    g_color: wp.vec3) -> bool:
     """Whether a surfel has any upstream gradient."""
-    return (nonzero3(g_transform[0]) or nonzero3(g_transform[1]) or nonzero3(g_transform[2]) or g_mean2d[0] != 0.0
-            or g_mean2d[1] != 0.0 or g_depth != 0.0 or nonzero3(g_normal) or nonzero3(g_color))
+    return (nonzero3(g_transform[0]) or nonzero3(g_transform[1]) or nonzero3(g_transform[2]) or nonzero2(g_mean2d)
+            or g_depth != 0.0 or nonzero3(g_normal) or nonzero3(g_color))
 
 
 @wp.kernel
