@@ -10,7 +10,10 @@ where it ran and the host's load when it ended), and the summary says how many a
 
 Prints one row per capture, seed and mark and a summary per capture and mark (seeds, mean, sd and standard error
 of the paired difference, the worst seed); writes benchmarks/results/OUT_NAME.json. A capture's seed may appear once
-per system: pass the files of one code version, not old and new together."""
+per system: pass the files of one code version, not old and new together; `FILE:gsplat` (or `:warpgs`) takes one
+system from a file that holds both. Two runs pair only on the same scene (real_capture.py's description: views,
+split, resolution, SfM points); a pair on different copies of a capture is listed, marked, and left out of the
+summary."""
 from __future__ import annotations
 
 import argparse
@@ -24,8 +27,27 @@ from common import print_table, read_results, write_json
 SYSTEMS = ("warpgs", "gsplat")  # real_capture.py's names for the Trainer and the plain gsplat loop
 
 
-def runs_by_seed(payloads: list[tuple[str, dict]]) -> dict:
-    """{(capture, seed): {system: (file, {step: psnr, ...})}} for the two compared systems."""
+def parse_file_arg(arg: str) -> tuple[str, Optional[str]]:
+    """`FILE` or `FILE:system` -> (file, the one system to take or None for all)."""
+    head, sep, tail = arg.rpartition(":")
+    if sep and tail in SYSTEMS:
+        return head, tail
+    return arg, None
+
+
+def scene_key(payload: dict) -> Optional[str]:
+    """real_capture.py's scene description without the folder it was read from ("colmap at /tmp/data/beer: 71
+    views ..." -> "colmap: 71 views ..."): two machines' copies of one capture compare, two versions do not."""
+    scene = payload.get("scene")
+    if not scene:
+        return None
+    head, sep, rest = scene.partition(":")
+    return head.split(" at ")[0] + sep + rest
+
+
+def collect(payloads: list[tuple[str, dict]], only: dict) -> dict:
+    """{(capture, seed): {system: (file, payload, run)}} for the two compared systems; a capture, seed and system
+    given twice stops the run, naming both files."""
     table: dict = {}
     for name, p in payloads:
         for key in ("data", "seed", "runs"):
@@ -33,14 +55,21 @@ def runs_by_seed(payloads: list[tuple[str, dict]]) -> dict:
                 raise SystemExit(f"{name}: no {key!r}: not a real_capture.py result")
         capture = Path(p["data"]).name
         for run in p["runs"]:
-            if run["system"] not in SYSTEMS:
-                continue  # e.g. the gsplat loop with warpgs's rasterizer (--loop-raster)
+            if run["system"] not in SYSTEMS or only.get(name) not in (None, run["system"]):
+                continue  # e.g. the gsplat loop with warpgs's rasterizer (--loop-raster), or a system not asked for
             slot = table.setdefault((capture, p["seed"]), {})
             if run["system"] in slot:
                 raise SystemExit(f"{name}: {capture} seed {p['seed']} {run['system']} is also in "
-                                 f"{slot[run['system']][0]}: pass one result per capture, seed and system")
-            slot[run["system"]] = (name, {pt["step"]: pt["psnr"] for pt in run["points"]})
+                                 f"{slot[run['system']][0]}: pass one result per capture, seed and system "
+                                 f"(FILE:gsplat takes one system of a file)")
+            slot[run["system"]] = (name, p, run)
     return table
+
+
+def same_scene(slot: dict) -> Optional[bool]:
+    """Whether both systems ran on the same copy of the capture (None when a file does not describe its scene)."""
+    keys = [scene_key(slot[s][1]) for s in SYSTEMS]
+    return None if None in keys else keys[0] == keys[1]
 
 
 def paired(table: dict, marks: list[int]) -> list[dict]:
@@ -49,11 +78,11 @@ def paired(table: dict, marks: list[int]) -> list[dict]:
     for (capture, seed), slot in sorted(table.items()):
         if len(slot) < 2:
             continue
-        w, g = slot["warpgs"][1], slot["gsplat"][1]
+        w, g = ({pt["step"]: pt["psnr"] for pt in slot[s][2]["points"]} for s in SYSTEMS)
         for mark in marks:
             if mark in w and mark in g:
                 rows.append({"capture": capture, "seed": seed, "step": mark, "warpgs": w[mark], "gsplat": g[mark],
-                             "delta": w[mark] - g[mark]})
+                             "delta": w[mark] - g[mark], "same_scene": same_scene(slot)})
     return rows
 
 
@@ -76,26 +105,23 @@ def summary(rows: list[dict]) -> list[dict]:
     return out
 
 
-def against_best(payloads: list[tuple[str, dict]]) -> list[dict]:
+def against_best(table: dict) -> list[dict]:
     """Issue 31's target for warpgs's default run (train.steps=auto): per capture and seed, warpgs's final held-out
     PSNR against the best point of gsplat's curve, and warpgs's training seconds over gsplat's whole run's."""
-    finals: dict = {}
-    for name, p in payloads:
-        for run in p["runs"]:
-            if run["system"] in SYSTEMS:
-                finals.setdefault((Path(p["data"]).name, p["seed"]), {})[run["system"]] = (run, name, p.get("host"))
     rows = []
-    for (capture, seed), slot in sorted(finals.items()):
+    for (capture, seed), slot in sorted(table.items()):
         if len(slot) < 2:
             continue
-        (w, w_file, w_host), (g, g_file, g_host) = slot["warpgs"], slot["gsplat"]
+        (w_file, w_payload, w), (g_file, g_payload, g) = slot["warpgs"], slot["gsplat"]
+        w_host, g_host = w_payload.get("host"), g_payload.get("host")
         best = max(g["points"], key=lambda pt: pt["psnr"])
         loads = [h["load_per_core"] for h in (w_host, g_host) if h and h.get("load_per_core") is not None]
         rows.append({"capture": capture, "seed": seed, "warpgs_steps": w["final"].get("steps"),
                      "warpgs": w["final"]["psnr"], "gsplat_best": best["psnr"], "gsplat_best_step": best["step"],
                      "delta": w["final"]["psnr"] - best["psnr"],
                      "time_ratio": w["final"]["train_seconds"] / g["final"]["train_seconds"],
-                     "time_pair": time_pair(w_file, w_host, g_file, g_host), "max_load": max(loads, default=None)})
+                     "time_pair": time_pair(w_file, w_host, g_file, g_host), "max_load": max(loads, default=None),
+                     "same_scene": same_scene(slot)})
     return rows
 
 
@@ -119,23 +145,37 @@ def best_summary(rows: list[dict]) -> list[dict]:
     return out
 
 
+def kept_pairs(rows: list[dict]) -> list[dict]:
+    """The rows the summary pools: pairs on different copies of a capture are left out, and said so."""
+    kept = [r for r in rows if r["same_scene"] is not False]
+    if len(kept) < len(rows):
+        print(f"note: {len(rows) - len(kept)} of {len(rows)} rows pair runs on different copies of a capture "
+              "(same_scene False: views, resolution or SfM points differ); the summary leaves them out")
+    if not kept:
+        raise SystemExit("no pair ran on the same copy of its capture")
+    return kept
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("name", help="output name (benchmarks/results/NAME.json)")
-    ap.add_argument("files", nargs="+", help="real_capture.py result JSON files")
+    ap.add_argument("files", nargs="+", help="real_capture.py result JSON files; FILE:gsplat or FILE:warpgs takes "
+                                                 "one system of a file")
     ap.add_argument("--marks", default="7000,30000", help="comma-separated steps to compare")
     ap.add_argument("--against-best", action="store_true",
                     help="warpgs's final PSNR (e.g. train.steps=auto) against the best point of gsplat's curve, and "
                          "the training-time ratio to gsplat's whole run (issue 31's target)")
     args = ap.parse_args(argv)
-    payloads = read_results(args.files, "real_capture.py result")
+    chosen = [parse_file_arg(f) for f in args.files]
+    payloads = read_results([f for f, _ in chosen], "real_capture.py result")
+    table = collect(payloads, dict(chosen))
     if args.against_best:
-        rows = against_best(payloads)
+        rows = against_best(table)
         if not rows:
             raise SystemExit("no capture and seed has both systems")
         print_table(rows, ["capture", "seed", "warpgs_steps", "warpgs", "gsplat_best", "gsplat_best_step", "delta",
-                           "time_ratio", "time_pair", "max_load"])
-        stats = best_summary(rows)
+                           "time_ratio", "time_pair", "same_scene", "max_load"])
+        stats = best_summary(kept_pairs(rows))
         print()
         print_table(stats, ["capture", "seeds", "delta_mean", "delta_sd", "delta_se", "time_ratio_mean"])
         overall = {"delta_mean_over_captures": statistics.fmean(r["delta_mean"] for r in stats),
@@ -149,20 +189,20 @@ def main(argv=None) -> dict:
             print(f"note: {overall['time_ratios_not_pairs']} of {len(rows)} time ratios are not pairs (the two runs "
                   "came from different hosts or GPUs, or a file does not say where it ran): the time ratio is not a "
                   "measurement")
-        payload = {"files": [f for f, _ in payloads], "mode": "against_best", "rows": rows, "summary": stats,
+        payload = {"files": args.files, "mode": "against_best", "rows": rows, "summary": stats,
                    "overall": overall}
         print(f"\nwrote {write_json(args.name, payload)}")
         return payload
     marks = [int(m) for m in args.marks.split(",")]
-    rows = paired(runs_by_seed(payloads), marks)
+    rows = paired(table, marks)
     if not rows:
         raise SystemExit("no capture has both systems scored at " + args.marks)
-    print_table(rows, ["capture", "seed", "step", "warpgs", "gsplat", "delta"])
+    print_table(rows, ["capture", "seed", "step", "warpgs", "gsplat", "delta", "same_scene"])
     print()
-    stats = summary(rows)
+    stats = summary(kept_pairs(rows))
     print_table(stats, ["capture", "step", "seeds", "warpgs_mean", "gsplat_mean", "delta_mean", "delta_sd",
                         "delta_se", "delta_min"])
-    payload = {"files": [f for f, _ in payloads], "marks": marks, "rows": rows, "summary": stats}
+    payload = {"files": args.files, "marks": marks, "rows": rows, "summary": stats}
     print(f"\nwrote {write_json(args.name, payload)}")
     return payload
 

@@ -117,3 +117,43 @@ def test_a_run_records_where_it_ran():
     from common import run_host
     host = run_host("cpu")
     assert host["hostname"] and host["gpu"] is None and host["gpu_uuid"] is None and host["load_per_core"] >= 0
+
+
+def _final_run(system, psnr, seconds=10.0):
+    return {"system": system, "points": [{"step": 1000, "psnr": psnr}],
+            "final": {"psnr": psnr, "train_seconds": seconds}}
+
+
+def _write(tmp_path, name, seed, runs, scene="colmap at /data/beer: 71 views (34 train, 5 test), 701x1248, 4414 points"):
+    path = tmp_path / f"{name}.json"
+    path.write_text(json.dumps({"data": "/data/beer", "seed": seed, "scene": scene, "runs": runs}))
+    return str(path)
+
+
+def test_one_system_can_be_taken_from_a_file_that_holds_both(tmp_path, monkeypatch):
+    """An old pair file gives gsplat's curve to a new warpgs run of the same seed: `FILE:gsplat`; without it the
+    two warpgs runs of seed 1 collide, named."""
+    monkeypatch.setenv("OUT", str(tmp_path / "out"))
+    old_pair = _write(tmp_path, "old_pair", 1, [_final_run("warpgs", 20.0), _final_run("gsplat", 21.0, 40.0)])
+    new = _write(tmp_path, "new", 1, [_final_run("warpgs", 22.0)])
+    out = real_capture_seeds.main(["x", new, old_pair + ":gsplat", "--against-best"])
+    assert out["rows"][0]["delta"] == pytest.approx(1.0) and out["rows"][0]["time_pair"] is None  # no host recorded
+    with pytest.raises(SystemExit, match="old_pair.json"):
+        real_capture_seeds.main(["x", new, old_pair, "--against-best"])
+
+
+def test_pairs_on_different_copies_of_a_capture_are_marked_and_not_pooled(tmp_path, monkeypatch):
+    """The folder a capture was read from may differ between machines; its views, resolution and SfM points may
+    not (a re-made SfM, another split): such a pair is listed with same_scene False and left out of the summary."""
+    monkeypatch.setenv("OUT", str(tmp_path / "out"))
+    files = [_write(tmp_path, "w1", 1, [_final_run("warpgs", 22.0)]),
+             _write(tmp_path, "g1", 1, [_final_run("gsplat", 21.0)],
+                    scene="colmap at /tmp/elsewhere/beer: 71 views (34 train, 5 test), 701x1248, 4414 points"),
+             _write(tmp_path, "w2", 2, [_final_run("warpgs", 22.0)]),
+             _write(tmp_path, "g2", 2, [_final_run("gsplat", 25.0)],
+                    scene="llff (images) at /data/beer: 71 views (34 train, 5 test), 720x1280, 4414 points")]
+    out = real_capture_seeds.main(["x", *files, "--against-best"])
+    assert [r["same_scene"] for r in out["rows"]] == [True, False]
+    assert out["summary"][0]["seeds"] == 1 and out["summary"][0]["delta_mean"] == pytest.approx(1.0)
+    marks = real_capture_seeds.main(["y", *files, "--marks", "1000"])
+    assert len(marks["rows"]) == 2 and marks["summary"][0]["seeds"] == 1
