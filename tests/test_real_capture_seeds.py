@@ -124,7 +124,10 @@ def _final_run(system, psnr, seconds=10.0):
             "final": {"psnr": psnr, "train_seconds": seconds}}
 
 
-def _write(tmp_path, name, seed, runs, scene="colmap at /data/beer: 71 views (34 train, 5 test), 701x1248, 4414 points"):
+BEER = "colmap at /data/beer: 71 views (34 train, 5 test), 701x1248, 4414 points"
+
+
+def _write(tmp_path, name, seed, runs, scene=BEER):
     path = tmp_path / f"{name}.json"
     path.write_text(json.dumps({"data": "/data/beer", "seed": seed, "scene": scene, "runs": runs}))
     return str(path)

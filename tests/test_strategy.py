@@ -56,7 +56,8 @@ def test_clone_split_prune_and_adam_alignment():
     s.initialize(m)
     assert feed(s, m, opt, 599, [HIGH, HIGH, LOW, HIGH, LOW]) is None  # not a refine step
     report = feed(s, m, opt, 600, [HIGH, HIGH, LOW, HIGH, LOW])
-    assert report == {"step": 600, "cloned": 1, "split": 1, "pruned": 1, "budget_dropped": 0, "num_primitives": 6,
+    assert report == {"step": 600, "cloned": 1, "split": 1, "pruned": 1, "unpooled": 0, "budget_dropped": 0,
+                      "num_primitives": 6,
                       "pruned_by": {"opacity": 1, "invisible": 0, "world_size": 0, "screen_size": 0}}
     keep = [0, 2, 4]
     for name, p in m.params.items():

@@ -27,25 +27,35 @@ MAX_SH_DEGREE = 3
 _KNN_BLOCK = 1 << 25  # distance-matrix entries per chunk of the kNN search (128 MiB of float32)
 
 
-def knn_scale(points: torch.Tensor, k: int = 3, fallback: float = 0.01) -> torch.Tensor:
-    """Per point: sqrt of the mean squared distance to its k nearest other points (as 3DGS's init).
+def knn(points: torch.Tensor, k: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """([N, k] distances, [N, k] indices) of each point's k nearest other points, nearest first (k <= N - 1).
 
     Plain torch in row chunks so memory stays bounded; points are centred first and distances are computed
     without the matmul trick, which loses precision for close points far from the origin.
     """
     n = points.shape[0]
-    if n < 2:
-        return points.new_full((n,), float(fallback))
     k = min(int(k), n - 1)
     p = (points - points.mean(0)).float()
     chunk = max(1, min(n, _KNN_BLOCK // n))
-    out = []
+    dists, idx = [], []
     for start in range(0, n, chunk):
         d = torch.cdist(p[start:start + chunk], p, compute_mode="donot_use_mm_for_euclid_dist")
-        # k+1 smallest include the point itself at distance 0; dropping one zero is right even with duplicates.
-        nearest = d.topk(k + 1, dim=1, largest=False).values[:, 1:]
-        out.append((nearest ** 2).mean(1))
-    dist2 = torch.cat(out).clamp_min(1e-7)  # 3DGS's floor: coincident points still get a finite log-scale
+        # Never a point's own neighbour, even where duplicates make the zero distances tie.
+        rows = torch.arange(start, min(start + chunk, n), device=p.device)
+        d[rows - start, rows] = float("inf")
+        nearest = d.topk(k, dim=1, largest=False)
+        dists.append(nearest.values)
+        idx.append(nearest.indices)
+    return torch.cat(dists), torch.cat(idx)
+
+
+def knn_scale(points: torch.Tensor, k: int = 3, fallback: float = 0.01) -> torch.Tensor:
+    """Per point: sqrt of the mean squared distance to its k nearest other points (as 3DGS's init)."""
+    n = points.shape[0]
+    if n < 2:
+        return points.new_full((n,), float(fallback))
+    nearest, _ = knn(points, k)
+    dist2 = (nearest ** 2).mean(1).clamp_min(1e-7)  # 3DGS's floor: coincident points still get a finite log-scale
     return dist2.sqrt()
 
 

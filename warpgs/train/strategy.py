@@ -66,6 +66,7 @@ from warpgs.model.gaussians import GaussianModel, quat_to_rotmat
 from warpgs.train.optim import Optimizers, set_param_values, update_rows
 from warpgs.train.schedule import DensifySchedule
 from warpgs.train.screen_geometry import screen_grads_from_means_grad, screen_radii
+from warpgs.train.unpool import midpoint_rows
 
 WARN_PRUNED_FRACTION = 0.5  # a refine removing more than this share of the primitives warns
 STATISTICS = ("grad_accum", "count", "max_radii", "max_screen")  # DensifyStrategy's rows, one per primitive
@@ -101,13 +102,19 @@ class StrategyConfig:
     split_shrink: float = 1.6  # child scale = parent scale / split_shrink (3DGS: 0.8 x split_count)
     max_primitives: int = 1_000_000  # hard budget: never exceeded
     seed: int = 0  # for the split sampling
+    # Proximity-guided unpooling (train/unpool.py, FSGS): at every unpool_every-th refine, a new primitive at the
+    # midpoint of each link to one of a primitive's unpool_k nearest others longer than unpool_distance x the
+    # scene extent (sparse views: gaps between the few points a start has); 0 off
+    unpool_every: int = 0
+    unpool_k: int = 3
+    unpool_distance: float = 0.05
 
     def __post_init__(self):
         for f in fields(self):
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{f.name}: expected a finite non-negative number, got {v!r}")
-        for name in ("refine_every", "max_primitives"):
+        for name in ("refine_every", "max_primitives", "unpool_k"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
         if int(self.split_count) != self.split_count or self.split_count < 2:
@@ -172,7 +179,7 @@ class DensifyStrategy:
                            visible: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
                            grad2d: Optional[torch.Tensor] = None, near: float = 0.01) -> Optional[dict]:
         """Accumulate statistics, then refine / reset opacities on their steps. Returns a report dict on steps
-        that changed the model ({"step", "cloned", "split", "pruned", "budget_dropped", "num_primitives",
+        that changed the model ({"step", "cloned", "split", "pruned", "unpooled", "budget_dropped", "num_primitives",
         "opacity_reset"}), else None."""
         self._check_model(model)
         if not self.schedule.densifying(step):
@@ -335,9 +342,10 @@ class DensifyStrategy:
             split_rows = {name: rows[fits] for name, rows in split_rows.items()}
         append = {name: torch.cat([new_rows[name], split_rows[name]]) for name in model.params}
         update_rows(model, optimizers, keep=~prune & ~split, append=append)
+        unpooled = self._unpool(model, optimizers, step)
         self._reset_stats(model.num_primitives, model.device)
         report = {"step": step, "cloned": int(clone.sum()), "split": int(split.sum()),
-                  "pruned": int(prune.sum()) + children_pruned,
+                  "pruned": int(prune.sum()) + children_pruned, "unpooled": unpooled,
                   "budget_dropped": budget_dropped, "num_primitives": model.num_primitives, "pruned_by": pruned_by}
         self.last_refine = report
         if report["pruned"] > WARN_PRUNED_FRACTION * n:
@@ -435,6 +443,20 @@ class DensifyStrategy:
         if self.grad_accum.shape[0] != model.num_primitives:
             raise ValueError(f"model: has {model.num_primitives} primitives but the strategy tracks "
                              f"{self.grad_accum.shape[0]}; resize only through the strategy (or initialize again)")
+
+    def _unpool(self, model: GaussianModel, optimizers: Optimizers, step: int) -> int:
+        """Midpoint primitives in the gaps (train/unpool.py) at every unpool_every-th refine, within the budget;
+        returns how many were added."""
+        cfg = self.config
+        if not cfg.unpool_every or (step // cfg.refine_every) % cfg.unpool_every:
+            return 0
+        room = cfg.max_primitives - model.num_primitives
+        rows = midpoint_rows(model.params, cfg.unpool_k, cfg.unpool_distance * self.scene_extent, room)
+        added = len(rows["means"])
+        if added:
+            keep = torch.ones(model.num_primitives, dtype=torch.bool, device=model.device)
+            update_rows(model, optimizers, keep=keep, append=rows)
+        return added
 
     @staticmethod
     def _clone_rows(model: GaussianModel, mask: torch.Tensor) -> dict:

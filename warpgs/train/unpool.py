@@ -1,0 +1,56 @@
+"""Proximity-guided unpooling (FSGS's idea, our own formulation): where a primitive's near neighbours are far
+away, the space between them is under-covered, as it is after a start from a few views' sparse points. Each
+primitive is linked to its k nearest others; for every link longer than a distance threshold a new primitive is
+placed at the link's midpoint, so gaps fill from what surrounds them instead of waiting for a gradient there.
+
+The new primitive takes the two ends' mean colour and log-scales, the fainter end's opacity (a new primitive
+should not occlude what the views already explain) and the first end's orientation and view-dependent colour.
+Links are undirected (each pair once); the longest links come first when the budget cannot take them all."""
+from __future__ import annotations
+
+import torch
+
+from warpgs.model.gaussians import knn
+
+# Parameters the midpoint takes as the mean of the two ends (the rest come from the first end, except opacity).
+MEAN_OF_ENDS = ("means", "log_scales", "sh0")
+
+
+@torch.no_grad()
+def midpoint_rows(params: dict, k: int, min_distance: float, room: int) -> dict:
+    """{name: [M, ...] rows} of the new primitives (M <= room) for a model's parameter dict (`model.params`)."""
+    means = params["means"].detach()
+    n = means.shape[0]
+    if n < 2 or room <= 0:
+        return {name: p.detach()[:0] for name, p in params.items()}
+    dist, idx = knn(means, k)
+    src = torch.arange(n, device=means.device)[:, None].expand_as(idx)
+    long = dist > min_distance
+    a, b, d = src[long], idx[long], dist[long]
+    # One link per unordered pair: a pair found from both ends is kept once (the (min, max) key, first kept).
+    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
+    key = lo * n + hi
+    key, first = _unique_first(key)
+    a, b, d = lo[first], hi[first], d[first]
+    if len(d) > room:
+        keep = torch.argsort(d, descending=True, stable=True)[:room]
+        a, b = a[keep], b[keep]
+    rows = {}
+    for name, p in params.items():
+        p = p.detach()
+        if name in MEAN_OF_ENDS:
+            rows[name] = 0.5 * (p[a] + p[b])
+        elif name == "logit_opacities":
+            rows[name] = torch.minimum(p[a], p[b])
+        else:
+            rows[name] = p[a].clone()
+    return rows
+
+
+def _unique_first(key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(sorted unique keys, the index of each one's first occurrence in `key`)."""
+    order = torch.argsort(key, stable=True)
+    sorted_key = key[order]
+    is_first = torch.ones_like(sorted_key, dtype=torch.bool)
+    is_first[1:] = sorted_key[1:] != sorted_key[:-1]
+    return sorted_key[is_first], order[is_first]
