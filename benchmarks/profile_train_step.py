@@ -1,5 +1,6 @@
 """Where a training step's time goes, on a real capture: the whole Trainer.train_step against its render
-forward+backward alone, the same with the NaN guard off, and a torch.profiler table of the busiest ops.
+forward+backward alone, the same with the NaN guard off (in alternating blocks, so both time the same growing model),
+and a torch.profiler table of the busiest ops.
 
     python benchmarks/profile_train_step.py data/fern --device cuda --warmup 2000 --steps 200 data.downscale=8
 
@@ -35,6 +36,19 @@ def time_steps(trainer: Trainer, steps: int, device: str) -> float:
     return (time.perf_counter() - t0) / steps
 
 
+def time_guard_on_off(trainer: Trainer, steps: int, device: str, rounds: int) -> tuple[float, float]:
+    """Mean seconds per step with the NaN guard on and off, in alternating blocks of steps // rounds: the model
+    keeps densifying while it is timed, so timing one setting after the other would time two model sizes."""
+    block = max(1, steps // rounds)
+    on, off = [], []
+    for _ in range(rounds):
+        for flag, out in ((True, on), (False, off)):
+            trainer.config.train.nan_guard = flag
+            out.append(time_steps(trainer, block, device))
+    trainer.config.train.nan_guard = True
+    return sum(on) / len(on), sum(off) / len(off)
+
+
 def time_render_only(trainer: Trainer, steps: int, device: str) -> float:
     """Mean seconds of a forward+backward of the training render on the step's views, with the losses'
     outputs, nothing else (no loss terms, optimizer or strategy)."""
@@ -57,6 +71,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--warmup", type=int, default=2000, help="training steps before measuring")
     ap.add_argument("--steps", type=int, default=200, help="steps per measurement")
+    ap.add_argument("--rounds", type=int, default=3,
+                    help="alternating blocks of steps with the NaN guard on and off (each steps // rounds long)")
     ap.add_argument("--top", type=int, default=25, help="rows of the profiler table")
     ap.add_argument("--tag", default="", help="suffix of the result file name (runs of one capture stay apart)")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
@@ -71,10 +87,7 @@ def main(argv=None) -> dict:
         for _ in range(args.warmup):
             trainer.train_step()
         n = trainer.model.num_primitives
-        step_s = time_steps(trainer, args.steps, args.device)
-        trainer.config.train.nan_guard = False
-        no_guard_s = time_steps(trainer, args.steps, args.device)
-        trainer.config.train.nan_guard = True
+        step_s, no_guard_s = time_guard_on_off(trainer, args.steps, args.device, args.rounds)
         render_s = time_render_only(trainer, args.steps, args.device)
         activities = [torch.profiler.ProfilerActivity.CPU]
         if torch.device(args.device).type == "cuda":
@@ -85,7 +98,7 @@ def main(argv=None) -> dict:
     table = prof.key_averages().table(sort_by=key, row_limit=args.top)
     print(table)
     result = {"data": args.data, "device": args.device, "primitives": n, "warmup": args.warmup,
-              "steps": args.steps, "ms_per_step": 1e3 * step_s, "ms_per_step_no_nan_guard": 1e3 * no_guard_s,
+              "steps": args.steps, "rounds": args.rounds, "ms_per_step": 1e3 * step_s, "ms_per_step_no_nan_guard": 1e3 * no_guard_s,
               "ms_render_fwd_bwd": 1e3 * render_s, "ms_rest_of_step": 1e3 * (step_s - render_s),
               "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
               "profile_sorted_by": key, "profile": table}
