@@ -27,11 +27,10 @@ def midpoint_rows(params: dict, k: int, min_distance: float, room: int) -> dict:
     src = torch.arange(n, device=means.device)[:, None].expand_as(idx)
     long = dist > min_distance
     a, b, d = src[long], idx[long], dist[long]
-    # One link per unordered pair: a pair found from both ends is kept once (the (min, max) key, first kept).
-    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
-    key = lo * n + hi
-    key, first = _unique_first(key)
-    a, b, d = lo[first], hi[first], d[first]
+    # One link per unordered pair: a pair found from both ends is kept once (both ends measure the same length).
+    key, inverse = torch.unique(torch.minimum(a, b) * n + torch.maximum(a, b), return_inverse=True)
+    d = d.new_empty(len(key)).scatter_(0, inverse, d)
+    a, b = key // n, key % n
     if len(d) > room:
         keep = torch.argsort(d, descending=True, stable=True)[:room]
         a, b = a[keep], b[keep]
@@ -46,11 +45,3 @@ def midpoint_rows(params: dict, k: int, min_distance: float, room: int) -> dict:
             rows[name] = p[a].clone()
     return rows
 
-
-def _unique_first(key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(sorted unique keys, the index of each one's first occurrence in `key`)."""
-    order = torch.argsort(key, stable=True)
-    sorted_key = key[order]
-    is_first = torch.ones_like(sorted_key, dtype=torch.bool)
-    is_first[1:] = sorted_key[1:] != sorted_key[:-1]
-    return sorted_key[is_first], order[is_first]
