@@ -13,7 +13,7 @@ from warpgs.config.schema import EvalConfig
 from warpgs.losses import LossResult, register_loss, unregister_loss
 from warpgs.model.gaussians import GaussianModel
 from warpgs.train.evaluation import Evaluator
-from warpgs.train.guard import NonFiniteError, NonFiniteGuard
+from warpgs.train.guard import NonFiniteError, NonFiniteGuard, StepGuard
 from warpgs.train.loop import RunningMean
 from warpgs.train.loss_set import LossSet, resolve_terms
 from warpgs.train.optim import build_optimizer
@@ -63,6 +63,41 @@ def test_guard_names_the_first_nonfinite_parameter_gradient_or_loss_term():
     params["c"] = torch.tensor([1.0, float("nan")])  # added after the guard was built: still seen
     with pytest.raises(NonFiniteError, match="parameter 'c'"):
         guard.check(6)
+
+
+def test_deferred_check_skips_fused_adam_and_raises_for_its_step_at_the_next_check():
+    w = torch.nn.Parameter(torch.ones(3))
+    opt = torch.optim.Adam([w], lr=0.1, fused=True)
+    step_guard = StepGuard(NonFiniteGuard(lambda: [("w", w)]))
+    ok = LossResult(torch.tensor(1.0), {"l1": torch.tensor(1.0)}, {"l1": 1.0})
+    w.grad = torch.ones(3)
+    step_guard.before_optimizers(0, ok, [opt], defer=True)
+    opt.step()
+    step_guard.after_optimizers([opt])
+    assert not hasattr(opt, "found_inf") and torch.allclose(w.detach(), torch.full((3,), 0.9))
+    kept = w.detach().clone()
+    w.grad = torch.tensor([1.0, float("nan"), 1.0])
+    step_guard.before_optimizers(1, ok, [opt], defer=True)  # no error yet: read at the next check
+    opt.step()
+    step_guard.after_optimizers([opt])
+    assert torch.equal(w.detach(), kept)  # the fused kernel skipped the update on its own
+    assert opt.state[w]["step"].item() == 1  # and did not count the step
+    w.grad = torch.ones(3)
+    with pytest.raises(NonFiniteError, match=r"step 1: gradient of 'w' is not finite"):
+        step_guard.before_optimizers(2, ok, [opt], defer=True)
+
+
+def test_deferred_check_names_a_loss_term_and_checks_at_once_without_fused_adam():
+    w = torch.nn.Parameter(torch.ones(2))
+    w.grad = torch.ones(2)
+    step_guard = StepGuard(NonFiniteGuard(lambda: [("w", w)]))
+    bad = LossResult(torch.tensor(float("nan")), {"depth": torch.tensor(float("nan"))}, {"depth": 1.0})
+    step_guard.before_optimizers(4, bad, [torch.optim.Adam([w], fused=True)], defer=True)
+    with pytest.raises(NonFiniteError, match="step 4: loss depth is not finite"):
+        step_guard.settle()
+    step_guard.settle()  # read once: nothing pending now
+    with pytest.raises(NonFiniteError, match="step 5: loss depth"):  # foreach Adam cannot skip a step: at once
+        step_guard.before_optimizers(5, bad, [torch.optim.Adam([w], foreach=True)], defer=True)
 
 
 def test_guard_ignores_a_sum_that_overflows_on_finite_values():

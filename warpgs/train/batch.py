@@ -7,7 +7,8 @@ at a time (the fast GPU path also reuses its workspace between calls, so a view'
 next view's render)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence
 
 import torch
@@ -15,17 +16,61 @@ import torch
 from warpgs.losses.registry import LossResult
 
 
+class HostScalars:
+    """A view's loss, per-term values and image MSE on their way to the host. On a GPU the copy starts without
+    waiting (into pinned memory, with an event) and is read when first asked for: the step reads it after the NaN
+    guard's one sync, so the two reads cost one stall instead of two, each of which left the GPU idle while the
+    host issued the next launches. On the CPU the values are there at once."""
+
+    def __init__(self, result: LossResult, rgb: Optional[torch.Tensor] = None, image: Optional[torch.Tensor] = None):
+        self.names = list(result.values)
+        scalars = [result.total.detach().reshape(())] + [result.values[k].detach().reshape(()) for k in self.names]
+        self.has_mse = rgb is not None
+        if self.has_mse:  # read now: the next view's render may reuse the output buffers
+            scalars.append(((rgb.detach() - image) ** 2).mean())
+        stacked = torch.stack([v.float() for v in scalars])
+        self._event = None
+        if stacked.is_cuda:
+            self._host = stacked.to("cpu", non_blocking=True)
+            self._event = torch.cuda.Event()
+            self._event.record()
+        else:
+            self._host = stacked
+        self._values: Optional[List[float]] = None
+
+    def read(self) -> List[float]:
+        """[total, one value per term, (image MSE)] as Python floats (waits for the copy the first time)."""
+        if self._values is None:
+            if self._event is not None:
+                self._event.synchronize()
+            self._values = self._host.tolist()
+        return self._values
+
+
 @dataclass
 class ViewPass:
-    """One view of the step, after its backward."""
+    """One view of the step, after its backward. loss, values and psnr are read from `scalars` when first used."""
     view: object
     result: LossResult  # this view's losses (total not divided by the batch size)
+    scalars: HostScalars
     visible: Optional[torch.Tensor] = None  # [N] bool, when densifying
     grad2d: Optional[torch.Tensor] = None  # [N,2] dL/dmeans2d of this view's share of the batch loss
     means_grad: Optional[torch.Tensor] = None  # its share of dL/dmeans, when the op gives no means2d (surfels)
-    loss: float = 0.0
-    values: Dict[str, float] = field(default_factory=dict)
-    psnr: Optional[float] = None
+
+    @property
+    def loss(self) -> float:
+        return self.scalars.read()[0]
+
+    @property
+    def values(self) -> Dict[str, float]:
+        host = self.scalars.read()
+        return dict(zip(self.scalars.names, host[1:1 + len(self.scalars.names)]))
+
+    @property
+    def psnr(self) -> Optional[float]:
+        if not self.scalars.has_mse:
+            return None
+        return 10.0 * math.log10(1.0 / max(self.scalars.read()[-1], 1e-10))
 
 
 def scalar_names(passes: Sequence[ViewPass]) -> List[str]:

@@ -55,6 +55,26 @@ class NonFiniteGuard:
             raise NonFiniteError(step, name, f"gradient of {name!r} is not finite")
         # Only a sum overflowed (finite values beyond float range in total): nothing is actually non-finite.
 
+    def flag(self, step: int, result=None) -> Optional[PendingCheck]:
+        """check's test without its host read: a PendingCheck for the optimizers and a later read, or None when the
+        tensors live on several devices (then call check)."""
+        named = [(n, p) for n, p in self.named_parameters()]
+        labels = [("parameter", n) for n, p in named if p.numel()]
+        tensors = [p for _, p in named if p.numel()]
+        labels += [("gradient", n) for n, p in named if p.grad is not None and p.grad.numel()]
+        tensors += [p.grad for _, p in named if p.grad is not None and p.grad.numel()]
+        if len({t.device for t in tensors}) > 1:
+            return None
+        norms = _one_norms(tensors)
+        if result is not None:
+            labels.append(("loss", "total"))
+            norms.append(result.total.detach().reshape(()).float())
+        if not norms:
+            return None
+        with torch.no_grad():
+            flags = ~torch.isfinite(torch.stack(norms))
+        return PendingCheck(step, labels, flags, result, self)
+
     def first_nonfinite(self, grads: bool) -> Optional[str]:
         """The first parameter (grads=False) or gradient (grads=True) holding a NaN or Inf, or None."""
         for name, p in self.named_parameters():
@@ -62,6 +82,45 @@ class NonFiniteGuard:
             if t is not None and not bool(torch.isfinite(t).all()):
                 return name
         return None
+
+
+class PendingCheck:
+    """One step's check computed on the device and read later (NonFiniteGuard.flag). `found_inf` (a 0-d float
+    tensor, 1 when anything was not finite) is what fused Adam takes to skip that step on the device, so nothing
+    non-finite is applied although the host did not wait for the backward; `raise_if_failed` reads the flags (by
+    then a later sync has brought them to the host) and names the first offender in check's order: a parameter,
+    then the loss, then a gradient. A gradient whose 1-norm overflows float32 counts as not finite here."""
+
+    def __init__(self, step: int, labels: list, flags: torch.Tensor, result, guard: "NonFiniteGuard"):
+        self.step, self.labels, self.result, self.guard = step, labels, result, guard
+        self.found_inf = flags.any().float()
+        self._event = None
+        if flags.is_cuda:
+            self._flags = flags.to("cpu", non_blocking=True)
+            self._event = torch.cuda.Event()
+            self._event.record()
+        else:
+            self._flags = flags
+
+    def raise_if_failed(self) -> None:
+        if self._event is not None:
+            self._event.synchronize()
+        flags = self._flags.tolist()
+        if not any(flags):
+            return
+        step, bad = self.step, [label for label, f in zip(self.labels, flags) if f]
+        if any(kind == "parameter" for kind, _ in bad):
+            name = self.guard.first_nonfinite(grads=False)  # exact: the skipped step left the parameters as they were
+            if name is not None:
+                raise NonFiniteError(step, name, f"parameter {name!r} is not finite")
+        if ("loss", "total") in bad:
+            values = self.result.values
+            terms = [n for n, v in values.items() if not bool(torch.isfinite(v.detach()).all())]
+            raise NonFiniteError(step, terms[0] if terms else "loss",
+                                 f"loss {'/'.join(terms) or 'total'} is not finite (all parameters are finite)")
+        grads = [name for kind, name in bad if kind == "gradient"]
+        if grads:
+            raise NonFiniteError(step, grads[0], f"gradient of {grads[0]!r} is not finite")
 
 
 def _one_norms(tensors: Sequence[torch.Tensor]) -> list:
@@ -80,3 +139,42 @@ def all_finite(scalars: Sequence[torch.Tensor]) -> bool:
     for s in scalars:
         by_device.setdefault(s.device, []).append(s)
     return all(bool(torch.isfinite(torch.stack(group)).all()) for group in by_device.values())
+
+
+class StepGuard:
+    """train.nan_guard around a training step's optimizer step. When every optimizer is fused Adam and the run is
+    one process, the check is deferred: the step's PendingCheck makes Adam skip the step on the device if anything
+    is not finite, and it is read (raising NonFiniteError for that step) at the next step's check or at `settle`,
+    which a checkpoint calls first. A GPU step then needs no host read after its backward: the host goes on issuing
+    the optimizer, densification and the next render while the backward runs. Otherwise the check is immediate
+    (NonFiniteGuard.check)."""
+
+    def __init__(self, guard: NonFiniteGuard):
+        self.guard = guard
+        self.pending: Optional[PendingCheck] = None
+
+    def before_optimizers(self, step: int, result, optimizers: Sequence, *, defer: bool) -> None:
+        self.settle()
+        pending = self.guard.flag(step, result) if defer and all(_fused_adam(o) for o in optimizers) else None
+        if pending is None:
+            self.guard.check(step, result)
+            return
+        for opt in optimizers:
+            opt.found_inf = pending.found_inf  # Adam.step passes it to the fused kernel, which skips the update
+        self.pending = pending
+
+    @staticmethod
+    def after_optimizers(optimizers: Sequence) -> None:
+        """Take the flag off the optimizers, so no later step (the guard switched off, say) reads a stale one."""
+        for opt in optimizers:
+            opt.__dict__.pop("found_inf", None)
+
+    def settle(self) -> None:
+        """Read the deferred check, if any (raises NonFiniteError for its step)."""
+        pending, self.pending = self.pending, None
+        if pending is not None:
+            pending.raise_if_failed()
+
+
+def _fused_adam(opt) -> bool:
+    return isinstance(opt, torch.optim.Adam) and bool(opt.defaults.get("fused"))

@@ -8,12 +8,11 @@ The loss is the mean over the batch's views, as in data-parallel training, so th
 same gradients (tests/test_model_parallel_train.py)."""
 from __future__ import annotations
 
-import math
 import time
 
 import torch
 
-from warpgs.train.batch import ViewPass, batch_result, batch_summary, local_sums, scalar_names
+from warpgs.train.batch import HostScalars, ViewPass, batch_result, batch_summary, local_sums, scalar_names
 from warpgs.train.guard import NonFiniteError
 from warpgs.train.model_parallel import render_shard, require_gaussians
 from warpgs.train.step import end_step, set_step_schedule
@@ -100,14 +99,7 @@ def view_pass_sharded(trainer, cameras, step: int, *, views_in_loss: int, densif
     if first:
         trainer.strategy.step_pre_backward(model, step)
     (result.total / views_in_loss).backward()
-    names = list(result.values)
-    scalars = [result.total.detach().reshape(())] + [result.values[k].detach().reshape(()) for k in names]
-    if out.rgb is not None:
-        scalars.append(((out.rgb.detach() - view.image) ** 2).mean())
-    host = torch.stack([v.float() for v in scalars]).tolist()
-    p = ViewPass(view=view, result=result, loss=host[0], values=dict(zip(names, host[1:1 + len(names)])))
-    if out.rgb is not None:
-        p.psnr = 10.0 * math.log10(1.0 / max(host[-1], 1e-10))
+    p = ViewPass(view=view, result=result, scalars=HostScalars(result, out.rgb, view.image))
     if not densify:
         return p, []
     grads = out.means2d.grad if out.means2d.grad is not None else torch.zeros_like(out.means2d)

@@ -3,13 +3,12 @@ ranks, step the optimizers, let the strategy densify. Functions of the trainer, 
 Trainer.view_pass are the public spelling."""
 from __future__ import annotations
 
-import math
 import time
 
 import torch
 
 from warpgs.train import setup as train_setup
-from warpgs.train.batch import ViewPass, batch_result, batch_summary, local_sums, scalar_names
+from warpgs.train.batch import HostScalars, ViewPass, batch_result, batch_summary, local_sums, scalar_names
 from warpgs.train.optim import means_lr_at, update_learning_rates
 
 
@@ -33,21 +32,24 @@ def train_step(trainer) -> dict:
         passes.append(trainer.view_pass(view, step, views_in_loss=len(drawn), densify=densify, first=not passes))
     phases.mark("render_backward")
     names = scalar_names(passes)
-    # A Ctrl-C on any rank rides along with the sums, so all ranks learn of it at the same step.
-    sums = trainer.ranks.all_reduce_gradients([p for _, p in trainer.named_parameters()],
-                                           local_sums(passes, names) + [float(trainer.stop_requested)], step)
-    stop = trainer.ranks.enabled and sums.pop() > 0
+    stop = False
+    if trainer.ranks.enabled:
+        # A Ctrl-C on any rank rides along with the sums, so all ranks learn of it at the same step.
+        sums = trainer.ranks.all_reduce_gradients([p for _, p in trainer.named_parameters()],
+                                                  local_sums(passes, names) + [float(trainer.stop_requested)], step)
+        stop = sums.pop() > 0
     phases.mark("all_reduce")
     if len(drawn) == 1:
-        result, summary = passes[0].result, {"loss": passes[0].loss, "values": passes[0].values,
-                                             "psnr": passes[0].psnr}
+        result = passes[0].result
     else:
-        summary = batch_summary(sums, names, len(drawn))
-        result = batch_result(summary, passes[0].result)
-    if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied
-        trainer.check_finite(step, result)
+        if not trainer.ranks.enabled:
+            sums = local_sums(passes, names)
+        result = batch_result(batch_summary(sums, names, len(drawn)), passes[0].result)
+    if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied (train/guard.py)
+        trainer.step_guard.before_optimizers(step, result, trainer.optimizers, defer=not trainer.ranks.enabled)
     for opt in trainer.optimizers:
         opt.step()
+    trainer.step_guard.after_optimizers(trainer.optimizers)
     phases.mark("optimizer")
     report = None
     if densify:  # after the optimizer step, as 3DGS: the screen radii are those of the updated model
@@ -61,6 +63,10 @@ def train_step(trainer) -> dict:
         if report is not None and trainer.ranks.enabled:
             trainer.ranks.check_same(model.num_primitives, f"the number of primitives after step {step}")
         phases.mark("densify")
+    # The views' scalars are read last: the copy was issued after the backward, so on a GPU this waits only for
+    # what the host has not outrun yet (train/batch.py).
+    summary = ({"loss": passes[0].loss, "values": passes[0].values, "psnr": passes[0].psnr} if len(drawn) == 1
+               else batch_summary(sums, names, len(drawn)))
     return end_step(trainer, step, t0, summary, report, passes, drawn, stop)
 
 
@@ -110,19 +116,12 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
     own_means_grad = densify and out.means2d is None and views_in_loss > 1
     before = model.means.grad.clone() if own_means_grad and model.means.grad is not None else None
     (result.total if views_in_loss == 1 else result.total / views_in_loss).backward()
-    # The scalars for the log and the progress line in one device-to-host copy (one sync, not one per value).
-    names = list(result.values)
-    scalars = [result.total.detach().reshape(())] + [result.values[k].detach().reshape(()) for k in names]
-    if out.rgb is not None:  # read now: the next view's render may reuse the output buffers
-        scalars.append(((out.rgb.detach() - view.image) ** 2).mean())
-    host = torch.stack([v.float() for v in scalars]).tolist()
-    p = ViewPass(view=view, result=result, loss=host[0], values=dict(zip(names, host[1:1 + len(names)])))
+    # The scalars for the log and the progress line: one device-to-host copy, read after the NaN guard's sync.
+    p = ViewPass(view=view, result=result, scalars=HostScalars(result, out.rgb, view.image))
     if densify:
         p.visible = out.visible
         p.grad2d = out.means2d.grad if out.means2d is not None else None
         if own_means_grad:
             g = model.means.grad
             p.means_grad = g.clone() if before is None else g - before
-    if out.rgb is not None:
-        p.psnr = 10.0 * math.log10(1.0 / max(host[-1], 1e-10))
     return p

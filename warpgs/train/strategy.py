@@ -248,8 +248,10 @@ class DensifyStrategy:
         views in which each primitive was visible [N], "radii": largest radius px [N], "screen": the same as a
         fraction of the image's larger side [N]}. views_in_loss defaults to B (see the module doc)."""
         batch = grad2d.shape[0] if views_in_loss is None else int(views_in_loss)
-        scale = grad2d.new_tensor([0.5 * width * batch, 0.5 * height * batch])
-        norms = (grad2d.detach() * scale).norm(dim=-1)
+        # Python-scalar factors: a small tensor of them built here would be a host-to-device copy, which torch
+        # follows with a stream sync (a GPU profile found one in every densifying step).
+        g = grad2d.detach()
+        norms = torch.hypot(g[..., 0] * (0.5 * width * batch), g[..., 1] * (0.5 * height * batch))
         vis = visible.to(torch.bool)
         seen = torch.where(vis, radii, torch.zeros_like(radii)).amax(0)
         return {"grad": torch.where(vis, norms, torch.zeros_like(norms)).sum(0), "count": vis.sum(0),

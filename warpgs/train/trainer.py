@@ -55,7 +55,7 @@ from warpgs.train.model_parallel import gather_model, gathered_training, move_tr
 from warpgs.train.batch import ViewPass
 from warpgs.train.distributed import DistributedError, setup_ranks, sync_model
 from warpgs.train.evaluation import Evaluator
-from warpgs.train.guard import NonFiniteError, NonFiniteGuard
+from warpgs.train.guard import NonFiniteError, NonFiniteGuard, StepGuard
 from warpgs.train.log import TrainLog
 from warpgs.train.loop import TrainingLoop, TrainResult
 from warpgs.train.loss_set import LossSet, resolve_terms
@@ -94,6 +94,7 @@ class Trainer:
         with self.clock.stage("load_scene"):  # with estimated depth priors
             self._load_scene(cfg, scene)
         self.guard = NonFiniteGuard(self.named_parameters)
+        self.step_guard = StepGuard(self.guard)  # the training step's use of it (deferred on a GPU)
         self.phases = PhaseTimer(self.device, cfg.train.profile_phases)
         self.checkpointer = Checkpointer(self.out_dir / cfg.output.checkpoint, self.device,
                                          guard=self.guard if cfg.train.nan_guard else None,
@@ -466,6 +467,7 @@ class Trainer:
         the whole model gathered)."""
         if not self._at_boundary:
             raise RuntimeError("save_checkpoint: only between steps")
+        self.step_guard.settle()  # the last step's deferred NaN check, before anything is written
         if self.model_parallel and self.config.output.checkpoint_shards:  # each rank its share; no gather
             path = self.checkpointer.save_sharded(self.training_state(), self.ranks)
         else:
