@@ -38,6 +38,16 @@ class HostScalars:
             self._host = stacked
         self._values: Optional[List[float]] = None
 
+    def summary(self) -> dict:
+        """{"loss": total, "values": {term: value}, "psnr": of the render, or None without an image}."""
+        host = self.read()
+        psnr = 10.0 * math.log10(1.0 / max(host[-1], 1e-10)) if self.has_mse else None
+        return {"loss": host[0], "values": dict(zip(self.names, host[1:1 + len(self.names)])), "psnr": psnr}
+
+    def ready(self) -> bool:
+        """Whether read() would return at once."""
+        return self._values is not None or self._event is None or self._event.query()
+
     def read(self) -> List[float]:
         """[total, one value per term, (image MSE)] as Python floats (waits for the copy the first time)."""
         if self._values is None:
@@ -59,18 +69,15 @@ class ViewPass:
 
     @property
     def loss(self) -> float:
-        return self.scalars.read()[0]
+        return self.scalars.summary()["loss"]
 
     @property
     def values(self) -> Dict[str, float]:
-        host = self.scalars.read()
-        return dict(zip(self.scalars.names, host[1:1 + len(self.scalars.names)]))
+        return self.scalars.summary()["values"]
 
     @property
     def psnr(self) -> Optional[float]:
-        if not self.scalars.has_mse:
-            return None
-        return 10.0 * math.log10(1.0 / max(self.scalars.read()[-1], 1e-10))
+        return self.scalars.summary()["psnr"]
 
 
 def scalar_names(passes: Sequence[ViewPass]) -> List[str]:

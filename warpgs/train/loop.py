@@ -59,6 +59,7 @@ class TrainingLoop:
         self.trainer = trainer
         self.progress: Optional[Progress] = None
         self.loss_mean, self.psnr_mean = RunningMean(), RunningMean()
+        self.previous_info = None  # the last step's info, while its loss values may still be on the device
 
     def say(self, message: str) -> None:
         """A console line (above the progress line while it is shown); nothing when the trainer is quiet."""
@@ -127,8 +128,13 @@ class TrainingLoop:
         for ext in tr.extensions:
             ext.after_step(tr, info["step"], info)
         last = tr.history[-1] if tr.history else {}
-        self.progress.update(tr.step, loss=self.loss_mean.update(info["loss"]),
-                             psnr=self.psnr_mean.update(info["psnr"]), n=tr.num_primitives,
+        # The running means take each step's loss a step late when it is still on the device (a GPU step): by now
+        # the previous step's values are on the host, and reading this step's would wait for its backward.
+        shown, self.previous_info = (self.previous_info if info.pending else info), info
+        if shown is not None:
+            self.loss_mean.update(shown["loss"])
+            self.psnr_mean.update(shown["psnr"])
+        self.progress.update(tr.step, loss=self.loss_mean.value, psnr=self.psnr_mean.value, n=tr.num_primitives,
                              test=last.get("psnr"))
         if tr.strategy.schedule.auto is not None:  # before the log line, so a run that ends here logs its last step
             self._auto_schedule()

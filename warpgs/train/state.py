@@ -2,7 +2,7 @@
 The file format itself (atomic write, RNG states) is train/checkpoint.py."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -17,10 +17,17 @@ from warpgs.model.gaussians import GaussianModel
 
 @dataclass
 class RunCounters:
-    """Where a run is: steps done, seconds spent inside steps, the total loss of the last step."""
+    """Where a run is: steps done, seconds spent inside steps, the total loss of the last step (`loss()`: read from
+    the last step's info only when asked for, so a GPU step need not wait for it)."""
     step: int = 0
     train_seconds: float = 0.0
     last_loss: Optional[float] = None
+    last_info: Optional[dict] = field(default=None, repr=False, compare=False)
+
+    def loss(self) -> Optional[float]:
+        if self.last_info is not None:
+            self.last_loss, self.last_info = self.last_info["loss"], None
+        return self.last_loss
 
 
 @dataclass
@@ -63,7 +70,7 @@ class Checkpointer:
                 "modules": parts.modules.state_dict(), "strategy": _to_cpu(parts.strategy.state_dict()),
                 "extensions": {f"{i}:{e.name}": e.state_dict() for i, e in enumerate(parts.extensions)},
                 "rng": ckpt.rng_state(), **parts.views.state_dict(), "train_seconds": c.train_seconds,
-                **parts.evaluator.state_dict(), "last_loss": c.last_loss, "config": parts.config.to_dict(),
+                **parts.evaluator.state_dict(), "last_loss": c.loss(), "config": parts.config.to_dict(),
                 "best_state": None if parts.best is None else parts.best.state_dict()}
 
     def save(self, parts: TrainingState) -> Path:
@@ -135,7 +142,7 @@ class Checkpointer:
             raise ValueError(f"{self.path}: {e}") from e
         parts.counters.train_seconds = float(state.get("train_seconds", 0.0))
         parts.evaluator.load_state_dict(state)
-        parts.counters.last_loss = state.get("last_loss")
+        parts.counters.last_loss, parts.counters.last_info = state.get("last_loss"), None
         if parts.best is not None:
             parts.best.load_state_dict(state.get("best_state"))
         self.last_step = parts.counters.step

@@ -10,6 +10,7 @@ import torch
 from warpgs.train import setup as train_setup
 from warpgs.train.batch import HostScalars, ViewPass, batch_result, batch_summary, local_sums, scalar_names
 from warpgs.train.optim import means_lr_at, update_learning_rates
+from warpgs.train.step_info import StepInfo
 
 
 def train_step(trainer) -> dict:
@@ -63,10 +64,12 @@ def train_step(trainer) -> dict:
         if report is not None and trainer.ranks.enabled:
             trainer.ranks.check_same(model.num_primitives, f"the number of primitives after step {step}")
         phases.mark("densify")
-    # The views' scalars are read last: the copy was issued after the backward, so on a GPU this waits only for
-    # what the host has not outrun yet (train/batch.py).
-    summary = ({"loss": passes[0].loss, "values": passes[0].values, "psnr": passes[0].psnr} if len(drawn) == 1
-               else batch_summary(sums, names, len(drawn)))
+    # The views' scalars are read when the info's loss values are first used (train/step_info.py): the loop does so
+    # a step later, so a GPU step ends without waiting for its own backward.
+    if len(drawn) == 1:
+        summary = passes[0].scalars  # not the ViewPass: the info outlives the step, its buffers should not
+    else:
+        summary = batch_summary(sums, names, len(drawn))
     return end_step(trainer, step, t0, summary, report, passes, drawn, stop)
 
 
@@ -85,8 +88,9 @@ def set_step_schedule(trainer, step: int) -> bool:
     return schedule.densifying(step)
 
 
-def end_step(trainer, step: int, t0: float, summary: dict, report, passes, drawn, stop: bool) -> dict:
-    """Clear the gradients, advance the run's counters, and return the step's info (train_step's result)."""
+def end_step(trainer, step: int, t0: float, summary, report, passes, drawn, stop: bool) -> StepInfo:
+    """Clear the gradients, advance the run's counters, and return the step's info (train_step's result). summary:
+    {"loss", "values", "psnr"}, or the one view's HostScalars (read when the info's loss values are first used)."""
     for opt in trainer.optimizers:
         opt.zero_grad(set_to_none=True)
     trainer.model.zero_grad(set_to_none=True)
@@ -94,10 +98,12 @@ def end_step(trainer, step: int, t0: float, summary: dict, report, passes, drawn
     trainer.phases.end_step()
     trainer.counters.train_seconds += time.perf_counter() - t0
     trainer.counters.step = step + 1
-    trainer.counters.last_loss = summary["loss"]
-    return {"step": step, "loss": summary["loss"], "values": summary["values"], "psnr": summary["psnr"],
-            "num_primitives": trainer.num_primitives, "densify": report, "view": passes[0].view.name,
-            "views": [trainer.scene.cameras[i].name for i in drawn], "stop": stop}
+    items = {"step": step, "num_primitives": trainer.num_primitives, "densify": report,
+             "view": passes[0].view.name, "views": [trainer.scene.cameras[i].name for i in drawn], "stop": stop}
+    info = (StepInfo(items, summary.summary, ready=summary.ready) if isinstance(summary, HostScalars)
+            else StepInfo({**items, **summary}))
+    trainer.counters.last_info = info  # its loss is read when asked for (RunCounters.loss)
+    return info
 
 
 def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool = False,

@@ -255,7 +255,7 @@ class Trainer:
 
     @property
     def last_loss(self) -> Optional[float]:
-        return self.counters.last_loss
+        return self.counters.loss()
 
     @property
     def at_boundary(self) -> bool:

@@ -1,0 +1,57 @@
+"""StepInfo (train/step_info.py): the loss values of a training step's info are read on first use, once, and the
+info otherwise behaves as the dict it is."""
+import json
+
+import torch
+
+from warpgs.losses import LossResult
+from warpgs.train.batch import HostScalars
+from warpgs.train.step_info import StepInfo
+
+
+def _info(ready=None):
+    reads = []
+
+    def read():
+        reads.append(1)
+        return {"loss": 0.5, "values": {"l1": 0.25}, "psnr": 20.0}
+
+    return StepInfo({"step": 3, "num_primitives": 10, "stop": False}, read, ready=ready), reads
+
+
+def test_plain_keys_do_not_read_and_a_loss_key_reads_once():
+    info, reads = _info()
+    assert info["step"] == 3 and info.get("stop") is False and "loss" in info
+    info["language"] = {"a": 1.0}  # an extension adds a key
+    assert reads == [] and info.pending
+    assert info["loss"] == 0.5 and info.get("psnr") == 20.0 and info["values"] == {"l1": 0.25}
+    assert reads == [1] and not info.pending
+
+
+def test_iterating_copying_or_dumping_reads_every_key():
+    for use in (list, dict, len, repr, lambda i: json.dumps(i), lambda i: i.copy(), lambda i: list(i.items())):
+        info, reads = _info()
+        use(info)
+        assert reads == [1]
+        assert set(info) == {"step", "num_primitives", "stop", "loss", "values", "psnr"}
+    info, _ = _info()
+    assert json.loads(json.dumps(info))["loss"] == 0.5
+    assert info == {"step": 3, "num_primitives": 10, "stop": False, "loss": 0.5, "values": {"l1": 0.25},
+                    "psnr": 20.0}
+
+
+def test_ready_values_are_not_pending():
+    info, reads = _info(ready=lambda: True)
+    assert not info.pending and reads == []  # ready: reading would not wait, but nothing is read yet
+
+
+def test_host_scalars_on_the_cpu_are_ready_and_give_the_summary():
+    result = LossResult(torch.tensor(0.75), {"l1": torch.tensor(0.5), "dssim": torch.tensor(0.25)},
+                        {"l1": 1.0, "dssim": 1.0})
+    rgb, image = torch.full((2, 2, 3), 0.5), torch.full((2, 2, 3), 0.4)
+    scalars = HostScalars(result, rgb, image)
+    assert scalars.ready()
+    s = scalars.summary()
+    assert s["loss"] == 0.75 and s["values"] == {"l1": 0.5, "dssim": 0.25}
+    assert abs(s["psnr"] - 20.0) < 1e-4  # MSE 0.01
+    assert HostScalars(result).summary()["psnr"] is None

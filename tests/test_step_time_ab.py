@@ -1,0 +1,33 @@
+"""benchmarks/step_time_ab.py: two code versions' training steps timed in alternating processes."""
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from train_fixtures import small_orbit
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import step_time_ab  # noqa: E402
+
+
+def test_two_versions_are_timed_in_alternating_processes(tmp_path, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path))
+    result = step_time_ab.main([str(small_orbit()), "--trees", f"a={ROOT},b={ROOT}", "--device", "cpu",
+                                "--warmup", "2", "--steps", "2", "--blocks", "2", "--rounds", "2", "--tag", "t",
+                                "strategy.refine_start=1000"])
+    assert [(r["version"], r["round"]) for r in result["runs"]] == [("a", 1), ("b", 1), ("a", 2), ("b", 2)]
+    assert all(len(r["ms"]) == 2 and min(r["ms"]) > 0 for r in result["runs"])
+    assert result["ratio_to_first"]["a"] == 1.0 and result["ratio_to_first"]["b"] > 0
+    saved = json.loads((tmp_path / "step_time_ab_orbit64_cpu_t.json").read_text())
+    assert saved["ms_per_step"] == result["ms_per_step"]
+
+
+def test_trees_must_be_named_folders_holding_warpgs(tmp_path):
+    with pytest.raises(SystemExit, match="NAME=PATH"):
+        step_time_ab.parse_trees(f"{ROOT}")
+    with pytest.raises(SystemExit, match="holds no warpgs"):
+        step_time_ab.parse_trees(f"a={ROOT},b={tmp_path}")
+    with pytest.raises(SystemExit, match="at least two"):
+        step_time_ab.parse_trees(f"a={ROOT}")
