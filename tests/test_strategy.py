@@ -181,6 +181,26 @@ def test_screen_size_pruning():
     assert m.means[0, 2] > 1.0  # the near one went
 
 
+def test_without_a_screen_rule_no_radii_are_computed_or_kept():
+    m = make([0.005, 0.005], [0.5, 0.5])
+    with torch.no_grad():
+        m.params["means"][0] = torch.tensor([0.0, 0.0, 0.05])  # large on screen, as above
+    s = DensifyStrategy(StrategyConfig(prune_world_scale=0))  # the default: no screen-size rule
+    s.initialize(m)
+    obs = s.observe(m, visible=torch.ones(2, dtype=torch.bool), viewmat=VIEW, K=K, width=W, height=H,
+                    grad2d=torch.full((2, 2), HIGH))
+    assert obs["radii"] is None and obs["screen"] is None
+    both = s.merge_observations([obs, obs])
+    assert both["radii"] is None and both["count"].tolist() == [2, 2]
+    s.add_observations(both)
+    assert s.max_radii.tolist() == [0.0, 0.0] and s.count.tolist() == [2, 2]
+    ruled = DensifyStrategy(StrategyConfig(prune_world_scale=0, prune_screen_size=0.15))
+    ruled.initialize(m)
+    seen = ruled.observe(m, visible=torch.ones(2, dtype=torch.bool), viewmat=VIEW, K=K, width=W, height=H,
+                         grad2d=torch.full((2, 2), HIGH))
+    assert seen["radii"][0] > 15 and ruled.merge_observations([obs, seen])["radii"][0] > 15
+
+
 def test_screen_size_is_a_fraction_of_the_larger_side_over_all_views():
     # Radius 30 px: 15% of a 200x100 image, 30% of 100x100; the largest fraction since the last refine counts.
     m = make([0.005], [0.5])

@@ -229,10 +229,13 @@ class Ranks:
             return obs
         sums = torch.stack([obs["grad"].float(), obs["count"].float()])  # counts stay exact below 2^24
         self.all_reduce_(sums, what=f"all_reduce of step {step}'s densification statistics")
-        maxes = torch.stack([obs["radii"], obs["screen"]])
-        self.all_reduce_(maxes, op="max", what=f"all_reduce of step {step}'s screen radii")
-        return {"grad": sums[0].to(obs["grad"].dtype), "count": sums[1].round().to(obs["count"].dtype),
-                "radii": maxes[0], "screen": maxes[1]}
+        out = {"grad": sums[0].to(obs["grad"].dtype), "count": sums[1].round().to(obs["count"].dtype),
+               "radii": None, "screen": None}
+        if obs["radii"] is not None:  # the same config on every rank: all or none computed them
+            maxes = torch.stack([obs["radii"], obs["screen"]])
+            self.all_reduce_(maxes, op="max", what=f"all_reduce of step {step}'s screen radii")
+            out.update(radii=maxes[0], screen=maxes[1])
+        return out
 
     def close(self) -> None:
         """Destroy the process group if this object created it."""

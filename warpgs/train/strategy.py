@@ -33,7 +33,8 @@ NDC coordinates, dL/dndc = dL/dpixel * (W/2, H/2), times B for a batch of B came
 them), averaged over the steps in which the primitive was visible. The default threshold 0.0002 therefore
 matches 3DGS for a loss on the same scale (0.8 L1 + 0.2 (1 - SSIM), means over pixels).
 
-Screen radii (for screen-size pruning, so only when a screen rule is on) are computed from the camera (screen_geometry.py): 3 sqrt(largest eigenvalue) of the
+Screen radii (for screen-size pruning, so only when a screen rule is on; otherwise no radii are computed or kept,
+and the observations carry None) are computed from the camera (screen_geometry.py): 3 sqrt(largest eigenvalue) of the
 projected covariance with the 0.3 px^2 low-pass, as the projection kernel does (3D scales; surfels get 0 for
 the third axis).
 
@@ -200,7 +201,9 @@ class DensifyStrategy:
         n = model.num_primitives
         if g2.shape != (views.shape[0], n, 2) or vis.shape != (views.shape[0], n):
             raise ValueError(f"grad2d/visible: expected [{n},2]/[{n}] per camera, got {list(g2.shape)}/{list(vis.shape)}")
-        radii = torch.stack([self._screen_radii(model, views[b], Ks[b], width, height, near) for b in range(len(views))])
+        radii = None
+        if self._screen_rules_on():
+            radii = torch.stack([screen_radii(model, views[b], Ks[b], width, height, near) for b in range(len(views))])
         self.accumulate(g2, vis, radii, width, height)
         return self.maybe_refine(model, optimizers, step)
 
@@ -237,25 +240,28 @@ class DensifyStrategy:
         n = model.num_primitives
         if grad2d.shape != (n, 2) or visible.shape != (n,):
             raise ValueError(f"grad2d/visible: expected [{n},2]/[{n}], got {list(grad2d.shape)}/{list(visible.shape)}")
-        radii = torch.stack([self._screen_radii(model, viewmat, K, width, height, near)])
+        radii = screen_radii(model, viewmat, K, width, height, near)[None] if self._screen_rules_on() else None
         return self.observations(grad2d[None], visible[None], radii, width, height, views_in_loss)
 
     @staticmethod
     @torch.no_grad()
-    def observations(grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, width: int, height: int,
-                     views_in_loss: Optional[int] = None) -> dict:
+    def observations(grad2d: torch.Tensor, visible: torch.Tensor, radii: Optional[torch.Tensor], width: int,
+                     height: int, views_in_loss: Optional[int] = None) -> dict:
         """grad2d [B,N,2] px, visible [B,N], radii [B,N] px -> {"grad": summed NDC gradient norms [N], "count":
         views in which each primitive was visible [N], "radii": largest radius px [N], "screen": the same as a
-        fraction of the image's larger side [N]}. views_in_loss defaults to B (see the module doc)."""
+        fraction of the image's larger side [N]} (radii None: both None). views_in_loss defaults to B (module doc)."""
         batch = grad2d.shape[0] if views_in_loss is None else int(views_in_loss)
         # Python-scalar factors: a small tensor of them built here would be a host-to-device copy, which torch
         # follows with a stream sync (a GPU profile found one in every densifying step).
         g = grad2d.detach()
         norms = torch.hypot(g[..., 0] * (0.5 * width * batch), g[..., 1] * (0.5 * height * batch))
         vis = visible.to(torch.bool)
-        seen = torch.where(vis, radii, torch.zeros_like(radii)).amax(0)
-        return {"grad": torch.where(vis, norms, torch.zeros_like(norms)).sum(0), "count": vis.sum(0),
-                "radii": seen, "screen": seen / max(width, height)}
+        out = {"grad": torch.where(vis, norms, torch.zeros_like(norms)).sum(0), "count": vis.sum(0),
+               "radii": None, "screen": None}
+        if radii is not None:  # None: no screen-size rule reads them (the default), so none are kept
+            seen = torch.where(vis, radii, torch.zeros_like(radii)).amax(0)
+            out.update(radii=seen, screen=seen / max(width, height))
+        return out
 
     @staticmethod
     def merge_observations(observations) -> dict:
@@ -264,8 +270,7 @@ class DensifyStrategy:
         out = dict(observations[0])
         for obs in observations[1:]:
             out = {"grad": out["grad"] + obs["grad"], "count": out["count"] + obs["count"],
-                   "radii": torch.maximum(out["radii"], obs["radii"]),
-                   "screen": torch.maximum(out["screen"], obs["screen"])}
+                   "radii": _maximum(out["radii"], obs["radii"]), "screen": _maximum(out["screen"], obs["screen"])}
         return out
 
     @torch.no_grad()
@@ -275,12 +280,13 @@ class DensifyStrategy:
             raise ValueError("strategy: call initialize(model) first")
         self.grad_accum += obs["grad"]
         self.count += obs["count"]
-        self.max_radii = torch.maximum(self.max_radii, obs["radii"])
-        self.max_screen = torch.maximum(self.max_screen, obs["screen"])
+        if obs["radii"] is not None:
+            self.max_radii = torch.maximum(self.max_radii, obs["radii"])
+            self.max_screen = torch.maximum(self.max_screen, obs["screen"])
 
     # ----- pieces (usable on their own) -----
     @torch.no_grad()
-    def accumulate(self, grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, width: int,
+    def accumulate(self, grad2d: torch.Tensor, visible: torch.Tensor, radii: Optional[torch.Tensor], width: int,
                    height: int) -> None:
         """grad2d [B,N,2] in pixels, visible [B,N] bool, radii [B,N] px: one training step's observations."""
         if self.grad_accum is None:
@@ -426,12 +432,10 @@ class DensifyStrategy:
         """The world-size rule on largest scales (prune_world_scale > 0 is the caller's check)."""
         return max_scales > self.config.prune_world_scale * self.world_extent
 
-    def _screen_radii(self, model: GaussianModel, viewmat, K, width: int, height: int, near: float) -> torch.Tensor:
-        """screen_radii, or zeros when no screen-size rule is on (the default): only those rules read them, and
-        projecting every covariance each step is a dozen kernels over N primitives for nothing."""
-        if self.config.prune_screen_size > 0 or self.config.prune_screen_radius > 0:
-            return screen_radii(model, viewmat, K, width, height, near)
-        return torch.zeros(model.num_primitives, device=model.means.device)
+    def _screen_rules_on(self) -> bool:
+        """Whether a screen-size rule reads the radii: only then are they computed and kept (the default has none,
+        and projecting every covariance, then maxing and storing the result, is a dozen kernels over N a step)."""
+        return self.config.prune_screen_size > 0 or self.config.prune_screen_radius > 0
 
     def _reset_stats(self, n: int, device) -> None:
         self.grad_accum = torch.zeros(n, device=device)
@@ -477,3 +481,10 @@ class DensifyStrategy:
         # In log space: exp() of a very negative log-scale (a flat axis) underflows to 0, and log(0) = -inf.
         rows["log_scales"] = rows["log_scales"] - math.log(self.config.split_shrink)
         return rows
+
+
+def _maximum(a: Optional[torch.Tensor], b: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
+    """Elementwise maximum of two observations' radii; None when neither camera computed them."""
+    if a is None or b is None:
+        return a if b is None else b
+    return torch.maximum(a, b)
