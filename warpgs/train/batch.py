@@ -18,9 +18,9 @@ from warpgs.losses.registry import LossResult
 
 class HostScalars:
     """A view's loss, per-term values and image MSE on their way to the host. On a GPU the copy starts without
-    waiting (into pinned memory, with an event) and is read when first asked for: the step reads it after the NaN
-    guard's one sync, so the two reads cost one stall instead of two, each of which left the GPU idle while the
-    host issued the next launches. On the CPU the values are there at once."""
+    waiting (into pinned memory, with an event) and is read when first asked for: the training loop asks a step
+    later (train/step_info.py), when the copy is done, so the step never waits for its own backward (a wait left
+    the GPU idle while the host issued the next launches). On the CPU the values are there at once."""
 
     def __init__(self, result: LossResult, rgb: Optional[torch.Tensor] = None, image: Optional[torch.Tensor] = None):
         self.names = list(result.values)

@@ -89,7 +89,9 @@ class PendingCheck:
     tensor, 1 when anything was not finite) is what fused Adam takes to skip that step on the device, so nothing
     non-finite is applied although the host did not wait for the backward; `raise_if_failed` reads the flags (by
     then a later sync has brought them to the host) and names the first offender in check's order: a parameter,
-    then the loss, then a gradient. A gradient whose 1-norm overflows float32 counts as not finite here."""
+    then the loss, then a gradient. A gradient whose 1-norm overflows float32 counts as not finite here; a
+    parameter's overflowing 1-norm alone (every value finite, their sum beyond float range) skips the step
+    without an error, as check lets it pass."""
 
     def __init__(self, step: int, labels: list, flags: torch.Tensor, result, guard: "NonFiniteGuard"):
         self.step, self.labels, self.result, self.guard = step, labels, result, guard

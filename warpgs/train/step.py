@@ -122,7 +122,7 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
     own_means_grad = densify and out.means2d is None and views_in_loss > 1
     before = model.means.grad.clone() if own_means_grad and model.means.grad is not None else None
     (result.total if views_in_loss == 1 else result.total / views_in_loss).backward()
-    # The scalars for the log and the progress line: one device-to-host copy, read after the NaN guard's sync.
+    # The scalars for the log and the progress line: one device-to-host copy, read when the info is (a step later).
     p = ViewPass(view=view, result=result, scalars=HostScalars(result, out.rgb, view.image))
     if densify:
         p.visible = out.visible
