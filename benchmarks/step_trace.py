@@ -1,0 +1,125 @@
+"""Where a GPU training step waits: the GPU's busy share of the step and every host read (stream syncs and
+device-to-host copies) with the Python line that made it, from a torch.profiler trace of a few steps.
+
+    python benchmarks/step_trace.py data/bonsai800 --device cuda --warmup 3000 --steps 10 train.steps=30000
+
+Warm-up steps grow the model first (densification runs as in training). Python stacks make the profiled steps
+slower than real ones (the plain step time is measured first, without the profiler); the reads and their call
+sites are what to look at. Writes benchmarks/results/step_trace_<capture>_<device>[_<tag>].json.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from common import ROOT, sync, write_json
+
+sys.path.insert(0, str(ROOT))
+
+READS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize", "cudaMemcpyAsync", "cudaMemcpy")
+GPU_CATEGORIES = ("kernel", "gpu_memcpy", "gpu_memset")
+
+
+def busy_time(events) -> tuple[float, float]:
+    """(span, busy) in microseconds of the GPU activity among trace events: the union of their intervals."""
+    spans = sorted((e["ts"], e["ts"] + e["dur"]) for e in events if e.get("cat") in GPU_CATEGORIES)
+    if not spans:
+        return 0.0, 0.0
+    busy, start, end = 0.0, spans[0][0], spans[0][1]
+    for s, t in spans[1:]:
+        if s > end:
+            busy += end - start
+            start, end = s, t
+        else:
+            end = max(end, t)
+    busy += end - start
+    return spans[-1][1] - spans[0][0], busy
+
+
+def call_site(event, frames_by_thread, depth: int = 3) -> str:
+    """The innermost `depth` warpgs frames (python_function events of the same thread) around a runtime call."""
+    t = event["ts"]
+    around = [f for f in frames_by_thread.get(event.get("tid"), ()) if f["ts"] <= t <= f["ts"] + f["dur"]]
+    names = [f["name"] for f in sorted(around, key=lambda f: f["ts"]) if f["name"].startswith("warpgs/")]
+    return " < ".join(names[-depth:][::-1]) or "(outside warpgs)"
+
+
+def host_reads(events, steps: int) -> list:
+    """One row per (runtime call, call site): calls and host microseconds per step, most time first. A
+    cudaMemcpyAsync is a read only when it waits (the profiler cannot tell the direction here, so every copy is
+    listed; host-to-device copies of small tensors are followed by a stream sync in torch, listed too)."""
+    frames = collections.defaultdict(list)
+    for e in events:
+        if e.get("cat") == "python_function":
+            frames[e.get("tid")].append(e)
+    calls, micros = collections.Counter(), collections.Counter()
+    for e in events:
+        if e.get("cat") in ("cuda_runtime", "cuda_driver") and e.get("name") in READS:
+            key = (e["name"], call_site(e, frames))
+            calls[key] += 1
+            micros[key] += e["dur"]
+    return [{"call": k[0], "site": k[1], "per_step": calls[k] / steps, "host_us_per_step": micros[k] / steps}
+            for k in sorted(calls, key=lambda k: -micros[k])]
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("data", help="scene folder")
+    ap.add_argument("--config", default="gaussians")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--warmup", type=int, default=2000, help="training steps before measuring")
+    ap.add_argument("--steps", type=int, default=10, help="profiled steps")
+    ap.add_argument("--tag", default="")
+    ap.add_argument("overrides", nargs="*", help="key=value config overrides")
+    args = ap.parse_intermixed_args(argv)
+    import torch
+
+    from warpgs.cli.commands import resolve_config_source
+    from warpgs.config.loader import load_config
+    from warpgs.train.trainer import Trainer
+
+    cfg = load_config(resolve_config_source(args.config), [f"data.path={args.data}", f"train.device={args.device}",
+                                                            "eval.every=0", "train.progress=false", *args.overrides])
+    cfg.output.dir = tempfile.mkdtemp()
+    trainer = Trainer(cfg, quiet=True)
+    for _ in range(args.warmup):
+        trainer.train_step()
+    sync(args.device)
+    t0 = time.perf_counter()
+    for _ in range(max(args.steps, 50)):
+        trainer.train_step()
+    sync(args.device)
+    plain_ms = 1e3 * (time.perf_counter() - t0) / max(args.steps, 50)
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if torch.device(args.device).type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    with tempfile.TemporaryDirectory() as tmp:
+        with torch.profiler.profile(activities=activities, with_stack=True) as prof:
+            for _ in range(args.steps):
+                trainer.train_step()
+            sync(args.device)
+        trace = Path(tmp) / "trace.json"
+        prof.export_chrome_trace(str(trace))
+        events = [e for e in json.loads(trace.read_text())["traceEvents"] if e.get("ph") == "X"]
+    span, busy = busy_time(events)
+    reads = host_reads(events, args.steps)
+    result = {"data": args.data, "device": args.device, "warmup": args.warmup, "steps": args.steps,
+              "primitives": trainer.num_primitives, "ms_per_step_plain": plain_ms,
+              "profiled_gpu_span_ms_per_step": span / 1e3 / args.steps,
+              "profiled_gpu_busy_ms_per_step": busy / 1e3 / args.steps, "host_reads": reads,
+              "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
+    print(f"{trainer.num_primitives} primitives: {plain_ms:.2f} ms a step without the profiler; profiled, the GPU "
+          f"was busy {result['profiled_gpu_busy_ms_per_step']:.2f} of {result['profiled_gpu_span_ms_per_step']:.2f} ms")
+    for r in reads:
+        print(f"  {r['per_step']:5.1f}/step {r['host_us_per_step']:8.0f} us  {r['call']:22s} {r['site']}")
+    write_json(f"step_trace_{Path(args.data).name}_{args.device}" + (f"_{args.tag}" if args.tag else ""), result)
+    return result
+
+
+if __name__ == "__main__":
+    main()

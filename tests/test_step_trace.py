@@ -1,0 +1,28 @@
+"""benchmarks/step_trace.py: the GPU's busy time and the host reads, from trace events."""
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import step_trace  # noqa: E402
+
+
+def test_busy_time_is_the_union_of_overlapping_gpu_intervals():
+    events = [{"cat": "kernel", "ts": 0, "dur": 10}, {"cat": "kernel", "ts": 5, "dur": 10},
+              {"cat": "gpu_memcpy", "ts": 30, "dur": 5}, {"cat": "cpu_op", "ts": 0, "dur": 100}]
+    assert step_trace.busy_time(events) == (35, 20)
+    assert step_trace.busy_time([{"cat": "cpu_op", "ts": 0, "dur": 1}]) == (0.0, 0.0)
+
+
+def test_host_reads_are_counted_per_step_at_their_innermost_warpgs_frames():
+    frames = [{"cat": "python_function", "tid": 1, "ts": 0, "dur": 100, "name": "warpgs/train/step.py(16): train_step"},
+              {"cat": "python_function", "tid": 1, "ts": 10, "dur": 20, "name": "warpgs/train/guard.py(29): check"},
+              {"cat": "python_function", "tid": 1, "ts": 12, "dur": 5, "name": "torch/x.py(1): item"}]
+    calls = [{"cat": "cuda_runtime", "tid": 1, "ts": 14, "dur": 7, "name": "cudaStreamSynchronize"},
+             {"cat": "cuda_runtime", "tid": 1, "ts": 50, "dur": 3, "name": "cudaMemcpyAsync"},
+             {"cat": "cuda_runtime", "tid": 1, "ts": 60, "dur": 9, "name": "cudaLaunchKernel"}]
+    rows = step_trace.host_reads(frames + calls + calls, steps=2)
+    assert [(r["call"], r["per_step"], r["host_us_per_step"]) for r in rows] == [
+        ("cudaStreamSynchronize", 1.0, 7.0), ("cudaMemcpyAsync", 1.0, 3.0)]
+    assert rows[0]["site"] == "warpgs/train/guard.py(29): check < warpgs/train/step.py(16): train_step"
+    assert rows[1]["site"] == "warpgs/train/step.py(16): train_step"
