@@ -4,6 +4,7 @@ shortened), then text queries (mIoU / mAP), 3D delete / extract, click-to-segmen
 One short run is shared by the tests of this module (48x36 orbit, 14 training views, 800 surfels, 160 steps).
 """
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +34,15 @@ def run(tmp_path_factory):
                  "train.progress=false", "strategy.refine_start=100000", "extensions.language.ae_steps=300",
                  "extensions.language.latent_lr=0.01", "extensions.language.bridge_start=80",
                  "extensions.language.alternate_period=40"]
-    trainer = Trainer(str(CONFIG), overrides=overrides, out_dir=root / "run", quiet=True)
+    seen = {}
+
+    def last_language_terms(trainer, step, info):  # the extension's deferred key, read as a user callback would
+        seen.update(step=step, terms=info["language"])
+
+    trainer = Trainer(str(CONFIG), overrides=overrides, out_dir=root / "run", quiet=True,
+                      callbacks=[last_language_terms])
     trainer.fit()
+    trainer.seen_terms = seen
     return trainer
 
 
@@ -48,6 +56,12 @@ def test_training_writes_language_outputs(run):
     assert bool(((eps > 0) & (eps < 1)).all())
     sigma = run.modules["ppgs_sigma"].sigma2
     assert bool(torch.isfinite(sigma).all()) and not torch.allclose(sigma, torch.ones(2))  # the weights learnt
+    assert run.seen_terms["step"] == STEPS - 1
+    terms = run.seen_terms["terms"]
+    assert {"l1", "l_r", "l_rec", "l_rf", "sigma2_rec", "sigma2_rf"} <= set(terms)
+    assert all(type(v) is float and math.isfinite(v) for v in terms.values())
+    saved = json.loads((out / "language_metrics.json").read_text())["terms"]
+    assert saved == pytest.approx(terms)  # the metrics file's terms: the last step's, as floats
 
 
 def test_text_queries_reach_the_stated_accuracy(run):

@@ -208,6 +208,11 @@ def test_the_depth_loss_reads_confidence_from_the_batch_or_its_view():
         marr.depth(_render_out(inv), {**base, "inv_depth_confidence": conf[:4]}, None, 0)
     with pytest.raises(ValueError, match="inv_depth_confidence.*NaN"):
         marr.depth(_render_out(inv), {**base, "inv_depth_confidence": conf * float("nan")}, None, 0)
+    # A map found finite is not checked again (a host read every step on a GPU), unless it changes in place.
+    marr.depth(_render_out(inv), {**base, "inv_depth_confidence": conf}, None, 0)
+    conf[0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="inv_depth_confidence.*NaN"):
+        marr.depth(_render_out(inv), {**base, "inv_depth_confidence": conf}, None, 0)
 
 
 # --- initial points from the prior (model.prior_points) ----------------------------------------------------------

@@ -6,7 +6,7 @@ import torch
 
 from warpgs.losses import LossResult
 from warpgs.train.batch import HostScalars
-from warpgs.train.step_info import StepInfo
+from warpgs.train.step_info import DeviceFloats, StepInfo
 
 
 def _info(ready=None):
@@ -55,3 +55,19 @@ def test_host_scalars_on_the_cpu_are_ready_and_give_the_summary():
     assert s["loss"] == 0.75 and s["values"] == {"l1": 0.5, "dssim": 0.25}
     assert abs(s["psnr"] - 20.0) < 1e-4  # MSE 0.01
     assert HostScalars(result).summary()["psnr"] is None
+
+
+def test_an_extension_defers_its_own_keys_read_apart_from_the_loss():
+    info, reads = _info(ready=lambda: True)
+    lang_reads = []
+    info.defer(("language",), lambda: lang_reads.append(1) or {"language": {"l_r": 0.1}}, ready=lambda: False)
+    assert "language" in info and info.pending  # the extension's values are not ready
+    assert info["language"] == {"l_r": 0.1} and lang_reads == [1] and reads == []
+    assert not info.pending  # the loss values are ready (not read yet)
+    assert info["loss"] == 0.5 and reads == [1] and lang_reads == [1]
+
+
+def test_device_floats_read_once_as_python_floats():
+    values = DeviceFloats({"a": torch.tensor(1.5), "b": torch.tensor(2, dtype=torch.int64)})
+    assert values.ready() and values.read() == {"a": 1.5, "b": 2.0}
+    assert DeviceFloats({}).read() == {}

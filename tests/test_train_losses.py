@@ -208,3 +208,30 @@ def test_surfel_geometry_losses_run(tmp_path):
     trainer.fit()
     assert set(seen[-1]["values"]) == {"l1", "dssim", "normal_consistency", "distortion"}
     assert all(math.isfinite(v) for info in seen for v in info["values"].values())
+
+
+def test_environment_directions_are_kept_per_camera_tensor_and_redone_when_it_changes(monkeypatch):
+    from types import SimpleNamespace
+
+    from warpgs.model import environment
+
+    made = []
+    real = environment.ray_directions
+    monkeypatch.setattr(environment, "ray_directions", lambda *a: made.append(1) or real(*a))
+    ext = environment.Environment(degree=1)
+    trainer = SimpleNamespace(modules={"environment": environment.EnvironmentMap(1)})
+    viewmat, K = torch.eye(4), torch.tensor([[8.0, 0, 4], [0, 8.0, 3], [0, 0, 1]])
+    batch = {"viewmat": viewmat, "K": K, "width": 8, "height": 6}
+
+    def composite():
+        out = SimpleNamespace(rgb=torch.zeros(6, 8, 3), alpha=torch.zeros(6, 8, 1))
+        return ext.after_render(trainer, out, batch, 0).rgb
+
+    first = composite()
+    assert torch.equal(composite(), first) and len(made) == 1  # the same tensors: no second computation
+    viewmat[0, 3] = 1.0  # moved in place (a translation: same directions, but the entry must be redone)
+    composite()
+    assert len(made) == 2
+    batch["viewmat"] = viewmat.clone()  # a new tensor of equal values
+    composite()
+    assert len(made) == 3

@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from warpgs.train.extensions import Extension, register_extension
+from warpgs.train.step_info import DeviceFloats
 from warpgs.language.autoencoder import FeatureAutoencoder
 from warpgs.language.bridge import BridgeMLP
 from warpgs.language.evaluate import evaluate_language
@@ -114,8 +115,12 @@ class LanguageFieldExtension(Extension):
         return inputs
 
     def after_step(self, trainer, step: int, info: dict) -> None:
-        if self.ctx.last_terms:
-            info["language"] = dict(self.ctx.last_terms)
+        if self.ctx.term_values:
+            values = DeviceFloats(self.ctx.term_values)  # read when info["language"] is (train/step_info.py)
+            if hasattr(info, "defer"):
+                info.defer(("language",), lambda: {"language": values.read()}, values.ready)
+            else:
+                info["language"] = values.read()
         if self.cfg.eval_at_end and step + 1 == trainer.max_steps:
             self.write_metrics(trainer)
 

@@ -41,7 +41,16 @@ class LanguageContext:
     config: LanguageConfig = field(default_factory=LanguageConfig)
     latent_slice: Optional[slice] = None  # channels of render_out.features holding the latent (None: the first dim)
     eps_channel: Optional[int] = None  # channel holding the rendered uncertainty (None: not rendered)
-    last_terms: Dict[str, float] = field(default_factory=dict)  # component values of the last ppgs call
+    # The last ppgs call's component values, as detached 0-d tensors (a float() each would be a host read per
+    # term per step on a GPU); `last_terms` gives them as floats.
+    term_values: Dict[str, torch.Tensor] = field(default_factory=dict)
+
+    @property
+    def last_terms(self) -> Dict[str, float]:
+        """The last ppgs call's component values as floats (one read for all of them)."""
+        if not self.term_values:
+            return {}
+        return dict(zip(self.term_values, torch.stack(list(self.term_values.values())).tolist()))
 
 
 # ----- building blocks ----------------------------------------------------------------------------------------
@@ -238,26 +247,26 @@ def joint_loss(render_out, batch, model, step: int) -> torch.Tensor:
     l_photo = photometric_loss(render_out, batch, cfg.dssim_weight)
     l_r = rendered_feature_loss(render_out, batch)
     l_rec, l_rf = l_photo, l_r
-    terms = {"l1": float(l_photo.detach()), "l_r": float(l_r.detach())}
+    terms = {"l1": l_photo.detach(), "l_r": l_r.detach()}
     bridge = _module(batch, BRIDGE_MODULE, required=False)
     if bridge is not None and cfg.bridge_weight > 0:
         if bridge.color_head is not None:
             l_c = color_bridge_loss(batch, model, step)
             l_rec = l_rec + cfg.bridge_weight * l_c
-            terms["l_c"] = float(l_c.detach())
+            terms["l_c"] = l_c.detach()
         if bridge.lang_head is not None:
             l_f = feature_bridge_loss(batch, model, step)
             l_rf = l_rf + cfg.bridge_weight * l_f
-            terms["l_f"] = float(l_f.detach())
+            terms["l_f"] = l_f.detach()
     sigma = _module(batch, SIGMA_MODULE, required=False)
     if sigma is not None:
         total = sigma(l_rec, l_rf)
         s2 = sigma.sigma2
-        terms["sigma2_rec"], terms["sigma2_rf"] = float(s2[0]), float(s2[1])
+        terms["sigma2_rec"], terms["sigma2_rf"] = s2[0].detach(), s2[1].detach()
     else:
         total = l_rec + l_rf
-    terms["l_rec"], terms["l_rf"] = float(l_rec.detach()), float(l_rf.detach())
-    ctx.last_terms = terms
+    terms["l_rec"], terms["l_rf"] = l_rec.detach(), l_rf.detach()
+    ctx.term_values = {k: v.reshape(()).float() for k, v in terms.items()}
     return total
 
 

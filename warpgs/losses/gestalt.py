@@ -71,7 +71,8 @@ def _opacities(model) -> torch.Tensor:
 def _sum_over_rows(model, per_row: torch.Tensor):
     """(Σ per_row, number of rows) over the whole model: a model-parallel shard's `reduce_rows` adds the other
     ranks' (in one all-reduce); a whole model has none."""
-    local = torch.stack([per_row.sum(), per_row.new_tensor(float(per_row.numel()))])
+    # new_full fills on the device; new_tensor would copy from the host (and torch syncs after such a copy).
+    local = torch.stack([per_row.sum(), per_row.new_full((), float(per_row.numel()))])
     reduce = getattr(model, "reduce_rows", None)
     total = local if reduce is None else reduce(local)
     return total[0], total[1]

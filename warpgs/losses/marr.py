@@ -35,6 +35,7 @@ Options that the config's loss entries cannot carry (they take only weight and s
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, fields
 from typing import Optional
 
@@ -142,7 +143,7 @@ def depth_local_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor,
     # Both maps are shifted by the same constant (the prior's mean): the statistics' differences do not change,
     # and E[x²] - E[x]² loses less to float32 cancellation.
     with torch.no_grad():
-        centre = _masked_mean(prior, mask) if bool(mask.any()) else prior.new_zeros(())
+        centre = _masked_mean(prior, mask)  # 0 without valid pixels (no host read to ask whether there are any)
     zero = torch.zeros_like(pred)
     mu_p, var_p = local_stats(torch.where(mask, pred - centre, zero))
     mu_t, var_t = local_stats(torch.where(mask, prior - centre, zero))
@@ -189,6 +190,21 @@ def prior_and_mask(batch, like: torch.Tensor, alpha: Optional[torch.Tensor] = No
     return prior, mask
 
 
+# Confidence maps already found finite, by identity and version (weakly held, so no map outlives its view): a view
+# keeps its map for the whole run, and the check is a host read (a stall on a GPU) on every step otherwise.
+_SEEN_FINITE: dict = {}
+_SEEN_FINITE_SIZE = 1024
+
+
+def _seen_finite(t: torch.Tensor) -> bool:
+    seen = _SEEN_FINITE.get(id(t))
+    if seen is not None and seen[0]() is t and seen[1] == t._version:
+        return True
+    if len(_SEEN_FINITE) >= _SEEN_FINITE_SIZE:
+        _SEEN_FINITE.clear()
+    return False
+
+
 def prior_weight(batch, like: torch.Tensor, power: Optional[float] = None) -> Optional[torch.Tensor]:
     """confidence ** power as [B, 1, H, W] matching `like`, from batch["inv_depth_confidence"] or the batch's
     view; None when there is none or power is 0 (plain means)."""
@@ -202,12 +218,14 @@ def prior_weight(batch, like: torch.Tensor, power: Optional[float] = None) -> Op
         conf = getattr(view, CONFIDENCE_KEY, None)
         if conf is None:
             return None
+    given = conf
     conf = _bchw(conf, f"batch.{CONFIDENCE_KEY}").to(like)
     if conf.shape[-2:] != like.shape[-2:]:
         raise ValueError(f"batch.{CONFIDENCE_KEY}: {list(conf.shape[-2:])} does not match the render "
                          f"{list(like.shape[-2:])}")
-    if not bool(torch.isfinite(conf).all()):
+    if not _seen_finite(given) and not bool(torch.isfinite(conf).all()):
         raise ValueError(f"batch.{CONFIDENCE_KEY}: contains NaN or Inf")
+    _SEEN_FINITE[id(given)] = (weakref.ref(given), given._version)
     return conf.clamp(0.0, 1.0).pow(power).expand_as(like)
 
 

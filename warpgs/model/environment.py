@@ -80,11 +80,16 @@ class Environment(Extension):
         if out.rgb is None or out.alpha is None:
             return out
         W, H = int(batch["width"]), int(batch["height"])
-        key = (tuple(batch["viewmat"].flatten().tolist()), tuple(batch["K"].flatten().tolist()), W, H)
-        if key not in self._dirs:
+        viewmat, K = batch["viewmat"], batch["K"]
+        # Keyed by the camera tensors' identity and version, not their values: reading the values is a host read
+        # (a stall on a GPU) every step; a view keeps its tensors for the run. The entry holds them, so an id is
+        # never another tensor's.
+        key = (id(viewmat), viewmat._version, id(K), K._version, W, H)
+        hit = self._dirs.get(key)
+        if hit is None or hit[0] is not viewmat or hit[1] is not K:
             if len(self._dirs) > 512:
                 self._dirs.clear()
-            self._dirs[key] = ray_directions(batch["viewmat"], batch["K"], W, H)
-        env = trainer.modules["environment"](self._dirs[key])
+            hit = self._dirs[key] = (viewmat, K, ray_directions(viewmat, K, W, H))
+        env = trainer.modules["environment"](hit[2])
         out.rgb = out.rgb + (1.0 - out.alpha) * env
         return out

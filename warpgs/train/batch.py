@@ -14,6 +14,7 @@ from typing import Dict, List, Optional, Sequence
 import torch
 
 from warpgs.losses.registry import LossResult
+from warpgs.train.step_info import start_host_copy
 
 
 class HostScalars:
@@ -28,14 +29,7 @@ class HostScalars:
         self.has_mse = rgb is not None
         if self.has_mse:  # read now: the next view's render may reuse the output buffers
             scalars.append(((rgb.detach() - image) ** 2).mean())
-        stacked = torch.stack([v.float() for v in scalars])
-        self._event = None
-        if stacked.is_cuda:
-            self._host = stacked.to("cpu", non_blocking=True)
-            self._event = torch.cuda.Event()
-            self._event.record()
-        else:
-            self._host = stacked
+        self._host, self._event = start_host_copy(torch.stack([v.float() for v in scalars]))
         self._values: Optional[List[float]] = None
 
     def summary(self) -> dict:

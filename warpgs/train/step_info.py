@@ -1,47 +1,68 @@
-"""StepInfo: what Trainer.train_step returns, a dict whose loss values are read from the device on first use."""
+"""StepInfo: what Trainer.train_step returns, a dict whose device-side values are read on first use."""
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import Callable, Dict, Iterable, List, Optional, Tuple
+
+import torch
 
 LAZY_KEYS = ("loss", "values", "psnr")
 
+Reader = Callable[[], dict]
+Ready = Optional[Callable[[], bool]]
+
 
 class StepInfo(dict):
-    """A step's info (step, loss, values, psnr, num_primitives, densify, view, views, stop). "loss", "values" and
-    "psnr" are filled in from `read` (the views' HostScalars, train/batch.py) the first time any of them is asked
-    for, or the info is iterated, copied or printed: on a GPU that waits for the step's backward, so the training
-    loop reads them a step later, when they are on the host already (a GPU profile at 870k Gaussians: 6.3 ms a
-    step without the read at the end of the step against 7.2 ms with it). Every other key is a plain value."""
+    """A step's info (step, loss, values, psnr, num_primitives, densify, view, views, stop, and what extensions add).
+    "loss", "values" and "psnr" are filled in from `read` (the views' HostScalars, train/batch.py) the first time one
+    of them is asked for, or the info is iterated, copied or printed; an extension may `defer` keys of its own the
+    same way. On a GPU a read waits for the step's backward, so the training loop reads them a step later, when
+    they are on the host already (a GPU probe at 870k Gaussians: 6.3 ms a step without the read at the end of the
+    step against 7.2 ms with it). Every other key is a plain value."""
 
-    def __init__(self, items: dict, read: Optional[Callable[[], dict]] = None,
-                 ready: Optional[Callable[[], bool]] = None):
+    def __init__(self, items: dict, read: Optional[Reader] = None, ready: Ready = None):
         super().__init__(items)
-        self._read, self._ready = read, ready
+        self._groups: List[Tuple[tuple, Reader, Ready]] = []
+        if read is not None:
+            self._groups.append((LAZY_KEYS, read, ready))
+
+    def defer(self, keys: Iterable[str], read: Reader, ready: Ready = None) -> None:
+        """Add keys whose values `read()` returns (a dict with those keys) when first asked for."""
+        keys = tuple(keys)
+        for k in keys:
+            dict.pop(self, k, None)
+        self._groups.append((keys, read, ready))
 
     @property
     def pending(self) -> bool:
-        """Whether the loss values are still on their way (reading one of them now would wait for the device)."""
-        return self._read is not None and not (self._ready is not None and self._ready())
+        """Whether reading a deferred key now could wait for the device."""
+        return any(ready is None or not ready() for _, _, ready in self._groups)
 
     def read(self) -> "StepInfo":
-        """Fill in the loss values now (on a GPU: waits for them, once)."""
-        if self._read is not None:
-            read, self._read = self._read, None
-            dict.update(self, read())
+        """Fill in every deferred key now (on a GPU: waits for them, once)."""
+        while self._groups:
+            self._read_group(0)
         return self
 
+    def _read_group(self, index: int) -> None:
+        _, read, _ = self._groups.pop(index)
+        dict.update(self, read())
+
+    def _read_key(self, key) -> None:
+        for i, (keys, _, _) in enumerate(self._groups):
+            if key in keys:
+                self._read_group(i)
+                return
+
     def __getitem__(self, key):
-        if key in LAZY_KEYS:
-            self.read()
+        self._read_key(key)
         return dict.__getitem__(self, key)
 
     def get(self, key, default=None):
-        if key in LAZY_KEYS:
-            self.read()
+        self._read_key(key)
         return dict.get(self, key, default)
 
     def __contains__(self, key) -> bool:
-        return key in LAZY_KEYS or dict.__contains__(self, key)
+        return dict.__contains__(self, key) or any(key in keys for keys, _, _ in self._groups)
 
     def __iter__(self):
         return dict.__iter__(self.read())
@@ -68,3 +89,35 @@ class StepInfo(dict):
 
     def __repr__(self) -> str:
         return dict.__repr__(self.read())
+
+
+class DeviceFloats:
+    """Named 0-d tensors on their way to the host as Python floats: on a GPU one copy into pinned memory, started
+    without waiting (with an event to ask whether it is done); `read` returns {name: float} (waiting the first time
+    if the copy is still running). On the CPU the values are there at once."""
+
+    def __init__(self, values: Dict[str, torch.Tensor]):
+        self.names = list(values)
+        stacked = torch.stack([v.detach().reshape(()).float() for v in values.values()]) if values else None
+        self._host, self._event = start_host_copy(stacked) if stacked is not None else (None, None)
+        self._values: Optional[dict] = None if values else {}
+
+    def ready(self) -> bool:
+        return self._values is not None or self._event is None or self._event.query()
+
+    def read(self) -> dict:
+        if self._values is None:
+            if self._event is not None:
+                self._event.synchronize()
+            self._values = dict(zip(self.names, self._host.tolist()))
+        return self._values
+
+
+def start_host_copy(t: torch.Tensor):
+    """(host tensor, CUDA event or None): a device tensor's copy to pinned memory, not waited for."""
+    if not t.is_cuda:
+        return t, None
+    host = t.to("cpu", non_blocking=True)
+    event = torch.cuda.Event()
+    event.record()
+    return host, event
