@@ -76,7 +76,7 @@ class ViewPass:
 
 def scalar_names(passes: Sequence[ViewPass]) -> List[str]:
     """The per-term names, in one order every rank shares (the terms are the same on all ranks)."""
-    return sorted(passes[0].values) if passes else []
+    return sorted(passes[0].scalars.names) if passes else []  # the names only: the values may still be on the way
 
 
 def local_sums(passes: Sequence[ViewPass], names: Sequence[str]) -> List[float]:

@@ -1,0 +1,60 @@
+"""A training step reads nothing back from its device while it runs, so that on a GPU the host never waits for the
+backward (train/guard.py StepGuard, train/step_info.py StepInfo). Checked on the CPU by counting the calls that
+would be host reads on a GPU: item / float / bool of a tensor (aten::_local_scalar_dense), tolist and numpy. With
+fused Adam (the CUDA default, here forced) the one read a step is the NaN guard's flags of the step before, which a
+GPU has finished by then."""
+import traceback
+from collections import Counter
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from train_fixtures import quick_overrides
+from warpgs.train.trainer import Trainer
+
+
+class HostReads(TorchDispatchMode):
+    """Counts host reads by the warpgs function that made them."""
+
+    def __init__(self):
+        super().__init__()
+        self.sites = Counter()
+        self._tolist, self._numpy = torch.Tensor.tolist, torch.Tensor.numpy
+
+    def _note(self, kind):
+        frames = [f for f in traceback.extract_stack() if "/warpgs/" in f.filename and "/tests/" not in f.filename]
+        self.sites[(kind, frames[-1].name if frames else "?")] += 1
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if func.overloadpacket.__name__ == "_local_scalar_dense":
+            self._note("item")
+        return func(*args, **(kwargs or {}))
+
+    def __enter__(self):
+        mode, tolist, numpy = self, self._tolist, self._numpy
+        torch.Tensor.tolist = lambda t, *a: (mode._note("tolist"), tolist(t, *a))[1]
+        torch.Tensor.numpy = lambda t, *a, **k: (mode._note("numpy"), numpy(t, *a, **k))[1]
+        return super().__enter__()
+
+    def __exit__(self, *exc):
+        torch.Tensor.tolist, torch.Tensor.numpy = self._tolist, self._numpy
+        return super().__exit__(*exc)
+
+
+def test_a_densifying_step_reads_back_only_the_previous_steps_guard_flags(tmp_path):
+    # Densifying (statistics every step) but no refine in the counted steps: a refine reads counts, every 100 steps.
+    overrides = quick_overrides(tmp_path, 100, **{"optim.adam_kernel": "fused", "strategy.refine_start": 1,
+                                                  "strategy.refine_every": 1000})
+    trainer = Trainer(None, overrides=overrides, quiet=True)
+    for _ in range(3):
+        trainer.train_step()
+    steps = 5
+    with HostReads() as reads:
+        infos = [trainer.train_step() for _ in range(steps)]
+    assert trainer.strategy.schedule.densifying(trainer.step - 1)
+    # The epoch's shuffle (TrainViews.draw: a CPU generator's randperm) is no device read either.
+    other = {site: n for site, n in reads.sites.items() if site not in {("tolist", "raise_if_failed"),
+                                                                          ("tolist", "draw")}}
+    assert reads.sites[("tolist", "raise_if_failed")] == steps and other == {}, reads.sites
+    assert all(info.pending is False for info in infos)  # on the CPU the values are there; they were not read
+    assert infos[-1]["loss"] > 0  # and read on demand
