@@ -5,12 +5,16 @@ fused Adam (the CUDA default, here forced) the one read a step is the NaN guard'
 GPU has finished by then."""
 import traceback
 from collections import Counter
+from pathlib import Path
 
+import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from train_fixtures import quick_overrides
 from warpgs.train.trainer import Trainer
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 class HostReads(TorchDispatchMode):
@@ -41,11 +45,12 @@ class HostReads(TorchDispatchMode):
         return super().__exit__(*exc)
 
 
-def test_a_densifying_step_reads_back_only_the_previous_steps_guard_flags(tmp_path):
+@pytest.mark.parametrize("preset", ["default", "surfels"])  # default: with the environment module's optimizer
+def test_a_densifying_step_reads_back_only_the_previous_steps_guard_flags(tmp_path, preset):
     # Densifying (statistics every step) but no refine in the counted steps: a refine reads counts, every 100 steps.
     overrides = quick_overrides(tmp_path, 100, **{"optim.adam_kernel": "fused", "strategy.refine_start": 1,
                                                   "strategy.refine_every": 1000})
-    trainer = Trainer(None, overrides=overrides, quiet=True)
+    trainer = Trainer(str(ROOT / "configs" / f"{preset}.yaml"), overrides=overrides, quiet=True)
     for _ in range(3):
         trainer.train_step()
     steps = 5

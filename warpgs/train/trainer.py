@@ -41,7 +41,7 @@ from warpgs.train.stage_clock import StageClock
 from warpgs.train.extensions import CallbackExtension, Extension, build_extension
 from warpgs.model.gaussians import GaussianModel
 from warpgs.model.rendering import check_outputs, focal_length, render_model, screen_filter
-from warpgs.train.optim import build_optimizer
+from warpgs.train.optim import build_optimizer, fused_adam
 from warpgs.train.scaling import apply_batch_scaling, lr_scale
 from warpgs.train.best_state import BestState
 from warpgs.train.schedule import AutoStop, validation_split
@@ -192,7 +192,10 @@ class Trainer:
         if len(self.modules):
             groups = [{"params": list(m.parameters()), "lr": self._module_lrs[n], "name": n}
                       for n, m in self.modules.items()]
-            self.module_optimizer = torch.optim.Adam(groups, lr=0.0)
+            # The model's rule (optim.adam_kernel): fused on CUDA, which also lets the NaN guard defer (train/guard.py).
+            on_cuda = all(p.is_cuda for g in groups for p in g["params"])
+            self.module_optimizer = torch.optim.Adam(groups, lr=0.0, fused=fused_adam(cfg.optim.adam_kernel,
+                                                                                        on_cuda=on_cuda) or None)
         self.lr_scale = lr_scale(self.batch_size, cfg.train.batch_scaling)
         if self.batch_size > 1:
             apply_batch_scaling(self.optimizers, self.base_learning_rates(), batch_size=self.batch_size,
