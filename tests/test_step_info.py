@@ -71,3 +71,16 @@ def test_device_floats_read_once_as_python_floats():
     values = DeviceFloats({"a": torch.tensor(1.5), "b": torch.tensor(2, dtype=torch.int64)})
     assert values.ready() and values.read() == {"a": 1.5, "b": 2.0}
     assert DeviceFloats({}).read() == {}
+
+
+def test_a_value_set_or_popped_is_not_overwritten_by_a_later_read():
+    info, reads = _info()
+    info["stop"] = True  # a plain key: nothing read
+    assert reads == []
+    info["loss"] = 9.0  # a deferred key: its group is read first, so the value set stays
+    assert reads == [1] and info["loss"] == 9.0 and info["psnr"] == 20.0
+    info2, _ = _info()
+    assert info2.pop("psnr") == 20.0 and "psnr" not in info2 and info2["loss"] == 0.5
+    info3, _ = _info()
+    info3.update(loss=1.0)
+    assert info3["loss"] == 1.0 and info3.setdefault("values") == {"l1": 0.25}

@@ -61,6 +61,21 @@ class StepInfo(dict):
         self._read_key(key)
         return dict.get(self, key, default)
 
+    def __setitem__(self, key, value) -> None:
+        self._read_key(key)  # a value set now is not overwritten by a later read
+        dict.__setitem__(self, key, value)
+
+    def pop(self, key, *default):
+        self._read_key(key)
+        return dict.pop(self, key, *default)
+
+    def setdefault(self, key, default=None):
+        self._read_key(key)
+        return dict.setdefault(self, key, default)
+
+    def update(self, *args, **kwargs) -> None:
+        dict.update(self.read(), *args, **kwargs)
+
     def __contains__(self, key) -> bool:
         return dict.__contains__(self, key) or any(key in keys for keys, _, _ in self._groups)
 
