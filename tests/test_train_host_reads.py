@@ -45,11 +45,12 @@ class HostReads(TorchDispatchMode):
         return super().__exit__(*exc)
 
 
-@pytest.mark.parametrize("preset", ["default", "surfels"])  # default: with the environment module's optimizer
-def test_a_densifying_step_reads_back_only_the_previous_steps_guard_flags(tmp_path, preset):
+# default: with the environment module's optimizer; a batch of two views: its means on the device for the guard.
+@pytest.mark.parametrize("preset,batch", [("default", 1), ("surfels", 1), ("default", 2)])
+def test_a_densifying_step_reads_back_only_the_previous_steps_guard_flags(tmp_path, preset, batch):
     # Densifying (statistics every step) but no refine in the counted steps: a refine reads counts, every 100 steps.
     overrides = quick_overrides(tmp_path, 100, **{"optim.adam_kernel": "fused", "strategy.refine_start": 1,
-                                                  "strategy.refine_every": 1000})
+                                                  "strategy.refine_every": 1000, "train.batch_size": batch})
     trainer = Trainer(str(ROOT / "configs" / f"{preset}.yaml"), overrides=overrides, quiet=True)
     for _ in range(3):
         trainer.train_step()

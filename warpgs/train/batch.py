@@ -93,6 +93,35 @@ def batch_summary(sums: Sequence[float], names: Sequence[str], total_views: int)
             "psnr": psnr_sum / psnr_count if psnr_count else None}
 
 
+class BatchScalars:
+    """A single process's batch summary (batch_summary of its views' sums), read from the views' HostScalars on first
+    use: like one view's, it need not wait for the backward."""
+
+    def __init__(self, passes: Sequence[ViewPass], names: Sequence[str], total_views: int):
+        self.scalars = [p.scalars for p in passes]  # not the passes: their buffers should not outlive the step
+        self.names, self.total_views = list(names), int(total_views)
+
+    def ready(self) -> bool:
+        return all(s.ready() for s in self.scalars)
+
+    def summary(self) -> dict:
+        parts = [s.summary() for s in self.scalars]
+        psnrs = [p["psnr"] for p in parts if p["psnr"] is not None]
+        sums = ([sum(p["loss"] for p in parts), sum(psnrs), float(len(psnrs))]
+                + [sum(p["values"][n] for p in parts) for n in self.names])
+        return batch_summary(sums, self.names, self.total_views)
+
+
+def device_batch_result(passes: Sequence[ViewPass], total_views: int) -> LossResult:
+    """The batch's mean losses as device tensors (the views' sums / total_views), for the NaN guard without a host
+    read (a NaN in any view makes the mean NaN)."""
+    like = passes[0].result
+    total = torch.stack([p.result.total.detach().reshape(()) for p in passes]).sum() / total_views
+    values = {n: torch.stack([p.result.values[n].detach().reshape(()) for p in passes]).sum() / total_views
+              for n in like.values}
+    return LossResult(total=total, values=values, weights=dict(like.weights))
+
+
 def batch_result(summary: dict, like: LossResult) -> LossResult:
     """The batch's mean losses as a LossResult on `like`'s device, for the NaN guard (a NaN in any view makes the
     mean NaN)."""

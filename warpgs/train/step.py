@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import time
 
-import torch
-
 from warpgs.train import setup as train_setup
-from warpgs.train.batch import HostScalars, ViewPass, batch_result, batch_summary, local_sums, scalar_names
+from warpgs.train.batch import (BatchScalars, HostScalars, ViewPass, batch_result, batch_summary,
+                                device_batch_result, local_sums, scalar_names)
 from warpgs.train.optim import means_lr_at, update_learning_rates
 from warpgs.train.step_info import StepInfo
 
@@ -42,10 +41,10 @@ def train_step(trainer) -> dict:
     phases.mark("all_reduce")
     if len(drawn) == 1:
         result = passes[0].result
-    else:
-        if not trainer.ranks.enabled:
-            sums = local_sums(passes, names)
+    elif trainer.ranks.enabled:
         result = batch_result(batch_summary(sums, names, len(drawn)), passes[0].result)
+    else:  # the batch's means on the device: no host read before the optimizer
+        result = device_batch_result(passes, len(drawn))
     if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied (train/guard.py)
         trainer.step_guard.before_optimizers(step, result, trainer.optimizers, defer=not trainer.ranks.enabled)
     for opt in trainer.optimizers:
@@ -68,8 +67,10 @@ def train_step(trainer) -> dict:
     # a step later, so a GPU step ends without waiting for its own backward.
     if len(drawn) == 1:
         summary = passes[0].scalars  # not the ViewPass: the info outlives the step, its buffers should not
-    else:
+    elif trainer.ranks.enabled:
         summary = batch_summary(sums, names, len(drawn))
+    else:
+        summary = BatchScalars(passes, names, len(drawn))
     return end_step(trainer, step, t0, summary, report, passes, drawn, stop)
 
 
@@ -90,7 +91,8 @@ def set_step_schedule(trainer, step: int) -> bool:
 
 def end_step(trainer, step: int, t0: float, summary, report, passes, drawn, stop: bool) -> StepInfo:
     """Clear the gradients, advance the run's counters, and return the step's info (train_step's result). summary:
-    {"loss", "values", "psnr"}, or the one view's HostScalars (read when the info's loss values are first used)."""
+    {"loss", "values", "psnr"}, or what reads them (a view's HostScalars or a BatchScalars) when the info's loss
+    values are first used."""
     for opt in trainer.optimizers:
         opt.zero_grad(set_to_none=True)
     trainer.model.zero_grad(set_to_none=True)
@@ -100,7 +102,7 @@ def end_step(trainer, step: int, t0: float, summary, report, passes, drawn, stop
     trainer.counters.step = step + 1
     items = {"step": step, "num_primitives": trainer.num_primitives, "densify": report,
              "view": passes[0].view.name, "views": [trainer.scene.cameras[i].name for i in drawn], "stop": stop}
-    info = (StepInfo(items, summary.summary, ready=summary.ready) if isinstance(summary, HostScalars)
+    info = (StepInfo(items, summary.summary, ready=summary.ready) if hasattr(summary, "summary")
             else StepInfo({**items, **summary}))
     trainer.counters.last_info = info  # its loss is read when asked for (RunCounters.loss)
     return info
