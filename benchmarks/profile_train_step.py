@@ -26,6 +26,40 @@ from warpgs.config.loader import load_config  # noqa: E402
 from warpgs.train.trainer import Trainer  # noqa: E402
 
 
+def capture_arguments(ap: argparse.ArgumentParser, steps: int, steps_help: str) -> None:
+    """The arguments of a benchmark that warms a Trainer up on a capture: data, --config, --device, --warmup,
+    --steps, --tag and the key=value overrides (step_trace.py shares them)."""
+    ap.add_argument("data", help="scene folder")
+    ap.add_argument("--config", default="gaussians")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--warmup", type=int, default=2000, help="training steps before measuring")
+    ap.add_argument("--steps", type=int, default=steps, help=steps_help)
+    ap.add_argument("--tag", default="", help="suffix of the result file name (runs of one capture stay apart)")
+    ap.add_argument("overrides", nargs="*", help="key=value config overrides")
+
+
+def warmed_trainer(args, out_dir: str, run_steps=None) -> Trainer:
+    """A quiet Trainer on args.data after args.warmup steps (densification runs as in training). run_steps: the
+    run's length to set (None: the config's and the overrides')."""
+    cfg = load_config(resolve_config_source(args.config), [f"data.path={args.data}", f"train.device={args.device}",
+                                                            "eval.every=0", *args.overrides])
+    if run_steps is not None:
+        cfg.train.steps = run_steps
+    cfg.output.dir = out_dir
+    trainer = Trainer(cfg, quiet=True)
+    for _ in range(args.warmup):
+        trainer.train_step()
+    return trainer
+
+
+def profiler_activities(device: str) -> list:
+    """torch.profiler's activities for `device`: the CPU, and CUDA on a GPU."""
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if torch.device(device).type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    return activities
+
+
 def time_steps(trainer: Trainer, steps: int, device: str) -> float:
     """Mean seconds per Trainer.train_step over `steps` steps."""
     sync(device)
@@ -66,32 +100,18 @@ def time_render_only(trainer: Trainer, steps: int, device: str) -> float:
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("data", help="scene folder")
-    ap.add_argument("--config", default="gaussians")
-    ap.add_argument("--device", default="cuda")
-    ap.add_argument("--warmup", type=int, default=2000, help="training steps before measuring")
-    ap.add_argument("--steps", type=int, default=200, help="steps per measurement")
+    capture_arguments(ap, 200, "steps per measurement")
     ap.add_argument("--rounds", type=int, default=3,
                     help="alternating blocks of steps with the NaN guard on and off (each steps // rounds long)")
     ap.add_argument("--top", type=int, default=25, help="rows of the profiler table")
-    ap.add_argument("--tag", default="", help="suffix of the result file name (runs of one capture stay apart)")
-    ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args(argv)
 
-    cfg = load_config(resolve_config_source(args.config), [f"data.path={args.data}", f"train.device={args.device}",
-                                                            "eval.every=0", *args.overrides])
-    cfg.train.steps = args.warmup + 10 * args.steps
     with tempfile.TemporaryDirectory() as tmp:
-        cfg.output.dir = tmp
-        trainer = Trainer(cfg, quiet=True)
-        for _ in range(args.warmup):
-            trainer.train_step()
+        trainer = warmed_trainer(args, tmp, run_steps=args.warmup + 10 * args.steps)
         n = trainer.model.num_primitives
         step_s, no_guard_s = time_guard_on_off(trainer, args.steps, args.device, args.rounds)
         render_s = time_render_only(trainer, args.steps, args.device)
-        activities = [torch.profiler.ProfilerActivity.CPU]
-        if torch.device(args.device).type == "cuda":
-            activities.append(torch.profiler.ProfilerActivity.CUDA)
+        activities = profiler_activities(args.device)
         with torch.profiler.profile(activities=activities) as prof:
             time_steps(trainer, min(args.steps, 50), args.device)
     key = "self_cuda_time_total" if len(activities) > 1 else "self_cpu_time_total"

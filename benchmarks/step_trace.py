@@ -12,14 +12,13 @@ from __future__ import annotations
 import argparse
 import collections
 import json
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-from common import ROOT, sync, write_json
+import torch
 
-sys.path.insert(0, str(ROOT))
+from common import sync, write_json
+from profile_train_step import capture_arguments, profiler_activities, time_steps, warmed_trainer
 
 READS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize", "cudaMemcpyAsync", "cudaMemcpy")
 GPU_CATEGORIES = ("kernel", "gpu_memcpy", "gpu_memset")
@@ -69,37 +68,12 @@ def host_reads(events, steps: int) -> list:
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("data", help="scene folder")
-    ap.add_argument("--config", default="gaussians")
-    ap.add_argument("--device", default="cuda")
-    ap.add_argument("--warmup", type=int, default=2000, help="training steps before measuring")
-    ap.add_argument("--steps", type=int, default=10, help="profiled steps")
-    ap.add_argument("--tag", default="")
-    ap.add_argument("overrides", nargs="*", help="key=value config overrides")
+    capture_arguments(ap, 10, "profiled steps")
     args = ap.parse_intermixed_args(argv)
-    import torch
-
-    from warpgs.cli.commands import resolve_config_source
-    from warpgs.config.loader import load_config
-    from warpgs.train.trainer import Trainer
-
-    cfg = load_config(resolve_config_source(args.config), [f"data.path={args.data}", f"train.device={args.device}",
-                                                            "eval.every=0", "train.progress=false", *args.overrides])
-    cfg.output.dir = tempfile.mkdtemp()
-    trainer = Trainer(cfg, quiet=True)
-    for _ in range(args.warmup):
-        trainer.train_step()
-    sync(args.device)
-    t0 = time.perf_counter()
-    for _ in range(max(args.steps, 50)):
-        trainer.train_step()
-    sync(args.device)
-    plain_ms = 1e3 * (time.perf_counter() - t0) / max(args.steps, 50)
-    activities = [torch.profiler.ProfilerActivity.CPU]
-    if torch.device(args.device).type == "cuda":
-        activities.append(torch.profiler.ProfilerActivity.CUDA)
     with tempfile.TemporaryDirectory() as tmp:
-        with torch.profiler.profile(activities=activities, with_stack=True) as prof:
+        trainer = warmed_trainer(args, tmp)
+        plain_ms = 1e3 * time_steps(trainer, max(args.steps, 50), args.device)
+        with torch.profiler.profile(activities=profiler_activities(args.device), with_stack=True) as prof:
             for _ in range(args.steps):
                 trainer.train_step()
             sync(args.device)
