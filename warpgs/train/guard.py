@@ -6,6 +6,8 @@ from typing import Callable, Iterable, Optional, Sequence, Tuple
 
 import torch
 
+from warpgs.train.step_info import start_host_copy
+
 NamedTensors = Callable[[], Iterable[Tuple[str, torch.Tensor]]]
 
 
@@ -34,41 +36,44 @@ class NonFiniteGuard:
         gradient and would otherwise reach a checkpoint unnoticed. The tensors may live on several devices (a
         model-parallel checkpoint: the model gathered in CPU memory, the modules on the GPU): each device's norms
         are combined there."""
-        named = list(self.named_parameters())
-        tensors = [p for _, p in named if p.numel()] + [p.grad for _, p in named
-                                                        if p.grad is not None and p.grad.numel()]
-        sums = _one_norms(tensors)
-        if result is not None:
-            sums.append(result.total.detach().reshape(()).float())
-        if all_finite(sums):
-            return
+        _, _, norms = self._norms(result)
+        if not all_finite(norms):  # raise_first finds nothing when only a sum overflowed (finite values, huge total)
+            self.raise_first(step, result, lambda: self.first_nonfinite(grads=True))
+
+    def raise_first(self, step: int, result, bad_gradient: Callable[[], Optional[str]]) -> None:
+        """Raise NonFiniteError for the first offender, in this order: a parameter (an exact pass), the loss (naming
+        its non-finite terms), a gradient (`bad_gradient()`'s name); nothing when none is found."""
         name = self.first_nonfinite(grads=False)
         if name is not None:
             raise NonFiniteError(step, name, f"parameter {name!r} is not finite")
         if result is not None and not bool(torch.isfinite(result.total.detach())):
-            terms = [n for n, v in result.values.items() if not bool(torch.isfinite(v))]
+            terms = [n for n, v in result.values.items() if not bool(torch.isfinite(v.detach()).all())]
             label = "/".join(terms) or "total"
             raise NonFiniteError(step, terms[0] if terms else "loss",
                                  f"loss {label} is not finite (all parameters are finite)")
-        name = self.first_nonfinite(grads=True)
+        name = bad_gradient()
         if name is not None:
             raise NonFiniteError(step, name, f"gradient of {name!r} is not finite")
-        # Only a sum overflowed (finite values beyond float range in total): nothing is actually non-finite.
 
-    def flag(self, step: int, result=None) -> Optional[PendingCheck]:
-        """check's test without its host read: a PendingCheck for the optimizers and a later read, or None when the
-        tensors live on several devices (then call check)."""
-        named = [(n, p) for n, p in self.named_parameters()]
-        labels = [("parameter", n) for n, p in named if p.numel()]
-        tensors = [p for _, p in named if p.numel()]
-        labels += [("gradient", n) for n, p in named if p.grad is not None and p.grad.numel()]
-        tensors += [p.grad for _, p in named if p.grad is not None and p.grad.numel()]
-        if len({t.device for t in tensors}) > 1:
-            return None
+    def _norms(self, result) -> tuple:
+        """(labels, tensors, norms): every non-empty parameter, then every non-empty gradient, labelled ("parameter"
+        or "gradient", name), and their 1-norms, then the loss total's value labelled ("loss", "total")."""
+        named = list(self.named_parameters())
+        checked = ([(("parameter", n), p) for n, p in named if p.numel()]
+                   + [(("gradient", n), p.grad) for n, p in named if p.grad is not None and p.grad.numel()])
+        labels, tensors = [label for label, _ in checked], [t for _, t in checked]
         norms = _one_norms(tensors)
         if result is not None:
             labels.append(("loss", "total"))
             norms.append(result.total.detach().reshape(()).float())
+        return labels, tensors, norms
+
+    def flag(self, step: int, result=None) -> Optional[PendingCheck]:
+        """check's test without its host read: a PendingCheck for the optimizers and a later read, or None when the
+        tensors live on several devices (then call check)."""
+        labels, tensors, norms = self._norms(result)
+        if len({t.device for t in tensors}) > 1:
+            return None
         if not norms:
             return None
         with torch.no_grad():
@@ -96,13 +101,7 @@ class PendingCheck:
     def __init__(self, step: int, labels: list, flags: torch.Tensor, result, guard: "NonFiniteGuard"):
         self.step, self.labels, self.result, self.guard = step, labels, result, guard
         self.found_inf = flags.any().float()
-        self._event = None
-        if flags.is_cuda:
-            self._flags = flags.to("cpu", non_blocking=True)
-            self._event = torch.cuda.Event()
-            self._event.record()
-        else:
-            self._flags = flags
+        self._flags, self._event = start_host_copy(flags)
 
     def raise_if_failed(self) -> None:
         if self._event is not None:
@@ -110,19 +109,10 @@ class PendingCheck:
         flags = self._flags.tolist()
         if not any(flags):
             return
-        step, bad = self.step, [label for label, f in zip(self.labels, flags) if f]
-        if any(kind == "parameter" for kind, _ in bad):
-            name = self.guard.first_nonfinite(grads=False)  # exact: the skipped step left the parameters as they were
-            if name is not None:
-                raise NonFiniteError(step, name, f"parameter {name!r} is not finite")
-        if ("loss", "total") in bad:
-            values = self.result.values
-            terms = [n for n, v in values.items() if not bool(torch.isfinite(v.detach()).all())]
-            raise NonFiniteError(step, terms[0] if terms else "loss",
-                                 f"loss {'/'.join(terms) or 'total'} is not finite (all parameters are finite)")
-        grads = [name for kind, name in bad if kind == "gradient"]
-        if grads:
-            raise NonFiniteError(step, grads[0], f"gradient of {grads[0]!r} is not finite")
+        # The parameters and the loss are still there (the skipped step left the parameters as they were): named by
+        # the exact passes; the gradients are gone, so their flags name them.
+        grads = [name for (kind, name), f in zip(self.labels, flags) if f and kind == "gradient"]
+        self.guard.raise_first(self.step, self.result, lambda: grads[0] if grads else None)
 
 
 def _one_norms(tensors: Sequence[torch.Tensor]) -> list:
