@@ -14,7 +14,7 @@ from typing import Dict, List, Optional, Sequence
 import torch
 
 from warpgs.losses.registry import LossResult
-from warpgs.train.step_info import start_host_copy
+from warpgs.train.step_info import HostCopy
 
 
 class HostScalars:
@@ -29,8 +29,7 @@ class HostScalars:
         self.has_mse = rgb is not None
         if self.has_mse:  # read now: the next view's render may reuse the output buffers
             scalars.append(((rgb.detach() - image) ** 2).mean())
-        self._host, self._event = start_host_copy(torch.stack([v.float() for v in scalars]))
-        self._values: Optional[List[float]] = None
+        self._copy = HostCopy(torch.stack([v.float() for v in scalars]))
 
     def summary(self) -> dict:
         """{"loss": total, "values": {term: value}, "psnr": of the render, or None without an image}."""
@@ -40,15 +39,11 @@ class HostScalars:
 
     def ready(self) -> bool:
         """Whether read() would return at once."""
-        return self._values is not None or self._event is None or self._event.query()
+        return self._copy.ready()
 
     def read(self) -> List[float]:
         """[total, one value per term, (image MSE)] as Python floats (waits for the copy the first time)."""
-        if self._values is None:
-            if self._event is not None:
-                self._event.synchronize()
-            self._values = self._host.tolist()
-        return self._values
+        return self._copy.read()
 
 
 @dataclass
@@ -81,9 +76,14 @@ def scalar_names(passes: Sequence[ViewPass]) -> List[str]:
 
 def local_sums(passes: Sequence[ViewPass], names: Sequence[str]) -> List[float]:
     """[loss sum, PSNR sum, views with a PSNR, one sum per term] of this rank's views."""
-    psnrs = [p.psnr for p in passes if p.psnr is not None]
-    return ([sum(p.loss for p in passes), sum(psnrs), float(len(psnrs))]
-            + [sum(p.values[n] for p in passes) for n in names])
+    return summary_sums([p.scalars.summary() for p in passes], names)
+
+
+def summary_sums(parts: Sequence[dict], names: Sequence[str]) -> List[float]:
+    """local_sums of views' summaries (HostScalars.summary)."""
+    psnrs = [p["psnr"] for p in parts if p["psnr"] is not None]
+    return ([sum(p["loss"] for p in parts), sum(psnrs), float(len(psnrs))]
+            + [sum(p["values"][n] for p in parts) for n in names])
 
 
 def batch_summary(sums: Sequence[float], names: Sequence[str], total_views: int) -> dict:
@@ -105,11 +105,8 @@ class BatchScalars:
         return all(s.ready() for s in self.scalars)
 
     def summary(self) -> dict:
-        parts = [s.summary() for s in self.scalars]
-        psnrs = [p["psnr"] for p in parts if p["psnr"] is not None]
-        sums = ([sum(p["loss"] for p in parts), sum(psnrs), float(len(psnrs))]
-                + [sum(p["values"][n] for p in parts) for n in self.names])
-        return batch_summary(sums, self.names, self.total_views)
+        return batch_summary(summary_sums([s.summary() for s in self.scalars], self.names), self.names,
+                             self.total_views)
 
 
 def device_batch_result(passes: Sequence[ViewPass], total_views: int) -> LossResult:

@@ -6,7 +6,7 @@ from typing import Callable, Iterable, Optional, Sequence, Tuple
 
 import torch
 
-from warpgs.train.step_info import start_host_copy
+from warpgs.train.step_info import HostCopy
 
 NamedTensors = Callable[[], Iterable[Tuple[str, torch.Tensor]]]
 
@@ -101,12 +101,10 @@ class PendingCheck:
     def __init__(self, step: int, labels: list, flags: torch.Tensor, result, guard: "NonFiniteGuard"):
         self.step, self.labels, self.result, self.guard = step, labels, result, guard
         self.found_inf = flags.any().float()
-        self._flags, self._event = start_host_copy(flags)
+        self._flags = HostCopy(flags)
 
     def raise_if_failed(self) -> None:
-        if self._event is not None:
-            self._event.synchronize()
-        flags = self._flags.tolist()
+        flags = self._flags.read()
         if not any(flags):
             return
         # The parameters and the loss are still there (the skipped step left the parameters as they were): named by

@@ -106,33 +106,42 @@ class StepInfo(dict):
         return dict.__repr__(self.read())
 
 
-class DeviceFloats:
-    """Named 0-d tensors on their way to the host as Python floats: on a GPU one copy into pinned memory, started
-    without waiting (with an event to ask whether it is done); `read` returns {name: float} (waiting the first time
-    if the copy is still running). On the CPU the values are there at once."""
+class HostCopy:
+    """A device tensor's values on their way to the host: one copy into pinned memory, started without waiting (with
+    an event to ask whether it is done); `read` returns them as tensor.tolist() would, waiting the first time if the
+    copy is still running. On the CPU they are there at once."""
 
-    def __init__(self, values: Dict[str, torch.Tensor]):
-        self.names = list(values)
-        stacked = torch.stack([v.detach().reshape(()).float() for v in values.values()]) if values else None
-        self._host, self._event = start_host_copy(stacked) if stacked is not None else (None, None)
-        self._values: Optional[dict] = None if values else {}
+    def __init__(self, t: torch.Tensor):
+        self._event = None
+        if t.is_cuda:
+            self._host = t.to("cpu", non_blocking=True)
+            self._event = torch.cuda.Event()
+            self._event.record()
+        else:
+            self._host = t
+        self._values = None
 
     def ready(self) -> bool:
+        """Whether read() would return at once."""
         return self._values is not None or self._event is None or self._event.query()
 
-    def read(self) -> dict:
+    def read(self) -> list:
         if self._values is None:
             if self._event is not None:
                 self._event.synchronize()
-            self._values = dict(zip(self.names, self._host.tolist()))
+            self._values = self._host.tolist()
         return self._values
 
 
-def start_host_copy(t: torch.Tensor):
-    """(host tensor, CUDA event or None): a device tensor's copy to pinned memory, not waited for."""
-    if not t.is_cuda:
-        return t, None
-    host = t.to("cpu", non_blocking=True)
-    event = torch.cuda.Event()
-    event.record()
-    return host, event
+class DeviceFloats:
+    """Named 0-d tensors on their way to the host as Python floats (one HostCopy); `read` returns {name: float}."""
+
+    def __init__(self, values: Dict[str, torch.Tensor]):
+        self.names = list(values)
+        self._copy = HostCopy(torch.stack([v.detach().reshape(()).float() for v in values.values()])) if values else None
+
+    def ready(self) -> bool:
+        return self._copy is None or self._copy.ready()
+
+    def read(self) -> dict:
+        return {} if self._copy is None else dict(zip(self.names, self._copy.read()))
