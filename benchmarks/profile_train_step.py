@@ -23,6 +23,7 @@ sys.path.insert(0, str(ROOT))
 
 from warpgs.cli.commands import resolve_config_source  # noqa: E402
 from warpgs.config.loader import load_config  # noqa: E402
+from warpgs.config.schema import ALIASES  # noqa: E402
 from warpgs.train.trainer import Trainer  # noqa: E402
 
 
@@ -107,7 +108,10 @@ def main(argv=None) -> dict:
     args = ap.parse_intermixed_args(argv)
 
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = warmed_trainer(args, tmp, run_steps=args.warmup + 10 * args.steps)
+        # A run just longer than the measurement, unless the overrides give its length (densification ends at a
+        # fraction of it: a forced 8000-step run stops densifying at 4000, before a 5000-step warm-up ends).
+        given = any(ALIASES.get(key, key) == "train.steps" for key in (o.split("=", 1)[0] for o in args.overrides))
+        trainer = warmed_trainer(args, tmp, run_steps=None if given else args.warmup + 10 * args.steps)
         n = trainer.model.num_primitives
         step_s, no_guard_s = time_guard_on_off(trainer, args.steps, args.device, args.rounds)
         render_s = time_render_only(trainer, args.steps, args.device)
