@@ -1,0 +1,112 @@
+"""Where a GPU render call's time goes, warpgs beside gsplat: per call, the wall time, the GPU's busy time (so the
+rest is the GPU waiting on the host), the host reads, and each kernel's time, from a torch.profiler trace.
+
+    python benchmarks/render_trace.py --sizes 100000,1000000 --resolution 1920x1080 [--no-gsplat] [--tag T]
+
+The scene and the calls are benchmarks/raster.py's (the default `rasterize(...)` call, RGB + alpha + depth; gsplat's
+rasterization with RGB+ED). Each profiled call ends with a synchronisation, so a call's window holds only its own
+GPU work. Writes benchmarks/results/render_trace_<device>[_<tag>].json ($OUT when set).
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from common import print_table, standard_scenes_module, sync, time_call, write_json
+from raster import gsplat_calls, warpgs_calls
+from step_trace import GPU_CATEGORIES, READS, busy_time
+
+
+def call_windows(events) -> list:
+    """[start, end) of each profiled call (the record_function ranges named 'call')."""
+    return sorted((e["ts"], e["ts"] + e["dur"]) for e in events
+                  if e.get("name") == "call" and e.get("cat") == "user_annotation")
+
+
+def per_call_breakdown(events, calls: int) -> dict:
+    """GPU busy microseconds per call, host reads per call, and kernel time per call by kernel name."""
+    windows = call_windows(events)
+    gpu = [e for e in events if e.get("cat") in GPU_CATEGORIES]
+    busy = []
+    for start, end in windows:
+        busy.append(busy_time([e for e in gpu if start <= e["ts"] < end])[1])
+    kernels = collections.defaultdict(float)
+    launches = collections.Counter()
+    for e in gpu:
+        kernels[e["name"][:60]] += e["dur"]
+        launches[e["name"][:60]] += 1
+    reads = collections.Counter(e["name"] for e in events
+                                if e.get("cat") in ("cuda_runtime", "cuda_driver") and e.get("name") in READS)
+    wall = [end - start for start, end in windows]
+    return {"calls_seen": len(windows),
+            "profiled_wall_us": sum(wall) / max(len(wall), 1),
+            "gpu_busy_us": sum(busy) / max(len(busy), 1),
+            "host_reads_per_call": {k: v / calls for k, v in reads.items()},
+            "kernels_us_per_call": {k: kernels[k] / calls for k in sorted(kernels, key=lambda k: -kernels[k])},
+            "launches_per_call": {k: launches[k] / calls for k in launches}}
+
+
+def trace_calls(fn, calls: int) -> dict:
+    for _ in range(5):
+        fn()
+    sync("cuda")
+    activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    with torch.profiler.profile(activities=activities) as prof:
+        for _ in range(calls):
+            with torch.profiler.record_function("call"):
+                fn()
+                torch.cuda.synchronize()
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "trace.json"
+        prof.export_chrome_trace(str(path))
+        events = [e for e in json.loads(path.read_text())["traceEvents"] if e.get("ph") == "X"]
+    return per_call_breakdown(events, calls)
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", default="100000,1000000")
+    ap.add_argument("--resolution", default="1920x1080")
+    ap.add_argument("--calls", type=int, default=20, help="profiled calls per (system, mode)")
+    ap.add_argument("--no-gsplat", action="store_true")
+    ap.add_argument("--tag", default="")
+    args = ap.parse_args(argv)
+    scenes = standard_scenes_module()
+    width, height = (int(v) for v in args.resolution.split("x"))
+    rows, detail = [], []
+    for n in (int(v) for v in args.sizes.split(",")):
+        means, quats, scales, opacities, colors, viewmat, K, W, H = scenes.random_scene(
+            n, width=width, height=height, device="cuda")
+        scene = (means, quats, scales, opacities, colors, viewmat, K)
+        systems = {"warpgs": warpgs_calls(scene, W, H, False, None)}
+        if not args.no_gsplat:
+            systems["gsplat"] = gsplat_calls(scene, W, H, False)
+        for system, (fwd, fwd_bwd) in systems.items():
+            for mode, fn in (("fwd", fwd), ("fwd_bwd", fwd_bwd)):
+                plain_ms = time_call(fn, "cuda", warmup=3, repeats=50)
+                t0 = time.perf_counter()
+                found = trace_calls(fn, args.calls)
+                row = {"n": n, "system": system, "mode": mode, "plain_ms": plain_ms,
+                       "profiled_wall_ms": found["profiled_wall_us"] / 1e3, "gpu_busy_ms": found["gpu_busy_us"] / 1e3,
+                       "gpu_waits_ms": (found["profiled_wall_us"] - found["gpu_busy_us"]) / 1e3,
+                       "reads": sum(found["host_reads_per_call"].values()), "trace_s": time.perf_counter() - t0}
+                rows.append(row)
+                detail.append(dict(row, **found))
+                print_table([row], list(row))
+                top = list(found["kernels_us_per_call"].items())[:12]
+                for name, us in top:
+                    print(f"    {us:8.1f} us x{found['launches_per_call'][name]:.0f}  {name}")
+    print_table(rows, ["n", "system", "mode", "plain_ms", "profiled_wall_ms", "gpu_busy_ms", "gpu_waits_ms", "reads"])
+    result = {"resolution": args.resolution, "calls": args.calls, "gpu": torch.cuda.get_device_name(), "rows": detail}
+    write_json("render_trace_cuda" + (f"_{args.tag}" if args.tag else ""), result)
+    return result
+
+
+if __name__ == "__main__":
+    main()
