@@ -1,5 +1,6 @@
-"""Where a GPU training step waits: the GPU's busy share of the step and every host read (stream syncs and
-device-to-host copies) with the Python line that made it, from a torch.profiler trace of a few steps.
+"""Where a GPU training step waits: the GPU's busy share of the step, every host read (stream syncs and
+device-to-host copies) with the Python line that made it, and where the GPU sat idle waiting for the host (each
+idle gap put on the launch that ended it), from a torch.profiler trace of a few steps.
 
     python benchmarks/step_trace.py data/bonsai800 --device cuda --warmup 3000 --steps 10 train.steps=30000
 
@@ -52,10 +53,7 @@ def host_reads(events, steps: int) -> list:
     """One row per (runtime call, call site): calls and host microseconds per step, most time first. A
     cudaMemcpyAsync is a read only when it waits (the profiler cannot tell the direction here, so every copy is
     listed; host-to-device copies of small tensors are followed by a stream sync in torch, listed too)."""
-    frames = collections.defaultdict(list)
-    for e in events:
-        if e.get("cat") == "python_function":
-            frames[e.get("tid")].append(e)
+    frames = python_frames(events)
     calls, micros = collections.Counter(), collections.Counter()
     for e in events:
         if e.get("cat") in ("cuda_runtime", "cuda_driver") and e.get("name") in READS:
@@ -64,6 +62,39 @@ def host_reads(events, steps: int) -> list:
             micros[key] += e["dur"]
     return [{"call": k[0], "site": k[1], "per_step": calls[k] / steps, "host_us_per_step": micros[k] / steps}
             for k in sorted(calls, key=lambda k: -micros[k])]
+
+
+def python_frames(events) -> dict:
+    """The python_function events by thread (what call_site searches)."""
+    frames = collections.defaultdict(list)
+    for e in events:
+        if e.get("cat") == "python_function":
+            frames[e.get("tid")].append(e)
+    return frames
+
+
+def gpu_waits(events, steps: int, min_gap_us: float = 2.0) -> list:
+    """Where the GPU sat idle waiting for the host: each gap of at least min_gap_us between GPU activities is put
+    on the call site of the launch that ended it (the runtime or driver call with the kernel's correlation id; for
+    launches the profiler does not see, such as Warp's, the Python frames of the busiest thread just before the
+    kernel started), since until that launch the host was busy elsewhere. One row per site: gaps and idle
+    microseconds per step, most idle first."""
+    gpu = sorted((e for e in events if e.get("cat") in GPU_CATEGORIES), key=lambda e: e["ts"])
+    host = [e for e in events if e.get("cat") in ("cuda_runtime", "cuda_driver")]
+    by_correlation = {e["args"]["correlation"]: e for e in host if "correlation" in e.get("args", {})}
+    frames = python_frames(events)
+    main_tid = max(frames, key=lambda t: len(frames[t])) if frames else None
+    gaps, micros = collections.Counter(), collections.Counter()
+    end = None
+    for e in gpu:
+        if end is not None and e["ts"] - end >= min_gap_us:
+            launch = by_correlation.get(e.get("args", {}).get("correlation", -1))
+            site = call_site(launch if launch is not None else {"ts": e["ts"] - 1, "tid": main_tid}, frames)
+            gaps[site] += 1
+            micros[site] += e["ts"] - end
+        end = e["ts"] + e["dur"] if end is None else max(end, e["ts"] + e["dur"])
+    return [{"site": k, "gaps_per_step": gaps[k] / steps, "idle_us_per_step": micros[k] / steps}
+            for k in sorted(gaps, key=lambda k: -micros[k])]
 
 
 def main(argv=None) -> dict:
@@ -82,15 +113,19 @@ def main(argv=None) -> dict:
         events = [e for e in json.loads(trace.read_text())["traceEvents"] if e.get("ph") == "X"]
     span, busy = busy_time(events)
     reads = host_reads(events, args.steps)
+    waits = gpu_waits(events, args.steps)
     result = {"data": args.data, "device": args.device, "warmup": args.warmup, "steps": args.steps,
               "primitives": trainer.num_primitives, "ms_per_step_plain": plain_ms,
               "profiled_gpu_span_ms_per_step": span / 1e3 / args.steps,
-              "profiled_gpu_busy_ms_per_step": busy / 1e3 / args.steps, "host_reads": reads,
+              "profiled_gpu_busy_ms_per_step": busy / 1e3 / args.steps, "host_reads": reads, "gpu_waits": waits,
               "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
     print(f"{trainer.num_primitives} primitives: {plain_ms:.2f} ms a step without the profiler; profiled, the GPU "
           f"was busy {result['profiled_gpu_busy_ms_per_step']:.2f} of {result['profiled_gpu_span_ms_per_step']:.2f} ms")
     for r in reads:
         print(f"  {r['per_step']:5.1f}/step {r['host_us_per_step']:8.0f} us  {r['call']:22s} {r['site']}")
+    print("  where the GPU waited for the host (idle gaps, by the launch that ended them):")
+    for w in waits[:15]:
+        print(f"  {w['gaps_per_step']:5.1f}/step {w['idle_us_per_step']:8.0f} us  {w['site']}")
     write_json(f"step_trace_{Path(args.data).name}_{args.device}" + (f"_{args.tag}" if args.tag else ""), result)
     return result
 

@@ -26,3 +26,21 @@ def test_host_reads_are_counted_per_step_at_their_innermost_warpgs_frames():
         ("cudaStreamSynchronize", 1.0, 7.0), ("cudaMemcpyAsync", 1.0, 3.0)]
     assert rows[0]["site"] == "warpgs/train/guard.py(29): check < warpgs/train/step.py(16): train_step"
     assert rows[1]["site"] == "warpgs/train/step.py(16): train_step"
+
+
+def test_gpu_idle_gaps_go_to_the_launch_that_ended_them():
+    frames = [{"cat": "python_function", "tid": 1, "ts": 0, "dur": 100, "name": "warpgs/train/step.py(16): train_step"},
+              {"cat": "python_function", "tid": 1, "ts": 40, "dur": 10, "name": "warpgs/losses/photometric.py(9): l1"}]
+    launches = [{"cat": "cuda_runtime", "tid": 1, "ts": 2, "dur": 1, "name": "cudaLaunchKernel",
+                 "args": {"correlation": 1}},
+                {"cat": "cuda_runtime", "tid": 1, "ts": 45, "dur": 1, "name": "cudaLaunchKernel",
+                 "args": {"correlation": 2}},
+                {"cat": "cuda_runtime", "tid": 1, "ts": 42, "dur": 1, "name": "cudaMemcpyAsync"}]
+    kernels = [{"cat": "kernel", "ts": 5, "dur": 10, "args": {"correlation": 1}},
+               {"cat": "kernel", "ts": 16, "dur": 4, "args": {"correlation": 9}},  # 1 us after: no gap
+               {"cat": "kernel", "ts": 48, "dur": 2, "args": {"correlation": 2}},  # 28 us idle: the l1 launch
+               {"cat": "kernel", "ts": 75, "dur": 5, "args": {}}]  # 25 us idle, launch unseen: frames at 74
+    rows = step_trace.gpu_waits(frames + launches + kernels, steps=1)
+    assert [(r["site"], r["gaps_per_step"], r["idle_us_per_step"]) for r in rows] == [
+        ("warpgs/losses/photometric.py(9): l1 < warpgs/train/step.py(16): train_step", 1.0, 28.0),
+        ("warpgs/train/step.py(16): train_step", 1.0, 25.0)]
