@@ -5,7 +5,8 @@ rest is the GPU waiting on the host), the host reads, and each kernel's time, fr
 
 The scene and the calls are benchmarks/raster.py's (the default `rasterize(...)` call, RGB + alpha + depth; gsplat's
 rasterization with RGB+ED). Each profiled call ends with a synchronisation, so a call's window holds only its own
-GPU work. Writes benchmarks/results/render_trace_<device>[_<tag>].json ($OUT when set).
+GPU work. "reads" counts the CUDA runtime's syncs and copies the profiler sees (torch's, gsplat's and the closing
+synchronisation); Warp's one read a call goes through the driver API, which it does not see. Writes benchmarks/results/render_trace_<device>[_<tag>].json ($OUT when set).
 """
 from __future__ import annotations
 
