@@ -70,7 +70,7 @@ def _env(**extra) -> dict:
 
 def _snapshot(tr) -> dict:
     out = {f"param.{n}": p.detach().clone() for n, p in tr.named_parameters()}
-    out.update({f"strategy.{k}": getattr(tr.strategy, k).clone() for k in ("grad_accum", "count", "max_radii")})
+    out.update({f"strategy.{k}": getattr(tr.strategy.stats, k).clone() for k in ("grad_accum", "count", "max_radii")})
     return out
 
 

@@ -71,8 +71,8 @@ def test_two_model_parallel_processes_match_one_and_resume(scene, tmp_path):
         off = (got - want).abs().reshape(len(want), -1).amax(1) > 1e-5
         assert int(off.sum()) <= 0.01 * len(want), (name, int(off.sum()))
     strategy = saved["strategy"]
-    assert torch.equal(strategy["count"], one.strategy.count)  # the binning's visibility, returned to the owners
-    torch.testing.assert_close(strategy["grad_accum"], one.strategy.grad_accum, atol=1e-6, rtol=1e-4)
+    assert torch.equal(strategy["count"], one.strategy.stats.count)  # the binning's visibility, returned to the owners
+    torch.testing.assert_close(strategy["grad_accum"], one.strategy.stats.grad_accum, atol=1e-6, rtol=1e-4)
     for name, p in one.modules.named_parameters():  # replicated modules: gradients all-reduced
         torch.testing.assert_close(saved["modules"][name], p.detach(), atol=1e-6, rtol=1e-5)
 
@@ -145,7 +145,7 @@ def test_a_shard_is_its_rows_of_model_optimizer_and_statistics_and_its_share_of_
         m, opt = stepped()
         strategy = DensifyStrategy(StrategyConfig(max_primitives=101))
         strategy.initialize(m)
-        strategy.count += torch.arange(n)
+        strategy.stats.count += torch.arange(n)
         rows = shard_training(m, opt, strategy, Ranks(rank, 2))
         shards.append((rows, m, opt, strategy))
     (r0, m0, o0, s0), (r1, m1, o1, s1) = shards
@@ -155,7 +155,7 @@ def test_a_shard_is_its_rows_of_model_optimizer_and_statistics_and_its_share_of_
         for key in ("exp_avg", "exp_avg_sq"):
             got = torch.cat([o0.state[m0.params[name]][key], o1.state[m1.params[name]][key]])
             assert torch.equal(got, whole_opt.state[p][key]), (name, key)
-    assert torch.equal(torch.cat([s0.count, s1.count]), torch.arange(n))
+    assert torch.equal(torch.cat([s0.stats.count, s1.stats.count]), torch.arange(n))
     assert (s0.config.max_primitives, s1.config.max_primitives) == (51, 50)
     with pytest.raises(ValueError, match="3D Gaussians only"):
         surfels = SurfelModel(torch.randn(n, 3), torch.randn(n, 2), torch.randn(n, 4), torch.randn(n),
@@ -219,7 +219,7 @@ def test_a_share_built_in_cpu_memory_moves_to_its_device_with_its_optimizer_stat
         state = opt.state[p]
         assert state["exp_avg"].device.type == "meta" and state["exp_avg_sq"].device.type == "meta"
         assert state["step"].device.type == "cpu"  # Adam keeps its step count on the CPU
-    assert {getattr(strategy, k).device.type for k in ("grad_accum", "count", "max_radii", "max_screen")} == {"meta"}
+    assert {getattr(strategy.stats, k).device.type for k in ("grad_accum", "count", "max_radii", "max_screen")} == {"meta"}
     assert not any(g["fused"] for g in opt.param_groups)  # "auto" off the GPU: foreach, as built
     # optim.adam_kernel=fused (what "auto" means on a GPU): the fused kernel, its step count on the device.
     move_training(model, opt, strategy, "meta", adam_kernel="fused")

@@ -71,7 +71,7 @@ def test_clone_split_prune_and_adam_alignment():
     torch.testing.assert_close(m.scales[4:], before["log_scales"][0][[1, 1]].exp() / 1.6)
     offsets = m.means[4:].detach() - before["means"][0][1]
     assert (offsets.norm(dim=1) > 0).all() and (offsets.norm(dim=1) < 0.1 * 6).all()  # sampled, within 6 sigma
-    assert s.grad_accum.shape == (6,) and (s.grad_accum == 0).all() and (s.count == 0).all()
+    assert s.stats.grad_accum.shape == (6,) and (s.stats.grad_accum == 0).all() and (s.stats.count == 0).all()
 
 
 def test_grads_average_over_visible_steps_only():
@@ -83,8 +83,8 @@ def test_grads_average_over_visible_steps_only():
     # only if cold steps count); primitive 2 is hot but never visible.
     feed(s, m, opt, 10, [HIGH, HIGH, HIGH], visible=torch.tensor([True, True, False]))
     feed(s, m, opt, 11, [0.0, 0.0, HIGH], visible=torch.tensor([False, True, False]))
-    torch.testing.assert_close(s.average_grads(), torch.tensor([HIGH * 50, HIGH * 25, 0.0]))
-    assert s.count.tolist() == [1, 2, 0]
+    torch.testing.assert_close(s.stats.average_grads(), torch.tensor([HIGH * 50, HIGH * 25, 0.0]))
+    assert s.stats.count.tolist() == [1, 2, 0]
 
 
 def test_refine_and_reset_schedule():
@@ -174,8 +174,8 @@ def test_screen_size_pruning():
     s = DensifyStrategy(StrategyConfig(prune_world_scale=0, prune_screen_size=0.15))
     s.initialize(m)
     feed(s, m, opt, 3050, [LOW, LOW])
-    assert s.max_radii[0] > 15 > s.max_radii[1]  # px, on a 100 px image
-    torch.testing.assert_close(s.max_screen, s.max_radii / 100)
+    assert s.stats.max_radii[0] > 15 > s.stats.max_radii[1]  # px, on a 100 px image
+    torch.testing.assert_close(s.stats.max_screen, s.stats.max_radii / 100)
     report = feed(s, m, opt, 3100, [LOW, LOW])
     assert report["pruned"] == 1 and report["pruned_by"]["screen_size"] == 1
     assert m.means[0, 2] > 1.0  # the near one went
@@ -193,7 +193,7 @@ def test_without_a_screen_rule_no_radii_are_computed_or_kept():
     both = s.merge_observations([obs, obs])
     assert both["radii"] is None and both["count"].tolist() == [2, 2]
     s.add_observations(both)
-    assert s.max_radii.tolist() == [0.0, 0.0] and s.count.tolist() == [2, 2]
+    assert s.stats.max_radii.tolist() == [0.0, 0.0] and s.stats.count.tolist() == [2, 2]
     ruled = DensifyStrategy(StrategyConfig(prune_world_scale=0, prune_screen_size=0.15))
     ruled.initialize(m)
     seen = ruled.observe(m, visible=torch.ones(2, dtype=torch.bool), viewmat=VIEW, K=K, width=W, height=H,
@@ -208,12 +208,12 @@ def test_screen_size_is_a_fraction_of_the_larger_side_over_all_views():
     s.initialize(m)
     vis = torch.ones(1, 1, dtype=torch.bool)
     s.accumulate(torch.zeros(1, 1, 2), vis, torch.tensor([[30.0]]), 200, 100)
-    assert s.max_screen.item() == pytest.approx(0.15) and not s.prune_rules(m, 3100)["screen_size"].any()
+    assert s.stats.max_screen.item() == pytest.approx(0.15) and not s.prune_rules(m, 3100)["screen_size"].any()
     s.accumulate(torch.zeros(1, 1, 2), vis, torch.tensor([[30.0]]), 100, 100)
-    assert s.max_screen.item() == pytest.approx(0.3) and s.prune_rules(m, 3100)["screen_size"].all()
+    assert s.stats.max_screen.item() == pytest.approx(0.3) and s.prune_rules(m, 3100)["screen_size"].all()
     assert not s.prune_rules(m, 3000)["screen_size"].any()  # only after size_prune_start
     s.accumulate(torch.zeros(1, 1, 2), ~vis, torch.tensor([[90.0]]), 100, 100)  # not visible: not counted
-    assert s.max_screen.item() == pytest.approx(0.3)
+    assert s.stats.max_screen.item() == pytest.approx(0.3)
 
 
 def test_budget_keeps_highest_gradients():
@@ -307,7 +307,7 @@ def test_step_post_backward_uses_means_grad():
     target = torch.tensor([[1e-4, 0.0], [0.0, -2e-4], [3e-4, 4e-4]])
     (project(m.means, VIEW, K) * target).sum().backward()
     s.step_post_backward(m, opt, 1, visible=torch.ones(3, dtype=torch.bool), viewmat=VIEW, K=K, width=W, height=H)
-    torch.testing.assert_close(s.grad_accum, (target * 50).norm(dim=1))
+    torch.testing.assert_close(s.stats.grad_accum, (target * 50).norm(dim=1))
 
 
 def test_batched_grad2d_scaled_by_camera_count():
@@ -318,8 +318,8 @@ def test_batched_grad2d_scaled_by_camera_count():
     vis = torch.tensor([[True, False], [True, True]])
     s.step_post_backward(m, [], 1, visible=vis, viewmat=VIEW.expand(2, 4, 4), K=K.expand(2, 3, 3), width=W, height=H,
                          grad2d=g2)
-    torch.testing.assert_close(s.grad_accum, torch.tensor([1e-4 * 50 * 2, 1e-4 * 50 * 2]))
-    assert s.count.tolist() == [2, 1]
+    torch.testing.assert_close(s.stats.grad_accum, torch.tensor([1e-4 * 50 * 2, 1e-4 * 50 * 2]))
+    assert s.stats.count.tolist() == [2, 1]
     with pytest.raises(ValueError, match="grad2d"):
         s.step_post_backward(m, [], 2, visible=vis, viewmat=VIEW.expand(2, 4, 4), K=K.expand(2, 3, 3), width=W,
                              height=H)
@@ -341,7 +341,7 @@ def test_state_dict_without_max_screen_loads():
     s.initialize(make([0.005] * 3, [0.5] * 3))
     state = {k: v for k, v in s.state_dict().items() if k != "max_screen"}  # a checkpoint from before the key
     s.load_state_dict(state)
-    assert torch.equal(s.max_screen, torch.zeros(3))
+    assert torch.equal(s.stats.max_screen, torch.zeros(3))
 
 
 def test_state_dict_resume_reproduces_splits():

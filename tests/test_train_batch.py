@@ -61,7 +61,7 @@ def _state(tr) -> dict:
                 for key, v in opt.state[p].items():
                     state[f"opt{i}.{j}.{k}.{key}"] = v.clone() if torch.is_tensor(v) else v
     for key in ("grad_accum", "count", "max_radii", "max_screen"):
-        state[f"strategy.{key}"] = getattr(tr.strategy, key).clone()
+        state[f"strategy.{key}"] = getattr(tr.strategy.stats, key).clone()
     return state
 
 
@@ -127,8 +127,8 @@ def test_batch_of_two_is_the_mean_of_two_single_view_steps(tmp_path):
     W, H = views[0].width, views[0].height
     scale = torch.tensor([0.5 * W, 0.5 * H])
     norms = [torch.where(s[4], (s[2] * scale).norm(dim=-1), torch.zeros(())) for s in singles]
-    assert torch.allclose(tr.strategy.grad_accum, norms[0] + norms[1], rtol=1e-4, atol=1e-9)
-    assert torch.equal(tr.strategy.count, singles[0][4].long() + singles[1][4].long())
+    assert torch.allclose(tr.strategy.stats.grad_accum, norms[0] + norms[1], rtol=1e-4, atol=1e-9)
+    assert torch.equal(tr.strategy.stats.count, singles[0][4].long() + singles[1][4].long())
 
 
 def test_surfel_batches_project_each_views_share_of_the_means_gradient(tmp_path):
@@ -144,8 +144,8 @@ def test_surfel_batches_project_each_views_share_of_the_means_gradient(tmp_path)
     expected = sum(torch.where(s[4], (screen_grads_from_means_grad(tr.model.means, s[3], v.viewmat, v.K) * scale)
                                .norm(dim=-1), torch.zeros(())) for s, v in zip(singles, views))
     # Equal up to the rounding of that difference.
-    assert torch.allclose(tr.strategy.grad_accum, expected, rtol=1e-4, atol=1e-5 * float(expected.max()))
-    assert torch.equal(tr.strategy.count, singles[0][4].long() + singles[1][4].long())
+    assert torch.allclose(tr.strategy.stats.grad_accum, expected, rtol=1e-4, atol=1e-5 * float(expected.max()))
+    assert torch.equal(tr.strategy.stats.count, singles[0][4].long() + singles[1][4].long())
 
 
 def test_square_root_scaling_of_adam_and_resume_with_another_batch_size(tmp_path):

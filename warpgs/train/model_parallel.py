@@ -20,7 +20,7 @@ from warpgs.render.gaussians import RenderOutput
 from warpgs.render.sharded import render_sharded
 from warpgs.train.distributed import Ranks
 from warpgs.train.optim import MOMENTS, fused_adam, move_parameters, update_rows  # "step": the same on every rank
-from warpgs.train.strategy import STATISTICS
+from warpgs.train.densify_stats import DensifyStats
 
 
 def shard_model(model: GaussianModel, ranks: Ranks) -> GaussianModel:
@@ -73,7 +73,7 @@ def shard_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strat
     rows = ranks.shard(model.num_primitives)
     keep = torch.arange(rows.start, rows.stop, device=model.means.device)
     update_rows(model, optimizer, keep=keep)
-    strategy.select_statistics(keep)
+    strategy.stats = strategy.stats.map(lambda t: t[keep])
     # Losses that read the model (mean opacity, soft count, ...) sum over every rank's rows through this.
     model.reduce_rows = lambda t: ranks.all_reduce_differentiable(t, what="a loss's sum over the primitives")
     budget = strategy.config.max_primitives
@@ -90,8 +90,7 @@ def move_training(model: GaussianModel, optimizer: torch.optim.Optimizer, strate
     "auto" means fused, as it does for a model built there."""
     device = torch.device(device)
     move_parameters(model, optimizer, device)
-    for key in STATISTICS:
-        setattr(strategy, key, getattr(strategy, key).to(device))
+    strategy.stats = strategy.stats.map(lambda t: t.to(device))
     if fused_adam(adam_kernel, on_cuda=device.type == "cuda"):
         for group in optimizer.param_groups:
             group["fused"], group["foreach"] = True, None
@@ -125,7 +124,6 @@ def gathered_training(model: GaussianModel, optimizer: torch.optim.Optimizer, st
             whole_optimizer.state[p] = st
     whole_strategy = copy.copy(strategy)
     whole_strategy.config = dataclasses.replace(strategy.config, max_primitives=int(budget))
-    for key in STATISTICS:
-        setattr(whole_strategy, key,
-                ranks.all_gather_rows(getattr(strategy, key), what=f"gathering the {key}").to(whole.device))
+    whole_strategy.stats = DensifyStats.of({key: ranks.all_gather_rows(t, what=f"gathering the {key}").to(whole.device)
+                                            for key, t in strategy.stats.tensors().items()})
     return whole, whole_optimizer, whole_strategy

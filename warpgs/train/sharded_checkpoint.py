@@ -18,7 +18,7 @@ from typing import List
 import torch
 
 from warpgs.train.optim import MOMENTS
-from warpgs.train.strategy import STATISTICS
+from warpgs.train.densify_stats import STATISTICS
 
 INDEX_VERSION = 3  # checkpoint.VERSION: readers older than the sharded format refuse the index by its version
 

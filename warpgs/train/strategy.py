@@ -28,10 +28,8 @@ ranks (sums of gradient norms and counts, maxima of radii: train/distributed.py)
 `maybe_refine(model, optimizers, step)`. For one camera, step_post_backward is exactly observe + add +
 maybe_refine.
 
-Gradient units: as 3DGS (and gsplat), the accumulated statistic is the norm of the gradient with respect to
-NDC coordinates, dL/dndc = dL/dpixel * (W/2, H/2), times B for a batch of B cameras (the loss is a mean over
-them), averaged over the steps in which the primitive was visible. The default threshold 0.0002 therefore
-matches 3DGS for a loss on the same scale (0.8 L1 + 0.2 (1 - SSIM), means over pixels).
+The statistics themselves (`strategy.stats`, their units and how observations combine) are train/densify_stats.py.
+The default threshold 0.0002 matches 3DGS for a loss on the same scale (0.8 L1 + 0.2 (1 - SSIM), means over pixels).
 
 Screen radii (for screen-size pruning, so only when a screen rule is on; otherwise no radii are computed or kept,
 and the observations carry None) are computed from the camera (screen_geometry.py): 3 sqrt(largest eigenvalue) of the
@@ -64,13 +62,14 @@ from typing import Optional
 import torch
 
 from warpgs.model.gaussians import GaussianModel, quat_to_rotmat
+from warpgs.train import densify_stats
+from warpgs.train.densify_stats import DensifyStats
 from warpgs.train.optim import Optimizers, set_param_values, update_rows
 from warpgs.train.schedule import DensifySchedule
 from warpgs.train.screen_geometry import screen_grads_from_means_grad, screen_radii
 from warpgs.train.unpool import midpoint_rows
 
 WARN_PRUNED_FRACTION = 0.5  # a refine removing more than this share of the primitives warns
-STATISTICS = ("grad_accum", "count", "max_radii", "max_screen")  # DensifyStrategy's rows, one per primitive
 
 
 class PruningWarning(UserWarning):
@@ -160,7 +159,7 @@ class DensifyStrategy:
                           f"fraction of the image's larger side (gsplat: 0.15)", PruningWarning, stacklevel=2)
         self.generator = torch.Generator().manual_seed(int(self.config.seed))
         self.schedule = DensifySchedule(self.config, run_steps)  # when densification and resets happen
-        self.grad_accum = self.count = self.max_radii = self.max_screen = None
+        self.stats: Optional[DensifyStats] = None  # set by initialize
         self.last_refine: Optional[dict] = None  # the latest refine's report (with "pruned_by")
 
     # ----- hooks -----
@@ -169,7 +168,7 @@ class DensifyStrategy:
         if n > self.config.max_primitives:
             raise ValueError(f"max_primitives: the model starts with {n} primitives, more than the budget "
                              f"{self.config.max_primitives} (initialise with max_points=...)")
-        self._reset_stats(n, model.device)
+        self.stats = DensifyStats(n, model.device)
 
     def step_pre_backward(self, model: GaussianModel, step: int) -> None:
         """Checks that the model was not resized behind the strategy's back. (Where a renderer exposes 2D
@@ -243,58 +242,19 @@ class DensifyStrategy:
         radii = screen_radii(model, viewmat, K, width, height, near)[None] if self._screen_rules_on() else None
         return self.observations(grad2d[None], visible[None], radii, width, height, views_in_loss)
 
-    @staticmethod
-    @torch.no_grad()
-    def observations(grad2d: torch.Tensor, visible: torch.Tensor, radii: Optional[torch.Tensor], width: int,
-                     height: int, views_in_loss: Optional[int] = None) -> dict:
-        """grad2d [B,N,2] px, visible [B,N], radii [B,N] px -> {"grad": summed NDC gradient norms [N], "count":
-        views in which each primitive was visible [N], "radii": largest radius px [N], "screen": the same as a
-        fraction of the image's larger side [N]} (radii None: both None). views_in_loss defaults to B (module doc)."""
-        batch = grad2d.shape[0] if views_in_loss is None else int(views_in_loss)
-        # Python-scalar factors: a small tensor of them built here would be a host-to-device copy, which torch
-        # follows with a stream sync (a GPU profile found one in every densifying step).
-        g = grad2d.detach()
-        norms = torch.hypot(g[..., 0] * (0.5 * width * batch), g[..., 1] * (0.5 * height * batch))
-        vis = visible.to(torch.bool)
-        out = {"grad": torch.where(vis, norms, torch.zeros_like(norms)).sum(0), "count": vis.sum(0),
-               "radii": None, "screen": None}
-        if radii is not None:  # None: no screen-size rule reads them (the default), so none are kept
-            seen = torch.where(vis, radii, torch.zeros_like(radii)).amax(0)
-            out.update(radii=seen, screen=seen / max(width, height))
-        return out
+    observations = staticmethod(densify_stats.observations)  # grad2d, visible, radii, width, height -> dict
+    merge_observations = staticmethod(densify_stats.merge_observations)
 
-    @staticmethod
-    def merge_observations(observations) -> dict:
-        """Several cameras' observations as one: sums of "grad" and "count", maxima of "radii" and "screen"."""
-        observations = list(observations)
-        out = dict(observations[0])
-        for obs in observations[1:]:
-            out = {"grad": out["grad"] + obs["grad"], "count": out["count"] + obs["count"],
-                   "radii": _maximum(out["radii"], obs["radii"]), "screen": _maximum(out["screen"], obs["screen"])}
-        return out
-
-    @torch.no_grad()
     def add_observations(self, obs: dict) -> None:
         """Add one step's observations (of one camera, merged cameras, or all ranks) to the statistics."""
-        if self.grad_accum is None:
-            raise ValueError("strategy: call initialize(model) first")
-        self.grad_accum += obs["grad"]
-        self.count += obs["count"]
-        if obs["radii"] is not None:
-            self.max_radii = torch.maximum(self.max_radii, obs["radii"])
-            self.max_screen = torch.maximum(self.max_screen, obs["screen"])
+        self._initialized().add(obs)
 
     # ----- pieces (usable on their own) -----
     @torch.no_grad()
     def accumulate(self, grad2d: torch.Tensor, visible: torch.Tensor, radii: Optional[torch.Tensor], width: int,
                    height: int) -> None:
         """grad2d [B,N,2] in pixels, visible [B,N] bool, radii [B,N] px: one training step's observations."""
-        if self.grad_accum is None:
-            raise ValueError("strategy: call initialize(model) first")
         self.add_observations(self.observations(grad2d, visible, radii, width, height))
-
-    def average_grads(self) -> torch.Tensor:
-        return self.grad_accum / self.count.clamp_min(1)
 
     @torch.no_grad()
     def refine(self, model: GaussianModel, optimizers: Optimizers, step: int) -> dict:
@@ -304,7 +264,7 @@ class DensifyStrategy:
         cfg, extent = self.config, self.scene_extent
         self._check_model(model)
         n = model.num_primitives
-        grads = self.average_grads()
+        grads = self.stats.average_grads()
         max_scale = model.scales.amax(1)
 
         rules = self.prune_rules(model, step)
@@ -351,7 +311,7 @@ class DensifyStrategy:
         append = {name: torch.cat([new_rows[name], split_rows[name]]) for name in model.params}
         update_rows(model, optimizers, keep=~prune & ~split, append=append)
         unpooled = self._unpool(model, optimizers, step)
-        self._reset_stats(model.num_primitives, model.device)
+        self.stats = DensifyStats(model.num_primitives, model.device)
         report = {"step": step, "cloned": int(clone.sum()), "split": int(split.sum()),
                   "pruned": int(prune.sum()) + children_pruned, "unpooled": unpooled,
                   "budget_dropped": budget_dropped, "num_primitives": model.num_primitives, "pruned_by": pruned_by}
@@ -378,9 +338,9 @@ class DensifyStrategy:
                 rules["world_size"] = self._too_big_for_world(model.scales.amax(1))
             screen = none
             if cfg.prune_screen_size > 0:
-                screen = screen | (self.max_screen > cfg.prune_screen_size)
+                screen = screen | (self.stats.max_screen > cfg.prune_screen_size)
             if cfg.prune_screen_radius > 0:
-                screen = screen | (self.max_radii > cfg.prune_screen_radius)
+                screen = screen | (self.stats.max_radii > cfg.prune_screen_radius)
             rules["screen_size"] = screen
         return rules
 
@@ -404,28 +364,16 @@ class DensifyStrategy:
 
     # ----- checkpoints -----
     def state_dict(self) -> dict:
-        state = {"grad_accum": self.grad_accum, "count": self.count, "max_radii": self.max_radii,
-                 "max_screen": self.max_screen, "generator": self.generator.get_state()}
+        state = {**self.stats.tensors(), "generator": self.generator.get_state()}
         if self.schedule.auto is not None:  # plain Python values (the checkpoint moves only tensors)
             state["auto"] = self.schedule.auto.state_dict()
         return state
 
     def load_state_dict(self, state: dict) -> None:
-        self.grad_accum, self.count, self.max_radii = state["grad_accum"], state["count"], state["max_radii"]
-        # Checkpoints from before max_screen: the relative radii restart from 0 (until the next refine only).
-        self.max_screen = state.get("max_screen")
-        if self.max_screen is None:
-            self.max_screen = torch.zeros_like(self.max_radii)
+        self.stats = DensifyStats.of(state)
         self.generator.set_state(state["generator"])
         if self.schedule.auto is not None and state.get("auto") is not None:
             self.schedule.auto.load_state_dict(state["auto"])
-
-    @torch.no_grad()
-    def select_statistics(self, rows: torch.Tensor) -> None:
-        """Keep the statistics of `rows` only (index tensor), as update_rows keeps a model's rows: a model-parallel
-        rank's share of a whole model's statistics."""
-        self.grad_accum, self.count = self.grad_accum[rows], self.count[rows]
-        self.max_radii, self.max_screen = self.max_radii[rows], self.max_screen[rows]
 
     # ----- internals -----
     def _too_big_for_world(self, max_scales: torch.Tensor) -> torch.Tensor:
@@ -437,18 +385,16 @@ class DensifyStrategy:
         and projecting every covariance, then maxing and storing the result, is a dozen kernels over N a step)."""
         return self.config.prune_screen_size > 0 or self.config.prune_screen_radius > 0
 
-    def _reset_stats(self, n: int, device) -> None:
-        self.grad_accum = torch.zeros(n, device=device)
-        self.count = torch.zeros(n, dtype=torch.int64, device=device)
-        self.max_radii = torch.zeros(n, device=device)
-        self.max_screen = torch.zeros(n, device=device)
+    def _initialized(self) -> DensifyStats:
+        if self.stats is None:
+            raise ValueError("strategy: call initialize(model) first")
+        return self.stats
 
     def _check_model(self, model: GaussianModel) -> None:
-        if self.grad_accum is None:
-            raise ValueError("strategy: call initialize(model) first")
-        if self.grad_accum.shape[0] != model.num_primitives:
-            raise ValueError(f"model: has {model.num_primitives} primitives but the strategy tracks "
-                             f"{self.grad_accum.shape[0]}; resize only through the strategy (or initialize again)")
+        tracked = len(self._initialized())
+        if tracked != model.num_primitives:
+            raise ValueError(f"model: has {model.num_primitives} primitives but the strategy tracks {tracked}; "
+                             f"resize only through the strategy (or initialize again)")
 
     def _unpool(self, model: GaussianModel, optimizers: Optimizers, step: int) -> int:
         """Midpoint primitives in the gaps (train/unpool.py) at every unpool_every-th refine, within the budget;
@@ -481,10 +427,3 @@ class DensifyStrategy:
         # In log space: exp() of a very negative log-scale (a flat axis) underflows to 0, and log(0) = -inf.
         rows["log_scales"] = rows["log_scales"] - math.log(self.config.split_shrink)
         return rows
-
-
-def _maximum(a: Optional[torch.Tensor], b: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
-    """Elementwise maximum of two observations' radii; None when neither camera computed them."""
-    if a is None or b is None:
-        return a if b is None else b
-    return torch.maximum(a, b)
