@@ -32,6 +32,7 @@ class BlendParams:
     alpha_min: float  # contributions below this alpha are skipped
     alpha_max: float  # alpha is clamped here (3DGS: 0.99, gsplat: 0.999); the clamp passes no gradient
     t_min: float  # blending stops before transmittance would drop under this
+    depth_eps: float  # > 0: write_pixel also writes the expected depth, Σ w z / max(alpha, depth_eps)
 
 
 @wp.func
@@ -99,14 +100,21 @@ def blend_one(st: PixelState, k: int, mean: wp.vec2, conic: wp.vec3, opacity: fl
 @wp.func
 def write_pixel(st: PixelState, pix: int, p: BlendParams, out_color: wp.array(dtype=wp.vec3), out_transmittance: wp.array(dtype=float),
                 out_alpha: wp.array(dtype=float), out_depth: wp.array(dtype=float),
-                out_inv_depth: wp.array(dtype=float), out_last: wp.array(dtype=wp.int32)):
+                out_expected_depth: wp.array(dtype=float), out_inv_depth: wp.array(dtype=float),
+                out_last: wp.array(dtype=wp.int32)):
+    """out_depth gets the accumulation Σ w z (the adjoint reads it); with p.depth_eps > 0, out_expected_depth gets
+    it over alpha here, as kernels/depth_norm.py's kernel would after the blend (the same operations, so the same
+    bits), which saves that launch and a pass over the image."""
+    alpha = 1.0 - st.T
     out_transmittance[pix] = st.T
-    out_alpha[pix] = 1.0 - st.T
+    out_alpha[pix] = alpha
     out_last[pix] = st.last
     if p.want_color != 0:
         out_color[pix] = st.rgb
     if p.want_depth != 0:
         out_depth[pix] = st.depth
+        if p.depth_eps > 0.0:
+            out_expected_depth[pix] = st.depth / wp.max(alpha, p.depth_eps)
     if p.want_inv_depth != 0:
         out_inv_depth[pix] = st.inv_depth
 
@@ -173,6 +181,7 @@ def blend_forward(
     out_transmittance: wp.array(dtype=float),
     out_alpha: wp.array(dtype=float),
     out_depth: wp.array(dtype=float),
+    out_expected_depth: wp.array(dtype=float),
     out_inv_depth: wp.array(dtype=float),
     out_features: wp.array2d(dtype=float),
     out_last: wp.array(dtype=wp.int32),
@@ -192,7 +201,8 @@ def blend_forward(
         if st.last == k + 1:
             for c in range(p.num_features):
                 out_features[pix, c] = out_features[pix, c] + st.w * features[g, c]
-    write_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth, out_last)
+    write_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_expected_depth, out_inv_depth,
+                out_last)
 
 
 # One pixel's gradient for one Gaussian: d means2d (2), d conic (3), d opacity, d colour (3), d depth,

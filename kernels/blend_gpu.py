@@ -91,6 +91,7 @@ def forward_kernel(block_dim: int, num_features: int):
         out_transmittance: wp.array(dtype=float),
         out_alpha: wp.array(dtype=float),
         out_depth: wp.array(dtype=float),
+        out_expected_depth: wp.array(dtype=float),
         out_inv_depth: wp.array(dtype=float),
         out_features: wp.array(dtype=FeatureVec),
         out_last: wp.array(dtype=wp.int32),
@@ -125,7 +126,8 @@ def forward_kernel(block_dim: int, num_features: int):
                     if st.last == lo + j + 1:
                         acc += st.w * features[wp.tile_extract(ids, j)]
         if inside:
-            write_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth, out_last)
+            write_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_expected_depth,
+                        out_inv_depth, out_last)
             if wp.static(has_features):
                 out_features[pix] = acc
 

@@ -1,4 +1,6 @@
-"""Expected depth from the blend's accumulated depth: depth = zacc / max(alpha, eps), and its adjoint.
+"""Expected depth from the blend's accumulated depth: depth = zacc / max(alpha, eps), and its adjoint. The 3D
+blend writes the division itself as it writes each pixel (blend.write_pixel, BlendParams.depth_eps); the surfel
+pipeline still launches `normalize_depth` after its blend.
 
 The blend writes Σ z_i α_i T_i (zacc) and alpha = 1 - T_final per pixel; the depth image is their ratio. Doing
 the division in one kernel (and its adjoint in one more) replaces the two torch ops of the forward and the seven

@@ -260,8 +260,8 @@ def test_intrinsics_changed_in_place_are_seen():
 
 @pytest.mark.parametrize("with_alpha", [False, True])
 def test_depth_division_kernel_matches_torch(with_alpha):
-    """The fast op divides accumulated depth by alpha in a kernel and runs that division's adjoint itself; the
-    oracle leaves both to torch. Same images and gradients, uncovered pixels (alpha 0) included."""
+    """The fast op divides accumulated depth by alpha in the blend kernel as it writes the pixel, and runs that
+    division's adjoint itself; the oracle leaves both to torch. Same images and gradients, uncovered pixels (alpha 0) included."""
     scene = random_scene(n=120, seed=24, width=48, height=40)
     results = []
     for op in (rasterize_legacy, rasterize):

@@ -27,6 +27,7 @@ import warp as wp
 
 from warpgs.kernels import binning, blend, blend_gpu, depth_norm, input_checks, pair_sums, project
 from warpgs.render.cpu_threads import run_threads
+from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
@@ -85,8 +86,9 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
             on_stage: Optional[Callable[[str], None]] = None, check: Optional[InputCheck] = None,
             deterministic: bool = False) -> Frame:
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
-    projection kernel takes them; outputs: (color, alpha, depth, inv_depth, features) arrays the blend writes
-    (1-element dummies for outputs not asked for; features zeroed beforehand for the per-thread CPU kernel);
+    projection kernel takes them; outputs: (color, alpha, depth accumulation, inv_depth, features, expected depth)
+    arrays the blend writes (1-element dummies for outputs not asked for; features zeroed beforehand for the
+    per-thread CPU kernel; the expected depth, the accumulation over alpha, is written with the rest of the pixel);
     features in the layout of `feature_layout`. keep=None: everything in the workspace (no backward follows).
     on_stage(name), if given, is called after each stage (benchmarks/profile_stages.py times them).
     check: the input checks to run, whose error is raised at the tile-pair count's sync (before anything is sized
@@ -130,15 +132,15 @@ def bin_and_blend(ws: Workspace, s: Settings, want: Wanted, projected, opacities
     npix = s.width * s.height
     transmittance = per_call("transmittance", npix, float)
     last = per_call("last", npix, wp.int32)
-    color, alpha, depth, inv_depth, out_features = outputs
+    color, alpha, depth, inv_depth, out_features, expected_depth = outputs
     kernel, block_dim = _blend_kernel(dev, s, want, backward=False)
     head = [tile_start, tile_end, sorted_ids, means2d, conics, opacities, colors, depths, features, q_cut]
-    tail = [color, transmittance, alpha, depth, inv_depth, out_features, last]
+    tail = [color, transmittance, alpha, depth, expected_depth, inv_depth, out_features, last]
 
     def work(thread, chunks):  # each chunk writes only its own pixels
         for c, (first, count) in enumerate(chunks):
             L.launch(("blend_fwd", thread, c), kernel, count * s.tile_size**2,
-                     head + [_params(ws, s, want, first)] + tail, block_dim)
+                     head + [_params(ws, s, want, first, DEPTH_EPS)] + tail, block_dim)
 
     run_threads(work, _tile_launches(s, dev))
     _stage(on_stage, "blend forward")
@@ -390,9 +392,10 @@ def blend_settings_key(s: Settings) -> tuple:
     return (s.width, s.height, s.tile_size, s.alpha_min, s.transmittance_min, s.alpha_max)
 
 
-def _params(ws: Workspace, s: Settings, want: Wanted, first: int):
-    key = ("blend_params", *blend_settings_key(s), want.color, want.depth, want.inv_depth, want.num_features, first)
-    return ws.memo(key, lambda: blend_params(s, want, first))
+def _params(ws: Workspace, s: Settings, want: Wanted, first: int, depth_eps: float = 0.0):
+    key = ("blend_params", *blend_settings_key(s), want.color, want.depth, want.inv_depth, want.num_features, first,
+           depth_eps)
+    return ws.memo(key, lambda: blend_params(s, want, first, depth_eps))
 
 
 def _blend_kernel(dev, s: Settings, want: Wanted, backward: bool, variant: str = "warp_sums"):

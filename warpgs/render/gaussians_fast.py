@@ -314,12 +314,13 @@ def image_outputs(state: "_DeviceState", like: torch.Tensor, settings, wanted, l
     inv_depth = like.new_empty(H, W, 1) if wanted.inv_depth else empty
     # the per-thread CPU kernels accumulate features in place; the cooperative ones write every pixel
     feats = ((like.new_zeros if layout == "rows" else like.new_empty)(H, W, nf)) if nf else empty
-    # the blend accumulates depth in `zacc`; `depth` gets it over alpha (fast.normalize_depth)
+    # the blend accumulates depth in `zacc` (the adjoint reads it) and writes `depth`, zacc over alpha, beside it
     zacc = (keep if keep is not None else ws)("zacc", npix, float) if wanted.depth else ws.dummy(float)
     arrays = [desc(color.view(npix, 3), wp.vec3) if wanted.color else ws.dummy(wp.vec3),
               desc(alpha.view(npix), wp.float32), zacc,
               desc(inv_depth.view(npix), wp.float32) if wanted.inv_depth else ws.dummy(float),
-              _features_arg(feats.view(npix, nf), nf, layout, state)]
+              _features_arg(feats.view(npix, nf), nf, layout, state),
+              desc(depth.view(npix), wp.float32) if wanted.depth else ws.dummy(float)]
     return (color, alpha, depth, inv_depth, feats), zacc, arrays
 
 
@@ -350,7 +351,6 @@ class FastRasterizeFunction(torch.autograd.Function):
         device = means.device
         state = device_state(device)
         ws = state.ws
-        npix = settings.width * settings.height
         nf = wanted.num_features
         layout = fast.feature_layout(state.wdev)
         (means, quats, scales, opacities, coeffs, features), viewmat, intrinsics = detached_inputs(
@@ -370,8 +370,6 @@ class FastRasterizeFunction(torch.autograd.Function):
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, check=checks,
                                  deterministic=options.deterministic)
-            if wanted.depth:
-                fast.normalize_depth(ws, zacc, outputs[1], desc(depth.view(npix), wp.float32), npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
             if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
                 means2d_probe.data.copy_(state.tensor(frame.means2d).view(-1, 2))

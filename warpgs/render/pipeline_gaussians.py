@@ -175,13 +175,15 @@ def _blend_inputs(p: Projected, bins: Bins, opacities, features):
     return [p.means2d, p.conics, opacities, p.colors, p.depths, features, bins.q_cut]
 
 
-def blend_params(s: Settings, want: Wanted, first_tile: int = 0) -> blend.BlendParams:
-    """The per-launch settings every blend kernel takes (3D and surfel, CPU and GPU, forward and backward)."""
+def blend_params(s: Settings, want: Wanted, first_tile: int = 0, depth_eps: float = 0.0) -> blend.BlendParams:
+    """The per-launch settings every blend kernel takes (3D and surfel, CPU and GPU, forward and backward).
+    depth_eps > 0: the 3D forward also writes the expected depth (accumulation / max(alpha, depth_eps))."""
     bp = blend.BlendParams()
     bp.width, bp.height, bp.tiles_x, bp.tile_size, bp.first_tile = s.width, s.height, s.tiles_x, s.tile_size, first_tile
     bp.want_color, bp.want_depth, bp.want_inv_depth = int(want.color), int(want.depth), int(want.inv_depth)
     bp.num_features = want.num_features
     bp.alpha_min, bp.t_min, bp.alpha_max = s.alpha_min, s.transmittance_min, s.alpha_max
+    bp.depth_eps = float(depth_eps)
     return bp
 
 
@@ -231,12 +233,13 @@ def blend_forward(p: Projected, bins: Bins, opacities, features, s: Settings, wa
                                                              blend_gpu, backward=False)
     features, out_features = kernel_features(features), kernel_features(out.features)
     head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
+    unused = wp.empty(1, dtype=float, device=dev)  # the expected depth: the torch op divides itself here
 
     def work(_thread, chunks):  # each chunk writes only its own pixels
         for first, count in chunks:
             wp.launch(kernel, dim=count * s.tile_size**2, inputs=head + [blend_params(s, want, first)],
-                      outputs=[out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out_features,
-                               out.last], device=dev, block_dim=block_dim)
+                      outputs=[out.color, out.transmittance, out.alpha, out.depth, unused, out.inv_depth,
+                               out_features, out.last], device=dev, block_dim=block_dim)
 
     run_threads(work, _tile_launches(s, dev), kernels=[kernel], device=dev, block_dim=block_dim)
     return out

@@ -15,7 +15,6 @@ import warp as wp
 
 from warpgs.kernels import project, splat_rows
 from warpgs.render import fast_pipeline as fast
-from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.gaussians_fast import (_PROJECTION_DTYPES, _features_arg, blend_upstream, device_state,
                                           feature_gradient_arg, image_outputs, projection_inputs)
 
@@ -108,7 +107,6 @@ class FastBlendRowsFunction(torch.autograd.Function):
         ws = state.ws
         rows = rows.contiguous()
         n, nf = rows.shape[0], wanted.num_features
-        npix = settings.width * settings.height
         layout = fast.feature_layout(state.wdev)
         keep = ws.lease_frame() if ctx.needs_input_grad[3] else None
         per_call = keep if keep is not None else ws
@@ -123,8 +121,6 @@ class FastBlendRowsFunction(torch.autograd.Function):
             frame = fast.bin_and_blend(ws, settings, wanted, tuple(fields[:5]) + (valid,), fields[5],
                                        _features_arg(rows[:, SPLAT_COLUMNS:SPLAT_COLUMNS + nf], nf, layout, state),
                                        outputs, keep, deterministic=options.deterministic)
-            if wanted.depth:
-                fast.normalize_depth(ws, zacc, outputs[1], state.desc(depth.view(npix), wp.float32), npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
         ctx.mark_non_differentiable(visible)
         if keep is not None:
