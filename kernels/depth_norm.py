@@ -1,25 +1,12 @@
-"""Expected depth from the blend's accumulated depth: depth = zacc / max(alpha, eps), and its adjoint. The 3D
-blend writes the division itself as it writes each pixel (blend.write_pixel, BlendParams.depth_eps); the surfel
-pipeline still launches `normalize_depth` after its blend.
+"""The adjoint of the expected depth, depth = zacc / max(alpha, eps), in one kernel.
 
-The blend writes Σ z_i α_i T_i (zacc) and alpha = 1 - T_final per pixel; the depth image is their ratio. Doing
-the division in one kernel (and its adjoint in one more) replaces the two torch ops of the forward and the seven
-of their autograd backward: on a GPU each op is a host dispatch, and at 100k Gaussians host time is most of a
-render call. The arithmetic is torch's, operation for operation (div, and clamp_min's gradient mask alpha >= eps),
-so both give the same bits.
+The blends accumulate zacc = Σ z_i α_i T_i and write the expected depth beside it as they write each pixel
+(blend.write_pixel, surfel_steps.write_surfel_pixel, with BlendParams.depth_eps > 0). Its adjoint here replaces the
+seven torch ops of autograd's backward of that division: on a GPU each op is a host dispatch, and at 100k Gaussians
+host time is most of a render call. The arithmetic is torch's, operation for operation (div, and clamp_min's gradient
+mask alpha >= eps), so both give the same bits.
 """
 import warp as wp
-
-
-@wp.kernel
-def normalize_depth(
-    zacc: wp.array(dtype=float),
-    alpha: wp.array(dtype=float),
-    eps: float,
-    depth: wp.array(dtype=float),
-):
-    p = wp.tid()
-    depth[p] = zacc[p] / wp.max(alpha[p], eps)
 
 
 @wp.kernel

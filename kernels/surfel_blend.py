@@ -42,6 +42,7 @@ def blend_forward(
     out_transmittance: wp.array(dtype=float),
     out_alpha: wp.array(dtype=float),
     out_depth: wp.array(dtype=float),
+    out_expected_depth: wp.array(dtype=float),
     out_inv_depth: wp.array(dtype=float),
     out_normal: wp.array(dtype=wp.vec3),
     out_median: wp.array(dtype=float),
@@ -72,8 +73,9 @@ def blend_forward(
         for c in range(p.base.num_features):
             out_features[pix, c] = out_features[pix, c] + alpha * st.T * features[g, c]
         st = blend_surfel(st, k, alpha, sp[1], colors[g], normals[g], p)
-    write_surfel_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth, out_normal,
-                       out_median, out_median_index, out_distortion, out_dist_stats, out_last)
+    write_surfel_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_expected_depth,
+                       out_inv_depth, out_normal, out_median, out_median_index, out_distortion, out_dist_stats,
+                       out_last)
 
 
 @wp.kernel

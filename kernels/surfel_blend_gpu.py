@@ -84,6 +84,7 @@ def forward_kernel(block_dim: int, num_features: int):
         out_transmittance: wp.array(dtype=float),
         out_alpha: wp.array(dtype=float),
         out_depth: wp.array(dtype=float),
+        out_expected_depth: wp.array(dtype=float),
         out_inv_depth: wp.array(dtype=float),
         out_normal: wp.array(dtype=wp.vec3),
         out_median: wp.array(dtype=float),
@@ -128,8 +129,9 @@ def forward_kernel(block_dim: int, num_features: int):
                     acc += alpha * st.T * features[wp.tile_extract(ids, j)]
                 st = blend_surfel(st, lo + j, alpha, sp[1], wp.tile_extract(rgb_t, j), wp.tile_extract(n_t, j), p)
         if inside:
-            write_surfel_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_inv_depth,
-                               out_normal, out_median, out_median_index, out_distortion, out_dist_stats, out_last)
+            write_surfel_pixel(st, pix, p, out_color, out_transmittance, out_alpha, out_depth, out_expected_depth,
+                               out_inv_depth, out_normal, out_median, out_median_index, out_distortion,
+                               out_dist_stats, out_last)
             if wp.static(has_features):
                 out_features[pix] = acc
 

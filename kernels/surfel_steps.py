@@ -172,17 +172,23 @@ def blend_surfel(st: SurfelPixelState, k: int, alpha: float, z: float, color: wp
 def write_surfel_pixel(st: SurfelPixelState, pix: int, p: SurfelBlendParams,
                        out_color: wp.array(dtype=wp.vec3), out_transmittance: wp.array(dtype=float),
                        out_alpha: wp.array(dtype=float), out_depth: wp.array(dtype=float),
+                       out_expected_depth: wp.array(dtype=float),
                        out_inv_depth: wp.array(dtype=float), out_normal: wp.array(dtype=wp.vec3),
                        out_median: wp.array(dtype=float), out_median_index: wp.array(dtype=wp.int32),
                        out_distortion: wp.array(dtype=float), out_dist_stats: wp.array(dtype=wp.vec3),
                        out_last: wp.array(dtype=wp.int32)):
+    """As blend.write_pixel: out_depth gets the accumulation, and with p.base.depth_eps > 0 out_expected_depth
+    gets it over alpha."""
+    alpha = 1.0 - st.T
     out_transmittance[pix] = st.T
-    out_alpha[pix] = 1.0 - st.T
+    out_alpha[pix] = alpha
     out_last[pix] = st.last
     if p.base.want_color != 0:
         out_color[pix] = st.rgb
     if p.base.want_depth != 0:
         out_depth[pix] = st.depth
+        if p.base.depth_eps > 0.0:
+            out_expected_depth[pix] = st.depth / wp.max(alpha, p.base.depth_eps)
     if p.base.want_inv_depth != 0:
         out_inv_depth[pix] = st.inv_depth
     if p.want_normal != 0:

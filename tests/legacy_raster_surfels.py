@@ -97,7 +97,8 @@ def blend_forward(p: SurfelProjected, bins: Bins, opacities, features, s: Settin
                                                              surfel_blend_gpu, backward=False)
     features, out_features = kernel_features(features), kernel_features(out.features)
     head = [bins.tile_start, bins.tile_end, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
-    outputs = [out.color, out.transmittance, out.alpha, out.depth, out.inv_depth, out.normal, out.median,
+    unused = wp.empty(1, dtype=float, device=dev)  # the expected depth: this op divides in torch
+    outputs = [out.color, out.transmittance, out.alpha, out.depth, unused, out.inv_depth, out.normal, out.median,
                out.median_index, out.distortion, out.dist_stats, out_features, out.last]
 
     def work(_thread, chunks):  # each chunk writes only its own pixels

@@ -230,14 +230,10 @@ def pair_order(ws: Workspace, s: Settings, keep: Optional[Keep], n: int, total: 
     return PairOrder(total=total, positions=positions, ranges=ranges)
 
 
-def normalize_depth(ws: Workspace, zacc, alpha, depth, npix: int, eps: float) -> None:
-    """depth = zacc / max(alpha, eps) per pixel (kernels/depth_norm.py), in one launch."""
-    ws.launches.launch("normalize_depth", depth_norm.normalize_depth, npix, [zacc, alpha, eps, depth])
-
-
 def normalize_depth_backward(ws: Workspace, grad_depth, zacc, transmittance, grad_alpha, npix: int, eps: float):
-    """The adjoint of `normalize_depth`: (depth upstream, alpha upstream) for the blend adjoint, in the workspace
-    (valid until the next backward on it). grad_alpha None: the loss did not use alpha."""
+    """The adjoint of the expected depth, zacc / max(alpha, eps), which the blend writes (kernels/depth_norm.py):
+    (depth upstream, alpha upstream) for the blend adjoint, in the workspace (valid until the next backward on it).
+    grad_alpha None: the loss did not use alpha."""
     up_zacc = ws.array("up_zacc", npix, float)
     up_alpha = ws.array("up_alpha_total", npix, float)
     has_alpha = grad_alpha is not None

@@ -15,6 +15,7 @@ import warp as wp
 from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project, surfel_steps
 from warpgs.kernels.blend_gpu import warp_sums_supported
 from warpgs.render.cpu_threads import run_threads
+from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, InputCheck, Keep, TileFrame, _stage, add_input_check,
                                          bin_into_tiles, blend_settings_key, launch_sequence, pair_order,
                                          run_blend_adjoint)
@@ -45,11 +46,13 @@ def image_wanted(wanted: SurfelWanted, name: str) -> bool:
     return name == "alpha" or bool(getattr(wanted, name))
 
 
-def surfel_blend_params(s: Settings, want: SurfelWanted, first_tile: int) -> surfel_steps.SurfelBlendParams:
-    """The per-launch settings of the surfel blend kernels (CPU and GPU, forward and backward)."""
+def surfel_blend_params(s: Settings, want: SurfelWanted, first_tile: int,
+                        depth_eps: float = 0.0) -> surfel_steps.SurfelBlendParams:
+    """The per-launch settings of the surfel blend kernels (CPU and GPU, forward and backward). depth_eps > 0: the
+    forward also writes the expected depth (accumulation / max(alpha, depth_eps))."""
     sp = surfel_steps.SurfelBlendParams()
     sp.base = blend_params(s, Wanted(color=want.color, depth=want.depth, inv_depth=want.inv_depth,
-                                     num_features=want.num_features), first_tile)
+                                     num_features=want.num_features), first_tile, depth_eps)
     sp.near, sp.dist_scale, sp.filter_inv = s.near, want.distortion_scale, 1.0 / (s.screen_sigma * s.screen_sigma)
     sp.want_normal, sp.want_median, sp.want_distortion = int(want.normal), int(want.median), int(want.distortion)
     return sp
@@ -71,9 +74,9 @@ class SurfelFrame(TileFrame):
 def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, features, outputs,
             keep: Optional[Keep], check: Optional[InputCheck] = None, deterministic: bool = False) -> SurfelFrame:
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
-    projection kernel takes them; outputs: (color, alpha, depth, inv_depth, normal, median, distortion, features)
-    arrays the blend writes (1-element dummies for outputs not asked for; features zeroed beforehand for the
-    per-thread CPU kernel). keep=None: everything in the workspace (no backward follows). check: the input checks,
+    projection kernel takes them; outputs: (color, alpha, depth accumulation, inv_depth, normal, median, distortion,
+    features, expected depth) arrays the blend writes (1-element dummies for outputs not asked for; features zeroed
+    beforehand for the per-thread CPU kernel; the expected depth is the accumulation over alpha). keep=None: everything in the workspace (no backward follows). check: the input checks,
     raised at the tile-pair count's sync (fast_pipeline.InputCheck). deterministic: keep what a fixed-order GPU
     backward needs (fast_pipeline.pair_order)."""
     L = ws.launches
@@ -104,17 +107,17 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     last = per_call("last", npix, wp.int32)
     median_index = per_call("median_index", npix, wp.int32) if want.median else ws.dummy(wp.int32)
     dist_stats = per_call("dist_stats", npix, wp.vec3) if want.distortion else ws.dummy(wp.vec3)
-    color, alpha, depth, inv_depth, normal, median, distortion, out_features = outputs
+    color, alpha, depth, inv_depth, normal, median, distortion, out_features, expected_depth = outputs
     kernel, block_dim = _blend_kernel(ws.device, s, want, backward=False)
     head = [tile_start, tile_end, sorted_ids, transforms, means2d, depths, opacities, colors, normals, features,
             q_cut]
-    tail = [color, transmittance, alpha, depth, inv_depth, normal, median, median_index, distortion, dist_stats,
-            out_features, last]
+    tail = [color, transmittance, alpha, depth, expected_depth, inv_depth, normal, median, median_index, distortion,
+            dist_stats, out_features, last]
 
     def work(thread, chunks):  # each chunk writes only its own pixels
         for c, (first, count) in enumerate(chunks):
             L.launch(("surfel_blend_fwd", thread, c), kernel, count * s.tile_size**2,
-                     head + [_params(ws, s, want, first)] + tail, block_dim)
+                     head + [_params(ws, s, want, first, DEPTH_EPS)] + tail, block_dim)
 
     run_threads(work, _tile_launches(s, ws.device))
     _stage(None, "surfel blend forward")
@@ -172,10 +175,11 @@ def _projection_settings(s: Settings) -> list:
     return [s.near, s.far, color_mode, max(s.sh_degree, 0)]
 
 
-def _params(ws: Workspace, s: Settings, want: SurfelWanted, first: int):
+def _params(ws: Workspace, s: Settings, want: SurfelWanted, first: int, depth_eps: float = 0.0):
     key = ("surfel_blend_params", *blend_settings_key(s), s.near, s.screen_sigma, want.color, want.depth,
-           want.inv_depth, want.normal, want.median, want.distortion, want.num_features, want.distortion_scale, first)
-    return ws.memo(key, lambda: surfel_blend_params(s, want, first))
+           want.inv_depth, want.normal, want.median, want.distortion, want.num_features, want.distortion_scale, first,
+           depth_eps)
+    return ws.memo(key, lambda: surfel_blend_params(s, want, first, depth_eps))
 
 
 def _blend_kernel(dev, s: Settings, want: SurfelWanted, backward: bool, variant: str = "warp_sums"):

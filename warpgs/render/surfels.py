@@ -140,7 +140,8 @@ def surfel_work(means, quats, scales, opacities, viewmat, K, width: int, height:
         (viewmat.reshape(1, 4, 4), wp.mat44), (_intrinsics_vector(K).reshape(1, 4), wp.vec4),
         (opacities, wp.float32), (alpha, wp.float32))]
     no_features = _features_arg(None, 0, feature_layout(state.wdev), state)
-    outputs = [arrays[7] if name == "alpha" else ws.dummy(dtype) for name, _, dtype in IMAGES] + [no_features]
+    outputs = [arrays[7] if name == "alpha" else ws.dummy(dtype) for name, _, dtype in IMAGES] + [no_features,
+                                                                                                  ws.dummy(float)]
     with state.scope():
         frame = fast.forward(ws, s, want, arrays[:6], arrays[6], no_features, outputs, None)
         last = state.tensor(frame.last).view(s.height, s.width).long()

@@ -9,7 +9,7 @@ import warp as wp
 from warpgs.render import fast_pipeline_surfels as fast
 from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.defaults import DEPTH_EPS
-from warpgs.render.fast_pipeline import feature_layout, normalize_depth, normalize_depth_backward
+from warpgs.render.fast_pipeline import feature_layout, normalize_depth_backward
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
                                           gradient_buffers, input_check, projection_adjoint, projection_inputs,
                                           upstream_features, upstream_gradient)
@@ -45,8 +45,10 @@ class FastSurfelsFunction(torch.autograd.Function):
                    else ws.dummy(dtype) for img, (name, c, dtype) in zip(images, IMAGES)]
         outputs.append(_features_arg(feats.view(npix, nf), nf, layout, state))
         keep = ws.lease_frame() if any_grad else None  # back to the pool with ctx.state
-        # the blend accumulates depth in `zacc`; the depth image gets it over alpha (fast_pipeline.normalize_depth)
-        depth_out, zacc = outputs[DEPTH], ws.dummy(float)
+        # the blend accumulates depth in `zacc` (the adjoint reads it) and writes the depth image, zacc over alpha,
+        # beside it
+        outputs.append(outputs[DEPTH])
+        zacc = ws.dummy(float)
         if wanted.depth:
             zacc = outputs[DEPTH] = (keep if keep is not None else ws)("zacc", npix, float)
 
@@ -57,8 +59,6 @@ class FastSurfelsFunction(torch.autograd.Function):
             frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
                                  _features_arg(features, nf, layout, state), outputs, keep, checks,
                                  options.deterministic)
-            if wanted.depth:
-                normalize_depth(ws, zacc, outputs[ALPHA], depth_out, npix, DEPTH_EPS)
             visible = state.tensor(frame.counts) > 0
         count = frame.total  # a plain int: autograd passes it through (no tensor to make and wrap each call)
         ctx.mark_non_differentiable(visible)
