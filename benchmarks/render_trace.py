@@ -6,7 +6,8 @@ rest is the GPU waiting on the host), the host reads, and each kernel's time, fr
 The scene and the calls are benchmarks/raster.py's (the default `rasterize(...)` call, RGB + alpha + depth; gsplat's
 rasterization with RGB+ED). Each profiled call ends with a synchronisation, so a call's window holds only its own
 GPU work. "reads" counts the CUDA runtime's syncs and copies the profiler sees (torch's, gsplat's and the closing
-synchronisation); Warp's one read a call goes through the driver API, which it does not see. Writes benchmarks/results/render_trace_<device>[_<tag>].json ($OUT when set).
+synchronisation); Warp's one read a call goes through the driver API, which it does not see.
+Writes benchmarks/results/render_trace_<device>[_<tag>].json ($OUT when set).
 """
 from __future__ import annotations
 
@@ -30,20 +31,33 @@ def call_windows(events) -> list:
                   if e.get("name") == "call" and e.get("cat") == "user_annotation")
 
 
+def kernel_name(name: str, width: int = 90) -> str:
+    """A kernel's name, short enough for a table but long enough to tell CUB's sort passes from its scans (their
+    names share a long namespace prefix, dropped here)."""
+    if "cub::" in name:
+        name = "cub::" + name.split("::", 2)[-1]
+    return name[:width]
+
+
 def per_call_breakdown(events, calls: int) -> dict:
     """GPU busy microseconds per call, host reads per call, and kernel time per call by kernel name."""
     windows = call_windows(events)
-    gpu = [e for e in events if e.get("cat") in GPU_CATEGORIES]
+
+    def inside(e) -> bool:  # the profiler's own work before and after the calls is left out
+        return any(start <= e["ts"] < end for start, end in windows)
+
+    gpu = [e for e in events if e.get("cat") in GPU_CATEGORIES and inside(e)]
     busy = []
     for start, end in windows:
         busy.append(busy_time([e for e in gpu if start <= e["ts"] < end])[1])
     kernels = collections.defaultdict(float)
     launches = collections.Counter()
     for e in gpu:
-        kernels[e["name"][:60]] += e["dur"]
-        launches[e["name"][:60]] += 1
-    reads = collections.Counter(e["name"] for e in events
-                                if e.get("cat") in ("cuda_runtime", "cuda_driver") and e.get("name") in READS)
+        name = kernel_name(e["name"])
+        kernels[name] += e["dur"]
+        launches[name] += 1
+    reads = collections.Counter(e["name"] for e in events if e.get("cat") in ("cuda_runtime", "cuda_driver")
+                                and e.get("name") in READS and inside(e))
     wall = [end - start for start, end in windows]
     return {"calls_seen": len(windows),
             "profiled_wall_us": sum(wall) / max(len(wall), 1),

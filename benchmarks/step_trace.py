@@ -89,7 +89,10 @@ def gpu_waits(events, steps: int, min_gap_us: float = 2.0) -> list:
     for e in gpu:
         if end is not None and e["ts"] - end >= min_gap_us:
             launch = by_correlation.get(e.get("args", {}).get("correlation", -1))
-            site = call_site(launch if launch is not None else {"ts": e["ts"] - 1, "tid": main_tid}, frames)
+            if launch is not None and launch["ts"] < end:  # queued before the gap: the GPU waited on something else
+                site = "(launched before the gap: not a wait for the host)"
+            else:
+                site = call_site(launch if launch is not None else {"ts": e["ts"] - 1, "tid": main_tid}, frames)
             gaps[site] += 1
             micros[site] += e["ts"] - end
         end = e["ts"] + e["dur"] if end is None else max(end, e["ts"] + e["dur"])

@@ -115,7 +115,7 @@ def forward_kernel(block_dim: int, num_features: int):
             rgb_t = wp.tile_load_indexed(colors, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
             z_t = wp.tile_load_indexed(depths, indices=ids, shape=(wp.static(block_dim),), offset=(0,), axis=0, storage="shared")
             # A saturated pixel leaves the batch at once (breaking, not skipping the rest: 14-22% of the kernel's
-            # time on an H200, benchmarks/render_trace.py); the block waits for its slowest pixel either way.
+            # time on an H200, in a side-by-side test of kernel variants); the block waits for its slowest pixel.
             for j in range(wp.where(st.done == 0, wp.min(wp.static(block_dim), end - lo), 0)):
                 st = blend_one(st, lo + j, wp.tile_extract(m_t, j), wp.tile_extract(c_t, j),
                                wp.tile_extract(o_t, j), wp.tile_extract(q_t, j), wp.tile_extract(rgb_t, j),

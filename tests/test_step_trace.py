@@ -44,3 +44,13 @@ def test_gpu_idle_gaps_go_to_the_launch_that_ended_them():
     assert [(r["site"], r["gaps_per_step"], r["idle_us_per_step"]) for r in rows] == [
         ("warpgs/losses/photometric.py(9): l1 < warpgs/train/step.py(16): train_step", 1.0, 28.0),
         ("warpgs/train/step.py(16): train_step", 1.0, 25.0)]
+
+
+def test_a_gap_before_an_already_queued_kernel_is_not_a_host_wait():
+    launches = [{"cat": "cuda_runtime", "tid": 1, "ts": ts, "dur": 1, "name": "cudaLaunchKernel",
+                 "args": {"correlation": c}} for ts, c in ((1, 1), (2, 2))]
+    kernels = [{"cat": "kernel", "ts": 5, "dur": 5, "args": {"correlation": 1}},
+               {"cat": "kernel", "ts": 30, "dur": 5, "args": {"correlation": 2}}]  # queued at 2, idle 10..30
+    rows = step_trace.gpu_waits(launches + kernels, steps=1)
+    assert rows == [{"site": "(launched before the gap: not a wait for the host)", "gaps_per_step": 1.0,
+                     "idle_us_per_step": 20.0}]

@@ -89,6 +89,10 @@ class DensifyStats:
     def of(cls, tensors: dict) -> "DensifyStats":
         """Statistics holding the given tensors (STATISTICS keys); a missing max_screen (checkpoints from before
         it) restarts at 0 until the next refine."""
+        missing = [key for key in STATISTICS[:3] if tensors.get(key) is None]
+        if missing:
+            raise KeyError(f"densification statistics: {', '.join(missing)} missing (a strategy state from "
+                           f"before initialize, or a damaged checkpoint)")
         stats = cls.__new__(cls)
         for key in STATISTICS:
             setattr(stats, key, tensors.get(key))

@@ -364,7 +364,7 @@ class DensifyStrategy:
 
     # ----- checkpoints -----
     def state_dict(self) -> dict:
-        state = {**self.stats.tensors(), "generator": self.generator.get_state()}
+        state = {**self._initialized().tensors(), "generator": self.generator.get_state()}
         if self.schedule.auto is not None:  # plain Python values (the checkpoint moves only tensors)
             state["auto"] = self.schedule.auto.state_dict()
         return state
