@@ -27,16 +27,31 @@ from pathlib import Path
 from common import ROOT, run_host, write_json
 
 
+def import_tree(tree: str) -> None:
+    """Imports warpgs and its kernels from `tree` (a folder with warpgs/ and kernels/ side by side, the source
+    layout). An editable install of another checkout maps `warpgs.kernels` to that checkout's kernels/ (a
+    subpackage not found under warpgs/ is looked up there), so the tree's folder is added to the package's path
+    first, and both are checked."""
+    root = Path(tree).resolve()
+    sys.path.insert(0, str(root))
+    import warpgs
+
+    if (root / "kernels").is_dir():
+        warpgs.__path__.append(str(root))
+    import warpgs.kernels
+
+    for module in (warpgs, warpgs.kernels):
+        if not Path(module.__file__).resolve().is_relative_to(root):
+            raise SystemExit(f"--trees: {tree} did not provide {module.__name__} (imported {module.__file__})")
+
+
 def worker(tree: str, data: str, device: str, config: str, warmup: int, steps: int, blocks: int, overrides) -> dict:
     """Runs in the child process: the version in `tree` first on sys.path."""
-    sys.path.insert(0, str(Path(tree).resolve()))
+    import_tree(tree)
     import torch
-    import warpgs
     from warpgs.config.loader import load_config
     from warpgs.train.trainer import Trainer
 
-    if not Path(warpgs.__file__).resolve().is_relative_to(Path(tree).resolve()):
-        raise SystemExit(f"--trees: {tree} did not provide warpgs (imported {warpgs.__file__})")
     cfg = load_config(config, [f"data.path={data}", f"train.device={device}", "eval.every=0",
                                                       "train.steps=30000", "train.progress=false", *overrides])
     cfg.output.dir = tempfile.mkdtemp()
