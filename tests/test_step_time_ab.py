@@ -31,3 +31,19 @@ def test_trees_must_be_named_folders_holding_warpgs(tmp_path):
         step_time_ab.parse_trees(f"a={ROOT},b={tmp_path}")
     with pytest.raises(SystemExit, match="at least two"):
         step_time_ab.parse_trees(f"a={ROOT}")
+
+
+def test_a_tree_brings_its_own_kernels_past_an_editable_install(tmp_path):
+    """The tree's kernels/ must be the warpgs.kernels a worker imports, not the installed checkout's."""
+    import shutil
+    import subprocess
+
+    tree = tmp_path / "tree"
+    shutil.copytree(ROOT / "warpgs", tree / "warpgs", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "kernels", tree / "kernels", ignore=shutil.ignore_patterns("__pycache__"))
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); import step_time_ab; step_time_ab.import_tree(sys.argv[2]); "
+            "import warpgs.kernels.blend as b; print(b.__file__)")
+    out = subprocess.run([sys.executable, "-c", code, str(ROOT / "benchmarks"), str(tree)], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert Path(out.stdout.strip().splitlines()[-1]).resolve() == (tree / "kernels" / "blend.py").resolve()
