@@ -1,6 +1,7 @@
 """Where a GPU training step waits: the GPU's busy share of the step, every host read (stream syncs and
-device-to-host copies) with the Python line that made it, and where the GPU sat idle waiting for the host (each
-idle gap put on the launch that ended it), from a torch.profiler trace of a few steps.
+device-to-host copies) with the Python line that made it, the host's time in Warp's synchronisations (the render's
+tile-pair count), and where the GPU sat idle waiting for the host (each idle gap put on the launch that ended it),
+from a torch.profiler trace of a few steps.
 
     python benchmarks/step_trace.py data/bonsai800 --device cuda --warmup 3000 --steps 10 train.steps=30000
 
@@ -22,6 +23,8 @@ from common import sync, write_json
 from profile_train_step import capture_arguments, profiler_activities, time_steps, warmed_trainer
 
 READS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize", "cudaMemcpyAsync", "cudaMemcpy")
+# Warp's waits go through the driver API, which the profiler does not record; their Python frames it does.
+WARP_WAITS = (": synchronize_stream", ": synchronize_event", ": synchronize_device", ": synchronize")
 GPU_CATEGORIES = ("kernel", "gpu_memcpy", "gpu_memset")
 
 
@@ -100,6 +103,20 @@ def gpu_waits(events, steps: int, min_gap_us: float = 2.0) -> list:
             for k in sorted(gaps, key=lambda k: -micros[k])]
 
 
+def warp_waits(events, steps: int) -> list:
+    """Host time in Warp's synchronisation calls (their Python frames), by warpgs call site: the render's wait for
+    its tile-pair count among them. One row per site: calls and microseconds per step, most time first."""
+    frames = python_frames(events)
+    calls, micros = collections.Counter(), collections.Counter()
+    for e in events:
+        if e.get("cat") == "python_function" and e["name"].endswith(WARP_WAITS):
+            site = call_site(e, frames)
+            calls[site] += 1
+            micros[site] += e["dur"]
+    return [{"site": k, "per_step": calls[k] / steps, "host_us_per_step": micros[k] / steps}
+            for k in sorted(calls, key=lambda k: -micros[k])]
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     capture_arguments(ap, 10, "profiled steps")
@@ -117,15 +134,20 @@ def main(argv=None) -> dict:
     span, busy = busy_time(events)
     reads = host_reads(events, args.steps)
     waits = gpu_waits(events, args.steps)
+    syncs = warp_waits(events, args.steps)
     result = {"data": args.data, "device": args.device, "warmup": args.warmup, "steps": args.steps,
               "primitives": trainer.num_primitives, "ms_per_step_plain": plain_ms,
               "profiled_gpu_span_ms_per_step": span / 1e3 / args.steps,
-              "profiled_gpu_busy_ms_per_step": busy / 1e3 / args.steps, "host_reads": reads, "gpu_waits": waits,
+              "profiled_gpu_busy_ms_per_step": busy / 1e3 / args.steps, "host_reads": reads, "warp_waits": syncs,
+              "gpu_waits": waits,
               "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
     print(f"{trainer.num_primitives} primitives: {plain_ms:.2f} ms a step without the profiler; profiled, the GPU "
           f"was busy {result['profiled_gpu_busy_ms_per_step']:.2f} of {result['profiled_gpu_span_ms_per_step']:.2f} ms")
     for r in reads:
         print(f"  {r['per_step']:5.1f}/step {r['host_us_per_step']:8.0f} us  {r['call']:22s} {r['site']}")
+    print("  the host waiting in Warp's synchronisations:")
+    for w in syncs:
+        print(f"  {w['per_step']:5.1f}/step {w['host_us_per_step']:8.0f} us  {w['site']}")
     print("  where the GPU waited for the host (idle gaps, by the launch that ended them):")
     for w in waits[:15]:
         print(f"  {w['gaps_per_step']:5.1f}/step {w['idle_us_per_step']:8.0f} us  {w['site']}")

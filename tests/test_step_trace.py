@@ -54,3 +54,12 @@ def test_a_gap_before_an_already_queued_kernel_is_not_a_host_wait():
     rows = step_trace.gpu_waits(launches + kernels, steps=1)
     assert rows == [{"site": "(launched before the gap: not a wait for the host)", "gaps_per_step": 1.0,
                      "idle_us_per_step": 20.0}]
+
+
+def test_warps_waits_are_found_by_their_python_frames():
+    frames = [{"cat": "python_function", "tid": 1, "ts": ts, "dur": dur, "name": name} for ts, dur, name in (
+        (0, 100, "warpgs/render/workspace.py(352): run"), (10, 40, "warp/_src/context.py(9): synchronize_stream"),
+        (60, 5, "warp/_src/context.py(9): launch"))]
+    later = [dict(f, ts=f["ts"] + 200) for f in frames]  # the second step
+    rows = step_trace.warp_waits(frames + later, steps=2)
+    assert rows == [{"site": "warpgs/render/workspace.py(352): run", "per_step": 1.0, "host_us_per_step": 40.0}]
