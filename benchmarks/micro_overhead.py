@@ -84,7 +84,7 @@ def main():
         feats = wp.zeros((1, 1), dtype=float)
         bwd_args = ([one(wp.int32), one(wp.int32), one(wp.vec2), one(wp.vec3), one(float), one(wp.vec3), one(float),
                      feats, one(float), pipeline.blend_params(s, want)]
-                    + [one(float), one(wp.int32), one(wp.vec3), one(float), one(float), one(float), feats]
+                    + [one(float), one(wp.int32), one(float), one(wp.vec3), one(float), one(float), one(float), feats]
                     + [one(wp.vec2), one(wp.vec3), one(float), one(wp.vec3), one(float), feats])
         small_args = [one(wp.int32), one(wp.int32), one(wp.int32)]
 

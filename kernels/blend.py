@@ -103,8 +103,8 @@ def write_pixel(st: PixelState, pix: int, p: BlendParams, out_color: wp.array(dt
                 out_expected_depth: wp.array(dtype=float), out_inv_depth: wp.array(dtype=float),
                 out_last: wp.array(dtype=wp.int32)):
     """out_depth gets the accumulation Σ w z (the adjoint reads it); with p.depth_eps > 0, out_expected_depth gets
-    it over alpha here, as kernels/depth_norm.py's kernel would after the blend (the same operations, so the same
-    bits), which saves that launch and a pass over the image."""
+    it over max(alpha, depth_eps), torch's division operation for operation (so the same bits), instead of a kernel
+    after the blend; the adjoints take it back per pixel (load_pixel_grads)."""
     alpha = 1.0 - st.T
     out_transmittance[pix] = st.T
     out_alpha[pix] = alpha
@@ -151,16 +151,36 @@ class PixelGrads:
 
 
 @wp.func
+def expected_depth_upstream(g: float, grad_alpha: float, T: float, zacc: float, eps: float) -> wp.vec2:
+    """(depth accumulation's upstream, alpha's upstream) from the expected depth's upstream g, where the forward
+    wrote depth = zacc / max(alpha, eps) and alpha = 1 - T: the division's adjoint as torch computes it, operation
+    for operation (div; clamp_min passes a gradient only where alpha >= eps), so the same bits."""
+    a = 1.0 - T
+    c = wp.max(a, eps)
+    share = float(0.0)
+    if a >= eps:
+        share = -g * ((zacc / c) / c)
+    return wp.vec2(g / c, grad_alpha + share)
+
+
+@wp.func
 def load_pixel_grads(pix: int, p: BlendParams, grad_color: wp.array(dtype=wp.vec3), grad_alpha: wp.array(dtype=float),
-                     grad_depth: wp.array(dtype=float), grad_inv_depth: wp.array(dtype=float)) -> PixelGrads:
+                     grad_depth: wp.array(dtype=float), grad_inv_depth: wp.array(dtype=float),
+                     transmittance: wp.array(dtype=float), zacc: wp.array(dtype=float)) -> PixelGrads:
+    """A pixel's upstream gradients. With p.depth_eps > 0 grad_depth is the expected depth's (the forward wrote the
+    division), turned here into the accumulation's, its share added to alpha's."""
     up = PixelGrads()
+    up.alpha = grad_alpha[pix]
     if p.want_color != 0:
         up.rgb = grad_color[pix]
     if p.want_depth != 0:
         up.depth = grad_depth[pix]
+        if p.depth_eps > 0.0 and up.depth != 0.0:  # a zero upstream adds nothing (and no 0 * inf)
+            d = expected_depth_upstream(up.depth, up.alpha, transmittance[pix], zacc[pix], p.depth_eps)
+            up.depth = d[0]
+            up.alpha = d[1]
     if p.want_inv_depth != 0:
         up.inv_depth = grad_inv_depth[pix]
-    up.alpha = grad_alpha[pix]
     return up
 
 
@@ -305,6 +325,7 @@ def blend_backward(
     p: BlendParams,
     transmittance: wp.array(dtype=float),
     last_index: wp.array(dtype=wp.int32),
+    zacc: wp.array(dtype=float),  # the forward's depth accumulation (read when p.depth_eps > 0)
     grad_color: wp.array(dtype=wp.vec3),
     grad_alpha: wp.array(dtype=float),
     grad_depth: wp.array(dtype=float),
@@ -322,7 +343,7 @@ def blend_backward(
     if not inside:
         return
     start = tile_start[tile]
-    up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth)
+    up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth, transmittance, zacc)
     T = transmittance[pix]
     suffix = float(0.0)
     k = last_index[pix] - 1

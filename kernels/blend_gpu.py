@@ -156,6 +156,7 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deter
         p: BlendParams,
         transmittance: wp.array(dtype=float),
         last_index: wp.array(dtype=wp.int32),
+        zacc: wp.array(dtype=float),  # the forward's depth accumulation (read when p.depth_eps > 0)
         grad_color: wp.array(dtype=wp.vec3),
         grad_alpha: wp.array(dtype=float),
         grad_depth: wp.array(dtype=float),
@@ -172,7 +173,7 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deter
         lane = tid % wp.static(block_dim)
         inside, pix, tile, fx, fy = thread_pixel(tid, p)  # outside threads still help fetch and sum
         start = tile_start[tile]
-        up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth)
+        up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth, transmittance, zacc)
         up_features = FeatureVec()
         if wp.static(has_features):
             up_features = grad_features[pix]
@@ -269,6 +270,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
         p: BlendParams,
         transmittance: wp.array(dtype=float),
         last_index: wp.array(dtype=wp.int32),
+        zacc: wp.array(dtype=float),  # the forward's depth accumulation (read when p.depth_eps > 0)
         grad_color: wp.array(dtype=wp.vec3),
         grad_alpha: wp.array(dtype=float),
         grad_depth: wp.array(dtype=float),
@@ -285,7 +287,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
         lane = tid % WARP
         inside, pix, tile, fx, fy = thread_pixel(tid, p)  # outside threads still help fetch and vote
         start = tile_start[tile]
-        up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth)
+        up = load_pixel_grads(pix, p, grad_color, grad_alpha, grad_depth, grad_inv_depth, transmittance, zacc)
         up_features = FeatureVec()
         if wp.static(has_features):
             up_features = grad_features[pix]

@@ -95,6 +95,7 @@ def blend_backward(
     last_index: wp.array(dtype=wp.int32),
     median_index: wp.array(dtype=wp.int32),
     dist_stats: wp.array(dtype=wp.vec3),
+    zacc: wp.array(dtype=float),  # the forward's depth accumulation (read when p.base.depth_eps > 0)
     grad_color: wp.array(dtype=wp.vec3),
     grad_alpha: wp.array(dtype=float),
     grad_depth: wp.array(dtype=float),
@@ -116,7 +117,7 @@ def blend_backward(
     if not inside:
         return
     start = tile_start[tile]
-    pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, grad_color, grad_alpha, grad_depth,
+    pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, zacc, grad_color, grad_alpha, grad_depth,
                           grad_inv_depth, grad_normal, grad_median, grad_distortion)
     T = transmittance[pix]  # transmittance behind the current surfel, walking back to front
     suffix = float(0.0)  # Σ_channels g·(what is seen behind the current surfel), per unit transmittance

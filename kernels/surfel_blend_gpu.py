@@ -163,6 +163,7 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deter
         last_index: wp.array(dtype=wp.int32),
         median_index: wp.array(dtype=wp.int32),
         dist_stats: wp.array(dtype=wp.vec3),
+        zacc: wp.array(dtype=float),  # the forward's depth accumulation (read when p.base.depth_eps > 0)
         grad_color: wp.array(dtype=wp.vec3),
         grad_alpha: wp.array(dtype=float),
         grad_depth: wp.array(dtype=float),
@@ -183,7 +184,7 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deter
         lane = tid % wp.static(block_dim)
         inside, pix, tile, fx, fy = thread_pixel(tid, p.base)  # outside threads still help fetch and sum
         start = tile_start[tile]
-        pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, grad_color, grad_alpha,
+        pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, zacc, grad_color, grad_alpha,
                               grad_depth, grad_inv_depth, grad_normal, grad_median, grad_distortion)
         up_features = FeatureVec()
         if wp.static(has_features):
@@ -281,6 +282,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
         last_index: wp.array(dtype=wp.int32),
         median_index: wp.array(dtype=wp.int32),
         dist_stats: wp.array(dtype=wp.vec3),
+        zacc: wp.array(dtype=float),  # the forward's depth accumulation (read when p.base.depth_eps > 0)
         grad_color: wp.array(dtype=wp.vec3),
         grad_alpha: wp.array(dtype=float),
         grad_depth: wp.array(dtype=float),
@@ -301,7 +303,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
         lane = tid % WARP
         inside, pix, tile, fx, fy = thread_pixel(tid, p.base)  # outside threads still help fetch and vote
         start = tile_start[tile]
-        pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, grad_color, grad_alpha,
+        pg = load_pixel_grads(pix, p, transmittance, median_index, dist_stats, zacc, grad_color, grad_alpha,
                               grad_depth, grad_inv_depth, grad_normal, grad_median, grad_distortion)
         up_features = FeatureVec()
         if wp.static(has_features):

@@ -29,7 +29,7 @@ and is within ~10% on the backward.
 """
 import warp as wp
 
-from .blend import BlendParams
+from .blend import BlendParams, expected_depth_upstream
 
 # The blend adjoint is hand-written from these steps: Warp's generated adjoints are never used, so skip them.
 wp.set_module_options({"enable_backward": False})
@@ -223,6 +223,7 @@ class SurfelPixelGrads:
 @wp.func
 def load_pixel_grads(pix: int, p: SurfelBlendParams, transmittance: wp.array(dtype=float),
                      median_index: wp.array(dtype=wp.int32), dist_stats: wp.array(dtype=wp.vec3),
+                     zacc: wp.array(dtype=float),
                      grad_color: wp.array(dtype=wp.vec3), grad_alpha: wp.array(dtype=float),
                      grad_depth: wp.array(dtype=float), grad_inv_depth: wp.array(dtype=float),
                      grad_normal: wp.array(dtype=wp.vec3), grad_median: wp.array(dtype=float),
@@ -233,6 +234,10 @@ def load_pixel_grads(pix: int, p: SurfelBlendParams, transmittance: wp.array(dty
         pg.rgb = grad_color[pix]
     if p.base.want_depth != 0:
         pg.depth = grad_depth[pix]
+        if p.base.depth_eps > 0.0 and pg.depth != 0.0:  # the expected depth's upstream (blend.load_pixel_grads)
+            d = expected_depth_upstream(pg.depth, pg.alpha, transmittance[pix], zacc[pix], p.base.depth_eps)
+            pg.depth = d[0]
+            pg.alpha = d[1]
     if p.base.want_inv_depth != 0:
         pg.inv_depth = grad_inv_depth[pix]
     if p.want_normal != 0:

@@ -122,7 +122,7 @@ def blend_backward(p: SurfelProjected, bins: Bins, opacities, features, s: Setti
     targets = [p.transforms.grad, p.means2d.grad, p.depths.grad, opacities.grad, p.colors.grad, p.normals.grad,
                adj_features]
     head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
-    tail = ([fwd.transmittance, fwd.last, fwd.median_index, fwd.dist_stats]
+    tail = ([fwd.transmittance, fwd.last, fwd.median_index, fwd.dist_stats, wp.empty(1, dtype=float, device=dev)]
             + [grads[k] for k in ("color", "alpha", "depth", "inv_depth", "normal", "median", "distortion")]
             + [grad_features])
     per_thread = _tile_launches(s, dev)

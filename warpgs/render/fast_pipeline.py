@@ -25,7 +25,7 @@ from typing import Callable, Optional
 
 import warp as wp
 
-from warpgs.kernels import binning, blend, blend_gpu, depth_norm, input_checks, pair_sums, project
+from warpgs.kernels import binning, blend, blend_gpu, input_checks, pair_sums, project
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.defaults import DEPTH_EPS, current_raster_options
 from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
@@ -238,19 +238,6 @@ def pair_order(ws: Workspace, s: Settings, keep: Optional[Keep], n: int, total: 
     return PairOrder(total=total, positions=positions, ranges=ranges)
 
 
-def normalize_depth_backward(ws: Workspace, grad_depth, zacc, transmittance, grad_alpha, npix: int, eps: float):
-    """The adjoint of the expected depth, zacc / max(alpha, eps), which the blend writes (kernels/depth_norm.py):
-    (depth upstream, alpha upstream) for the blend adjoint, in the workspace (valid until the next backward on it).
-    grad_alpha None: the loss did not use alpha."""
-    up_zacc = ws.array("up_zacc", npix, float)
-    up_alpha = ws.array("up_alpha_total", npix, float)
-    has_alpha = grad_alpha is not None
-    ws.launches.launch("normalize_depth_adjoint", depth_norm.normalize_depth_adjoint, npix,
-                       [grad_depth, zacc, transmittance, eps, int(has_alpha),
-                        grad_alpha if has_alpha else ws.dummy(float), up_zacc, up_alpha])
-    return up_zacc, up_alpha
-
-
 def launch_sequence(ws: Workspace, on_stage: Optional[Callable[[str], None]] = None) -> LaunchSequence:
     """The launches up to the tile-pair sync; issued one by one (no graph) while stages are being timed."""
     return ws.sequence(immediate=(on_stage or stage_hook) is not None)
@@ -263,12 +250,14 @@ def _stage(on_stage, name: str) -> None:
 
 
 def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opacities, features, upstream,
-                   adj_opacities, adj_features, num_features_rows: int, backward_kernel: str = "warp_sums"):
+                   adj_opacities, adj_features, num_features_rows: int, backward_kernel: str = "warp_sums", *,
+                   zacc=None):
     """The blending adjoint. upstream: (grad color, alpha, depth, inv_depth, features) in the kernels' layouts
-    (dummies for outputs not rendered). adj_opacities / adj_features: where the opacity and feature gradients
-    accumulate (zeroed by the caller). Returns the projected gradients (means2d, conics, colors, depths), in the
-    workspace: valid until the next backward on it. A frame with `pairs` (forward(deterministic=True)) gets the
-    fixed-order adjoint of pair_adjoint.py."""
+    (dummies for outputs not rendered); zacc: the forward's depth accumulation, given when the depth upstream is the
+    expected depth's (the blend wrote the division, whose adjoint the kernels then run per pixel). adj_opacities /
+    adj_features: where the opacity and feature gradients accumulate (zeroed by the caller). Returns the projected
+    gradients (means2d, conics, colors, depths), in the workspace: valid until the next backward on it. A frame
+    with `pairs` (forward(deterministic=True)) gets the fixed-order adjoint of pair_adjoint.py."""
     L = ws.launches
     kernel, block_dim = _blend_kernel(ws.device, s, want, backward=True, variant=backward_kernel)
     parts = 1
@@ -277,11 +266,12 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
                                                  want.num_features)
     head = [frame.tile_start, frame.sorted_ids, frame.means2d, frame.conics, opacities, frame.colors, frame.depths,
             features, frame.q_cut]
-    tail = [frame.transmittance, frame.last] + list(upstream)
+    tail = [frame.transmittance, frame.last, ws.dummy(float) if zacc is None else zacc] + list(upstream)
+    depth_eps = 0.0 if zacc is None else DEPTH_EPS
 
     def launch(key, first, count, targets):
-        L.launch(key, kernel, count * s.tile_size**2, head + [_params(ws, s, want, first)] + tail + targets,
-                 block_dim)
+        L.launch(key, kernel, count * s.tile_size**2,
+                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets, block_dim)
 
     fields = [("means2d", 2, wp.vec2), ("conics", 3, wp.vec3), OPACITIES, ("colors", 3, wp.vec3),
               ("depths", 1, float), FEATURES]

@@ -76,8 +76,9 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth accumulation, inv_depth, normal, median, distortion,
     features, expected depth) arrays the blend writes (1-element dummies for outputs not asked for; features zeroed
-    beforehand for the per-thread CPU kernel; the expected depth is the accumulation over alpha). keep=None: everything in the workspace (no backward follows). check: the input checks,
-    raised at the tile-pair count's sync (fast_pipeline.InputCheck). deterministic: keep what a fixed-order GPU
+    beforehand for the per-thread CPU kernel; the expected depth is the accumulation over alpha). keep=None:
+    everything in the workspace (no backward follows). check: the input checks, raised at the tile-pair count's sync
+    (fast_pipeline.InputCheck). deterministic: keep what a fixed-order GPU
     backward needs (fast_pipeline.pair_order)."""
     L = ws.launches
     n = int(inputs[0].shape[0])
@@ -128,13 +129,15 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
 
 
 def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelWanted, opacities, features,
-                   upstream, adj_opacities, adj_features, num_features_rows: int, backward_kernel: str = "warp_sums"):
+                   upstream, adj_opacities, adj_features, num_features_rows: int, backward_kernel: str = "warp_sums",
+                   *, zacc=None):
     """The blending adjoint. upstream: (grad color, alpha, depth, inv_depth, normal, median, distortion, features)
-    in the kernels' layouts (dummies for outputs not rendered). adj_opacities / adj_features: where the opacity and
-    feature gradients accumulate (zeroed by the caller). backward_kernel: the GPU adjoint, "block" or "warp_sums"
-    (tiles of 8x8 and up). Returns the projected gradients (transforms, means2d, depths, colors, normals), in the
-    workspace: valid until the next backward on it. A frame with `pairs` gets the fixed-order adjoint
-    (pair_adjoint.py)."""
+    in the kernels' layouts (dummies for outputs not rendered); zacc: the forward's depth accumulation, given when
+    the depth upstream is the expected depth's (fast_pipeline.blend_backward). adj_opacities / adj_features: where
+    the opacity and feature gradients accumulate (zeroed by the caller). backward_kernel: the GPU adjoint, "block"
+    or "warp_sums" (tiles of 8x8 and up). Returns the projected gradients (transforms, means2d, depths, colors,
+    normals), in the workspace: valid until the next backward on it. A frame with `pairs` gets the fixed-order
+    adjoint (pair_adjoint.py)."""
     L = ws.launches
     kernel, block_dim = _blend_kernel(ws.device, s, want, backward=True, variant=backward_kernel)
     parts = 1
@@ -143,11 +146,13 @@ def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelW
                                                  want.num_features)
     head = [frame.tile_start, frame.sorted_ids, frame.transforms, frame.means2d, frame.depths, opacities,
             frame.colors, frame.normals, features, frame.q_cut]
-    tail = [frame.transmittance, frame.last, frame.median_index, frame.dist_stats] + list(upstream)
+    tail = ([frame.transmittance, frame.last, frame.median_index, frame.dist_stats,
+             ws.dummy(float) if zacc is None else zacc] + list(upstream))
+    depth_eps = 0.0 if zacc is None else DEPTH_EPS
 
     def launch(key, first, count, targets):
-        L.launch(key, kernel, count * s.tile_size**2, head + [_params(ws, s, want, first)] + tail + targets,
-                 block_dim)
+        L.launch(key, kernel, count * s.tile_size**2,
+                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets, block_dim)
 
     projected = run_blend_adjoint(ws, s, "surfel_blend_bwd", ADJOINT_FIELDS, frame.n, adj_opacities, adj_features,
                                   num_features_rows, want.num_features, launch, frame.pairs, parts)

@@ -23,7 +23,6 @@ import warp as wp
 
 from warpgs.render import fast_pipeline as fast
 from warpgs.render.camera_rows import camera_rows
-from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.pipeline_gaussians import _cooperative
 from warpgs.render.validation import raise_flagged
 from warpgs.render.workspace import Workspace
@@ -278,10 +277,10 @@ def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: st
     return _features_arg(None, 0, layout, state)
 
 
-def blend_upstream(state: "_DeviceState", layout: str, alive: list, frame, zacc, settings, wanted, grads) -> tuple:
+def blend_upstream(state: "_DeviceState", layout: str, alive: list, settings, wanted, grads) -> tuple:
     """The blend adjoint's upstream (color, alpha, depth, inv_depth, features) from the op's output gradients
-    `grads` (None where the loss did not use an output), the depth's through the division by alpha first (the
-    blend accumulated `zacc`). Launches on the current stream: call inside `state.scope()`. Copies go to `alive`."""
+    `grads` (None where the loss did not use an output; zero buffers there), as the kernels take them: the depth's is
+    the expected depth's, which the adjoint takes through the division itself. Copies go to `alive`."""
     g_color, g_alpha, g_depth, g_inv, g_feat = grads
     ws = state.ws
     npix = settings.width * settings.height
@@ -294,9 +293,6 @@ def blend_upstream(state: "_DeviceState", layout: str, alive: list, frame, zacc,
     gd = upstream(g_depth, "up_depth", (npix,), wp.float32) if wanted.depth else ws.dummy(float)
     gi = upstream(g_inv, "up_inv_depth", (npix,), wp.float32) if wanted.inv_depth else ws.dummy(float)
     gf = upstream_features(state, layout, alive, g_feat, npix, wanted.num_features)
-    if wanted.depth and g_depth is not None:
-        gd, ga = fast.normalize_depth_backward(ws, gd, zacc, frame.transmittance, None if g_alpha is None else ga,
-                                               npix, DEPTH_EPS)
     return gc, ga, gd, gi, gf
 
 
@@ -403,10 +399,10 @@ class FastRasterizeFunction(torch.autograd.Function):
         adj_feat = feature_gradient_arg(g_features, nf, layout, state)
         probe_grad = None
         with state.scope():
-            upstream = blend_upstream(state, layout, alive, frame, zacc, settings, wanted,
+            upstream = blend_upstream(state, layout, alive, settings, wanted,
                                       (g_color, g_alpha, g_depth, g_inv, g_feat))
             projected = fast.blend_backward(ws, frame, settings, wanted, w_opac, w_feat, upstream,
-                                            adj_opac, adj_feat, features.shape[0], options.backward_kernel)
+                                            adj_opac, adj_feat, features.shape[0], options.backward_kernel, zacc=zacc)
             if ctx.needs_input_grad[11]:  # dL/dmeans2d, read before the projection adjoint
                 probe_grad = state.tensor(projected[0]).view(-1, 2).clone()
             if any(needs[i] for i in (0, 1, 2, 4, 6, 7)):

@@ -257,7 +257,8 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
     features, grad_features, adj_features = (kernel_features(a) for a in (features, grad_features, features.grad))
     targets = [p.means2d.grad, p.conics.grad, opacities.grad, p.colors.grad, p.depths.grad, adj_features]
     head = [bins.tile_start, bins.sorted_ids] + _blend_inputs(p, bins, opacities, features)
-    tail = [fwd.transmittance, fwd.last, grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features]
+    unused = wp.empty(1, dtype=float, device=dev)  # the depth accumulation: torch divides here
+    tail = [fwd.transmittance, fwd.last, unused, grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features]
     per_thread = _tile_launches(s, dev)
     buffers = _gradient_buffers(targets, len(per_thread))
 

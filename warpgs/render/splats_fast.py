@@ -140,13 +140,13 @@ class FastBlendRowsFunction(torch.autograd.Function):
         alive = []  # descriptors hold no reference: contiguous copies must outlive the launches
         g_rows = torch.zeros_like(rows)
         with state.scope():
-            upstream = blend_upstream(state, layout, alive, frame, zacc, settings, wanted,
+            upstream = blend_upstream(state, layout, alive, settings, wanted,
                                       (g_color, g_alpha, g_depth, g_inv, g_feat))
             projected = fast.blend_backward(
                 ws, frame, settings, wanted, opacities,
                 _features_arg(rows[:, SPLAT_COLUMNS:SPLAT_COLUMNS + nf], nf, layout, state), upstream,
                 state.array(g_opacities, n, wp.float32), feature_gradient_arg(g_features, nf, layout, state), n,
-                options.backward_kernel)
+                options.backward_kernel, zacc=zacc)
             for name, a in zip(_PROJECTED_GRADS, projected):  # workspace memory: copied out before the next call
                 target = column(g_rows, name)
                 target.copy_(state.tensor(a).view(target.shape))

@@ -8,8 +8,7 @@ import warp as wp
 
 from warpgs.render import fast_pipeline_surfels as fast
 from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
-from warpgs.render.defaults import DEPTH_EPS
-from warpgs.render.fast_pipeline import feature_layout, normalize_depth_backward
+from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
                                           gradient_buffers, input_check, projection_adjoint, projection_inputs,
                                           upstream_features, upstream_gradient)
@@ -86,15 +85,11 @@ class FastSurfelsFunction(torch.autograd.Function):
         ups.append(upstream_features(state, layout, alive, upstream[len(IMAGES)], npix, nf))
         desc = state.desc
         with state.scope():
-            if wanted.depth and upstream[DEPTH] is not None:  # through the division's adjoint first
-                ups[DEPTH], ups[ALPHA] = normalize_depth_backward(
-                    ws, ups[DEPTH], zacc, frame.transmittance, None if upstream[ALPHA] is None else ups[ALPHA],
-                    npix, DEPTH_EPS)
             projected = fast.blend_backward(ws, frame, settings, wanted, desc(opacities, wp.float32),
                                             _features_arg(features, nf, layout, state), ups,
                                             state.array(g_opac, g_opac.shape[0], wp.float32),
                                             feature_gradient_arg(g_features, nf, layout, state), features.shape[0],
-                                            options.surfel_backward_kernel)
+                                            options.surfel_backward_kernel, zacc=zacc)
             if any(needs[i] for i in (0, 1, 2, 4, 6, 7)):
                 projection_adjoint(state, fast.project_backward, frame, settings,
                                    (means, quats, scales, coeffs, viewmat, intrinsics), grads, needs, projected,
