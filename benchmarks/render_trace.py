@@ -2,6 +2,7 @@
 rest is the GPU waiting on the host), the host reads, and each kernel's time, from a torch.profiler trace.
 
     python benchmarks/render_trace.py --sizes 100000,1000000 --resolution 1920x1080 [--no-gsplat] [--tag T]
+    python benchmarks/render_trace.py --primitive surfels ...     # 2D surfels (gsplat: rasterization_2dgs)
 
 The scene and the calls are benchmarks/raster.py's (the default `rasterize(...)` call, RGB + alpha + depth; gsplat's
 rasterization with RGB+ED). Each profiled call ends with a synchronisation, so a call's window holds only its own
@@ -90,6 +91,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--resolution", default="1920x1080")
     ap.add_argument("--calls", type=int, default=20, help="profiled calls per (system, mode)")
     ap.add_argument("--no-gsplat", action="store_true")
+    ap.add_argument("--primitive", choices=["gaussians", "surfels"], default="gaussians")
     ap.add_argument("--tag", default="")
     args = ap.parse_args(argv)
     scenes = standard_scenes_module()
@@ -98,10 +100,13 @@ def main(argv=None) -> dict:
     for n in (int(v) for v in args.sizes.split(",")):
         means, quats, scales, opacities, colors, viewmat, K, W, H = scenes.random_scene(
             n, width=width, height=height, device="cuda")
+        surfels = args.primitive == "surfels"
+        if surfels:
+            scales = scales[:, :2].contiguous()
         scene = (means, quats, scales, opacities, colors, viewmat, K)
-        systems = {"warpgs": warpgs_calls(scene, W, H, False, None)}
+        systems = {"warpgs": warpgs_calls(scene, W, H, surfels, None)}
         if not args.no_gsplat:
-            systems["gsplat"] = gsplat_calls(scene, W, H, False)
+            systems["gsplat"] = gsplat_calls(scene, W, H, surfels)
         for system, (fwd, fwd_bwd) in systems.items():
             for mode, fn in (("fwd", fwd), ("fwd_bwd", fwd_bwd)):
                 plain_ms = time_call(fn, "cuda", warmup=3, repeats=50)
@@ -118,8 +123,10 @@ def main(argv=None) -> dict:
                 for name, us in top:
                     print(f"    {us:8.1f} us x{found['launches_per_call'][name]:.0f}  {name}")
     print_table(rows, ["n", "system", "mode", "plain_ms", "profiled_wall_ms", "gpu_busy_ms", "gpu_waits_ms", "reads"])
-    result = {"resolution": args.resolution, "calls": args.calls, "gpu": torch.cuda.get_device_name(), "rows": detail}
-    write_json("render_trace_cuda" + (f"_{args.tag}" if args.tag else ""), result)
+    result = {"primitive": args.primitive, "resolution": args.resolution, "calls": args.calls,
+              "gpu": torch.cuda.get_device_name(), "rows": detail}
+    suffix = "" if args.primitive == "gaussians" else "_surfels"
+    write_json("render_trace_cuda" + suffix + (f"_{args.tag}" if args.tag else ""), result)
     return result
 
 
