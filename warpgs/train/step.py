@@ -39,12 +39,15 @@ def train_step(trainer) -> dict:
                                                   local_sums(passes, names) + [float(trainer.stop_requested)], step)
         stop = sums.pop() > 0
     phases.mark("all_reduce")
+    # The loss the guard checks, and what the step's info reads its loss values from when they are first used
+    # (train/step_info.py): the loop does so a step later, so a GPU step ends without waiting for its own backward.
     if len(drawn) == 1:
-        result = passes[0].result
+        result, summary = passes[0].result, passes[0].scalars  # not the ViewPass: its buffers die with the step
     elif trainer.ranks.enabled:
-        result = batch_result(batch_summary(sums, names, len(drawn)), passes[0].result)
+        summary = batch_summary(sums, names, len(drawn))
+        result = batch_result(summary, passes[0].result)
     else:  # the batch's means on the device: no host read before the optimizer
-        result = device_batch_result(passes, len(drawn))
+        result, summary = device_batch_result(passes, len(drawn)), BatchScalars(passes, names, len(drawn))
     if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied (train/guard.py)
         trainer.step_guard.before_optimizers(step, result, trainer.optimizers, defer=not trainer.ranks.enabled)
     for opt in trainer.optimizers:
@@ -63,14 +66,6 @@ def train_step(trainer) -> dict:
         if report is not None and trainer.ranks.enabled:
             trainer.ranks.check_same(model.num_primitives, f"the number of primitives after step {step}")
         phases.mark("densify")
-    # The views' scalars are read when the info's loss values are first used (train/step_info.py): the loop does so
-    # a step later, so a GPU step ends without waiting for its own backward.
-    if len(drawn) == 1:
-        summary = passes[0].scalars  # not the ViewPass: the info outlives the step, its buffers should not
-    elif trainer.ranks.enabled:
-        summary = batch_summary(sums, names, len(drawn))
-    else:
-        summary = BatchScalars(passes, names, len(drawn))
     return end_step(trainer, step, t0, summary, report, passes, drawn, stop)
 
 
