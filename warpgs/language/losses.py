@@ -28,6 +28,7 @@ from torch import nn
 
 from warpgs.losses.registry import batch_field, register_loss, render_output
 from warpgs.language.settings import LanguageConfig
+from warpgs.train.step_info import DeviceFloats
 
 SH_C0 = 0.28209479177387814
 BRIDGE_MODULE = "bridge"
@@ -48,9 +49,7 @@ class LanguageContext:
     @property
     def last_terms(self) -> Dict[str, float]:
         """The last ppgs call's component values as floats (one read for all of them)."""
-        if not self.term_values:
-            return {}
-        return dict(zip(self.term_values, torch.stack(list(self.term_values.values())).tolist()))
+        return DeviceFloats(self.term_values).read()
 
 
 # ----- building blocks ----------------------------------------------------------------------------------------
