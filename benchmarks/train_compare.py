@@ -22,6 +22,7 @@ import time
 import torch
 
 from common import sync
+from warpgs.losses.photometric import training_ssim
 from warpgs.metrics.image import psnr, ssim
 from warpgs.render.gaussians import rasterize
 from warpgs.train import setup as train_setup
@@ -206,7 +207,7 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "au
         optimizers["means"].param_groups[0]["lr"] = means_lr_at(step, o, extent, steps)
         img, info = render(v, deg)
         strategy.step_pre_backward(params, optimizers, state, step, info)
-        loss = 0.8 * (img - v.image).abs().mean() + 0.2 * (1.0 - ssim(img, v.image))
+        loss = 0.8 * (img - v.image).abs().mean() + 0.2 * (1.0 - training_ssim(img, v.image))  # the trainer's D-SSIM
         loss.backward()
         for opt in list(optimizers.values()) + ([env_opt] if env_opt is not None else []):
             opt.step()

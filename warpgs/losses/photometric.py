@@ -7,8 +7,12 @@ from __future__ import annotations
 
 import torch
 
+from warpgs.losses.cuda_graphs import ShapeGraphs
 from warpgs.losses.registry import batch_field, register_loss, render_output
 from warpgs.metrics.image import ssim
+
+# On a GPU, a training step's SSIM replays from a CUDA graph (cuda_graphs.py: it is launch-bound there).
+training_ssim = ShapeGraphs(ssim)
 
 IMAGE_KEY = "image"
 
@@ -30,4 +34,4 @@ def l1(render_out, batch, model, step) -> torch.Tensor:
 @register_loss("dssim", outputs=("rgb",), weight=0.2)
 def dssim(render_out, batch, model, step) -> torch.Tensor:
     pred, target = _pred_and_target(render_out, batch)
-    return 1.0 - ssim(pred, target)
+    return 1.0 - training_ssim(pred, target)

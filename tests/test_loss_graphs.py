@@ -1,0 +1,76 @@
+"""ShapeGraphs (warpgs/losses/cuda_graphs.py): which calls replay from a graph, one graph per signature, a cap.
+CI has no GPU, so the capture is a stand-in that records what it was given; the graphs themselves are checked
+against the plain SSIM on a GPU by benchmarks/loss_graphs.py."""
+import pytest
+import torch
+
+from warpgs.losses import cuda_graphs
+from warpgs.losses.cuda_graphs import ShapeGraphs, loss_graphs_enabled
+from warpgs.metrics.image import ssim
+
+
+class RecordingCapture:
+    def __init__(self):
+        self.samples = []
+
+    def __call__(self, fn, sample):
+        self.samples.append(sample)
+        return lambda *args: ("replayed", fn(*args))
+
+
+def images(h, w, grad=True):
+    pred = torch.rand(h, w, 3, requires_grad=grad)
+    return pred, torch.rand(h, w, 3)
+
+
+def test_one_graph_per_signature_and_samples_are_copies():
+    capture = RecordingCapture()
+    graphs = ShapeGraphs(ssim, capture=capture)
+    pred, target = images(16, 12)
+    for _ in range(3):
+        tag, value = graphs.lookup((pred, target))(pred, target)
+        assert tag == "replayed"
+        assert torch.allclose(value, ssim(pred, target))
+    assert len(capture.samples) == 1
+    sample_pred, sample_target = capture.samples[0]
+    assert sample_pred.requires_grad and not sample_target.requires_grad
+    assert sample_pred.data_ptr() != pred.data_ptr() and sample_pred.grad_fn is None  # a leaf copy
+    graphs.lookup(images(8, 12))  # another shape: a second graph
+    graphs.lookup((pred.detach(), target))  # the same shape without grad: another signature
+    assert len(capture.samples) == 3 and len(graphs.graphs) == 3
+
+
+def test_past_max_graphs_the_function_runs_as_written():
+    capture = RecordingCapture()
+    graphs = ShapeGraphs(ssim, max_graphs=2, capture=capture)
+    graphs.lookup(images(8, 8))
+    graphs.lookup(images(9, 8))
+    assert graphs.lookup(images(10, 8)) is ssim
+    assert len(capture.samples) == 2
+
+
+def test_cpu_and_evaluation_calls_never_capture():
+    capture = RecordingCapture()
+    graphs = ShapeGraphs(ssim, capture=capture)
+    pred, target = images(16, 16)
+    out = graphs(pred, target)  # CPU tensors: the plain function
+    assert torch.equal(out, ssim(pred, target)) and out.requires_grad
+    with torch.no_grad():
+        graphs(pred, target)
+    assert capture.samples == [] and graphs.graphs == {}
+
+
+@pytest.mark.parametrize("value,enabled", [("0", False), ("off", False), ("1", True), (None, True)])
+def test_environment_switch(monkeypatch, value, enabled):
+    if value is None:
+        monkeypatch.delenv("WARPGS_LOSS_GRAPHS", raising=False)
+    else:
+        monkeypatch.setenv("WARPGS_LOSS_GRAPHS", value)
+    assert loss_graphs_enabled() is enabled
+
+
+def test_dssim_goes_through_the_graphs_wrapper():
+    from warpgs.losses import photometric
+
+    assert isinstance(photometric.training_ssim, ShapeGraphs) and photometric.training_ssim.fn is ssim
+    assert cuda_graphs._is_training_call((torch.zeros(1, requires_grad=True),)) is False  # CPU

@@ -1,0 +1,66 @@
+"""A loss's torch ops replayed from CUDA graphs, one per input shape.
+
+On a GPU a training step's D-SSIM is a dozen small kernels forward and more backward, each launched from
+Python: the GPU finishes them faster than the host issues them and waits (benchmarks/step_trace.py put 1.4 ms
+of a 1M-primitive step's idle GPU time on the SSIM's launches). Replaying them from a graph
+(torch.cuda.make_graphed_callables, forward and backward) issues each direction with one launch.
+
+Only where it is safe: CUDA tensors, grad enabled and the first argument requiring grad (a training step);
+anything else — CPU, evaluation, more distinct shapes than `max_graphs` — calls the function as written.
+The function must be graph-safe: no host reads, no shapes that depend on values. WARPGS_LOSS_GRAPHS=0 turns
+the graphs off (for A/B runs and debugging).
+
+The output of a replay is the graph's own buffer, overwritten by the next replay: callers use it at once
+(`1 - ssim(...)`), they do not keep it.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Callable, Optional
+
+import torch
+
+
+def loss_graphs_enabled() -> bool:
+    return os.environ.get("WARPGS_LOSS_GRAPHS", "1").strip().lower() not in ("0", "false", "off", "no")
+
+
+class ShapeGraphs:
+    """fn(*tensors) -> tensor, replayed from a graph per (shape, dtype, device, requires_grad) of its arguments."""
+
+    def __init__(self, fn: Callable, max_graphs: int = 4, capture: Optional[Callable] = None):
+        self.fn = fn
+        self.max_graphs = int(max_graphs)
+        self.capture = capture or _capture
+        self.graphs = {}
+
+    def __call__(self, *args):
+        if not (loss_graphs_enabled() and _is_training_call(args)):
+            return self.fn(*args)
+        return self.lookup(args)(*args)
+
+    def lookup(self, args) -> Callable:
+        """The graphed callable for these arguments' signature (captured on first use), or fn itself once
+        max_graphs signatures hold graphs: each graph keeps its own buffers, so a capture of many image sizes
+        does not fill the GPU with them."""
+        key = tuple((tuple(a.shape), a.dtype, a.device, a.requires_grad) for a in args)
+        graphed = self.graphs.get(key)
+        if graphed is None:
+            if len(self.graphs) >= self.max_graphs:
+                return self.fn
+            sample = tuple(a.detach().clone().requires_grad_(a.requires_grad) for a in args)
+            graphed = self.graphs[key] = self.capture(self.fn, sample)
+        return graphed
+
+
+def _is_training_call(args) -> bool:
+    return (torch.is_grad_enabled() and all(torch.is_tensor(a) and a.is_cuda for a in args)
+            and args[0].requires_grad)
+
+
+def _capture(fn: Callable, sample: tuple) -> Callable:
+    with warnings.catch_warnings():
+        # the capture's warm-up runs on a side stream; torch warns that its gradient accumulation crosses streams
+        warnings.filterwarnings("ignore", message=".*AccumulateGrad node's stream.*")
+        return torch.cuda.make_graphed_callables(fn, sample)
