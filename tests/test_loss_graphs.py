@@ -69,8 +69,8 @@ def test_environment_switch(monkeypatch, value, enabled):
     assert loss_graphs_enabled() is enabled
 
 
-def test_dssim_goes_through_the_graphs_wrapper():
+def test_torch_dssim_goes_through_the_graphs_wrapper():
     from warpgs.losses import photometric
 
-    assert isinstance(photometric.training_ssim, ShapeGraphs) and photometric.training_ssim.fn is ssim
+    assert isinstance(photometric._graphed_ssim, ShapeGraphs) and photometric._graphed_ssim.fn is ssim
     assert cuda_graphs._is_training_call((torch.zeros(1, requires_grad=True),)) is False  # CPU

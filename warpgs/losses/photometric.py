@@ -11,8 +11,21 @@ from warpgs.losses.cuda_graphs import ShapeGraphs
 from warpgs.losses.registry import batch_field, register_loss, render_output
 from warpgs.metrics.image import ssim
 
-# On a GPU, a training step's SSIM replays from a CUDA graph (cuda_graphs.py: it is launch-bound there).
-training_ssim = ShapeGraphs(ssim)
+# On a GPU, a training step's torch SSIM replays from a CUDA graph (cuda_graphs.py: it is launch-bound there).
+_graphed_ssim = ShapeGraphs(ssim)
+_installed_ssim = None
+
+
+def use_training_ssim(fn=None) -> None:
+    """The SSIM the D-SSIM term differentiates, fn(pred, target) -> mean SSIM; None: torch's (metrics.image.ssim,
+    graphed on a GPU). The trainer installs the Warp-fused one (render/ssim_op.py) per `train.fused_ssim`; it is
+    a process-wide choice (losses take no render settings), the last trainer built sets it."""
+    global _installed_ssim
+    _installed_ssim = fn
+
+
+def training_ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return (_installed_ssim or _graphed_ssim)(pred, target)
 
 IMAGE_KEY = "image"
 

@@ -1,0 +1,96 @@
+"""The Warp SSIM op (render/ssim_op.py, kernels/ssim.py) against the torch SSIM in float64: value and gradient,
+the filter's adjoint against the transpose of its matrix, and how the trainer installs it for the D-SSIM term."""
+import numpy as np
+import pytest
+import torch
+import warp as wp
+
+from warpgs.kernels import ssim as kernels
+from warpgs.losses import photometric
+from warpgs.metrics.image import _gaussian_window, ssim
+from warpgs.render.ssim_op import fused_ssim
+
+
+def reference(pred, target):
+    """SSIM and its gradient in float64 through torch's autograd."""
+    p64 = pred.detach().double().requires_grad_(True)
+    value = ssim(p64, target.double())
+    value.backward()
+    return value.item(), p64.grad
+
+
+@pytest.mark.parametrize("shape", [(20, 17, 3), (2, 13, 31, 3), (5, 4, 1), (40, 33, 1), (3, 9, 8, 3)])
+def test_value_and_gradient_match_float64(shape):
+    g = torch.Generator().manual_seed(sum(shape))
+    pred = torch.rand(shape, generator=g).requires_grad_(True)
+    target = (0.7 * pred.detach() + 0.3 * torch.rand(shape, generator=g)).clamp(0, 1)  # correlated: SSIM ~ 0.5+
+    value = fused_ssim(pred, target)
+    value.backward()
+    want, want_grad = reference(pred, target)
+    assert abs(value.item() - want) < 2e-6
+    scale = want_grad.abs().max().item()
+    assert (pred.grad.double() - want_grad).abs().max().item() < 1e-4 * scale
+    assert torch.isfinite(pred.grad).all()
+
+
+def test_identical_images_give_one_and_a_zero_gradient():
+    img = torch.rand(16, 12, 3, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
+    value = fused_ssim(img, img.detach().clone())
+    value.backward()
+    assert abs(value.item() - 1.0) < 1e-5
+    assert img.grad.abs().max().item() < 1e-4  # SSIM is at its maximum
+
+
+def blur_matrix(n: int, weights: np.ndarray) -> np.ndarray:
+    half = len(weights) // 2
+    m = np.zeros((n, n))
+    for o in range(n):
+        for k, w in enumerate(weights):
+            j = o + k - half
+            j = -j if j < 0 else (2 * (n - 1) - j if j > n - 1 else j)
+            m[o, j] += w
+    return m
+
+
+@pytest.mark.parametrize("n,size", [(6, 11), (11, 11), (30, 11), (4, 7), (2, 3)])
+def test_filter_and_adjoint_are_the_reflected_matrix_and_its_transpose(n, size):
+    weights = _gaussian_window(size, torch.device("cpu"), torch.float32).reshape(-1).numpy()
+    rows, stride = 3, 1  # three independent rows of n along the fastest axis
+    src = np.random.default_rng(n).random((rows * n, 3)).astype(np.float32)
+    Vec = wp.types.vector(length=3, dtype=float)
+    a = wp.array(src, dtype=Vec, device="cpu")
+    w = wp.array(weights, dtype=float, device="cpu")
+    out = wp.zeros(rows * n, dtype=Vec, device="cpu")
+    m = blur_matrix(n, weights.astype(np.float64))
+    for kernel, matrix in ((kernels.blur_axis_kernel(3), m), (kernels.blur_axis_adjoint_kernel(3), m.T)):
+        wp.launch(kernel, dim=rows * n, inputs=[a, w, n, stride], outputs=[out], device="cpu")
+        got = out.numpy().reshape(rows, n, 3)
+        want = np.einsum("oi,ric->roc", matrix, src.reshape(rows, n, 3).astype(np.float64))
+        assert np.abs(got - want).max() < 1e-5
+
+
+def test_bad_arguments_are_named():
+    pred = torch.rand(8, 8, 3, requires_grad=True)
+    with pytest.raises(ValueError, match="target"):
+        fused_ssim(pred, torch.rand(8, 8, 3, requires_grad=True))
+    with pytest.raises(ValueError, match="float32"):
+        fused_ssim(pred.double(), torch.rand(8, 8, 3).double())
+    with pytest.raises(ValueError, match="shapes differ"):
+        fused_ssim(pred, torch.rand(8, 9, 3))
+
+
+def test_trainer_setting_installs_it_for_the_dssim_term():
+    from warpgs.train.setup import install_training_ssim
+
+    cpu = torch.device("cpu")
+    try:
+        assert install_training_ssim(True, cpu) is True
+        assert photometric._installed_ssim is fused_ssim
+        pred = torch.rand(12, 10, 3, requires_grad=True)
+        target = torch.rand(12, 10, 3)
+        assert abs(photometric.training_ssim(pred, target).item() - ssim(pred, target).item()) < 1e-5
+        assert install_training_ssim(None, cpu) is False  # auto: CUDA only
+        assert photometric._installed_ssim is None
+        assert photometric.training_ssim(pred, target).item() == ssim(pred, target).item()
+    finally:
+        photometric.use_training_ssim(None)
