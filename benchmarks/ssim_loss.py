@@ -1,6 +1,6 @@
 """The training step's D-SSIM three ways, interleaved in one process: torch's ops launched one by one (plain),
-the same replayed from CUDA graphs (warpgs/losses/cuda_graphs.py) and the Warp op (render/ssim_op.py, what the
-trainer uses on a GPU). Loss and gradient compared with plain; time of a loss forward + backward. CUDA only.
+the same replayed from CUDA graphs (warpgs/losses/cuda_graphs.py), the Warp op (render/ssim_op.py,
+`train.fused_ssim`) and the Warp op replayed from CUDA graphs. Loss and gradient compared with plain; time of a loss forward + backward. CUDA only.
 
     python benchmarks/ssim_loss.py --sizes 800x534,1920x1080 --batch 1,2 --calls 200 --rounds 3
 
@@ -28,14 +28,16 @@ def loss_and_grad(fn, pred, target):
     return loss.detach().clone(), pred.grad.clone()
 
 
-def time_calls(fn, pred, target, calls: int) -> float:
+def time_calls(fn, pred, target, calls: int) -> tuple:
+    """(ms per call, ms per call the host spent issuing them: before the final synchronisation)."""
     torch.cuda.synchronize()
     t0 = time.perf_counter()
     for _ in range(calls):
         pred.grad = None
         (1.0 - fn(pred, target)).backward()
+    issued = time.perf_counter()
     torch.cuda.synchronize()
-    return 1e3 * (time.perf_counter() - t0) / calls
+    return 1e3 * (time.perf_counter() - t0) / calls, 1e3 * (issued - t0) / calls
 
 
 def measure(width: int, height: int, batch: int, calls: int, rounds: int) -> dict:
@@ -43,10 +45,16 @@ def measure(width: int, height: int, batch: int, calls: int, rounds: int) -> dic
     shape = (batch, height, width, 3) if batch > 1 else (height, width, 3)
     pred = torch.rand(shape, device="cuda", generator=g).requires_grad_(True)
     target = torch.rand(shape, device="cuda", generator=g)
-    arms = {"plain": ssim, "graphed": ShapeGraphs(ssim), "warp": fused_ssim}
-    row = {"width": width, "height": height, "batch": batch, "arms": {}}
+    arms = {"plain": ssim, "graphed": ShapeGraphs(ssim), "warp": fused_ssim, "warp_graphed": ShapeGraphs(fused_ssim)}
+    row = {"width": width, "height": height, "batch": batch, "arms": {}, "failed": {}}
+    try:  # Warp's launches inside torch's graph capture (they run on torch's current stream)
+        loss_and_grad(arms["warp_graphed"], pred, target)
+    except Exception as e:  # noqa: BLE001 - reported, the other arms still run
+        row["failed"]["warp_graphed"] = f"{type(e).__name__}: {e}"[:500]
+        print(f"warp_graphed: capture failed: {row['failed']['warp_graphed']}", flush=True)
+        del arms["warp_graphed"]
     for name in arms:
-        row["arms"][name] = {"max_loss_diff": 0.0, "max_grad_diff": 0.0, "ms": []}
+        row["arms"][name] = {"max_loss_diff": 0.0, "max_grad_diff": 0.0, "ms": [], "host_ms": []}
     for _ in range(3):  # after the capture, with new inputs each time
         with torch.no_grad():
             pred.copy_(torch.rand(shape, device="cuda", generator=g))
@@ -59,7 +67,9 @@ def measure(width: int, height: int, batch: int, calls: int, rounds: int) -> dic
     row["max_plain_grad"] = plain_grad.abs().max().item()
     for _ in range(rounds):
         for name, fn in arms.items():
-            row["arms"][name]["ms"].append(time_calls(fn, pred, target, calls))
+            ms, host_ms = time_calls(fn, pred, target, calls)
+            row["arms"][name]["ms"].append(ms)
+            row["arms"][name]["host_ms"].append(host_ms)
     plain = statistics.median(row["arms"]["plain"]["ms"])
     for arm in row["arms"].values():
         arm["ratio"] = statistics.median(arm["ms"]) / plain
@@ -84,7 +94,7 @@ def main(argv=None) -> dict:
             rows.append(row)
             for name, arm in row["arms"].items():
                 print(f"{width}x{height} x{batch} {name:8s} {statistics.median(arm['ms']):7.3f} ms ({arm['ratio']:.2f}x "
-                      f"plain); differences from plain: loss {arm['max_loss_diff']:.2e}, gradient "
+                      f"plain; host {statistics.median(arm['host_ms']):.3f} ms); differences from plain: loss {arm['max_loss_diff']:.2e}, gradient "
                       f"{arm['max_grad_diff']:.2e} (largest gradient {row['max_plain_grad']:.2e})", flush=True)
     result = {"host": run_host("cuda"), "calls": args.calls, "rows": rows}
     write_json("ssim_loss_cuda" + (f"_{args.tag}" if args.tag else ""), result)

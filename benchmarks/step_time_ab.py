@@ -72,14 +72,21 @@ def worker(tree: str, data: str, device: str, config: str, warmup: int, steps: i
 
 
 def parse_trees(text: str) -> dict:
+    """{name: (path, [overrides])} from NAME=PATH[@key=value;key=value],...: the overrides apply to that version
+    only (one tree twice with different settings compares the settings)."""
     trees = {}
     for item in text.split(","):
-        name, sep, path = item.partition("=")
+        name, sep, spec = item.partition("=")
+        path, _, extra = spec.partition("@")
         if not sep or not name or not path:
-            raise SystemExit(f"--trees: expected NAME=PATH pairs separated by commas, got {item!r}")
+            raise SystemExit(f"--trees: expected NAME=PATH[@key=value;...] pairs separated by commas, got {item!r}")
         if not (Path(path) / "warpgs").is_dir():
             raise SystemExit(f"--trees: {path} holds no warpgs/ folder")
-        trees[name] = path
+        overrides = [o for o in extra.split(";") if o]
+        bad = [o for o in overrides if "=" not in o]
+        if bad:
+            raise SystemExit(f"--trees: {name}'s overrides must be key=value, got {bad}")
+        trees[name] = (path, overrides)
     if len(trees) < 2:
         raise SystemExit("--trees: give at least two versions")
     return trees
@@ -88,7 +95,7 @@ def parse_trees(text: str) -> dict:
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", help="scene folder")
-    ap.add_argument("--trees", required=True, help="NAME=PATH,NAME=PATH: the versions, the first is the reference")
+    ap.add_argument("--trees", required=True, help="NAME=PATH[@key=value;...],...: the versions (with overrides of their own), the first is the reference")
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--config", default="gaussians")
     ap.add_argument("--warmup", type=int, default=3000, help="training steps before timing (the model grows)")
@@ -110,14 +117,14 @@ def main(argv=None) -> dict:
     config = str(resolve_config_source(args.config))  # one file for every version: this checkout's preset
     runs = []
     for r in range(args.rounds):
-        for name, tree in trees.items():
+        for name, (tree, own) in trees.items():
             cmd = [sys.executable, __file__, args.data, "--trees", args.trees, "--device", args.device, "--config",
                    config, "--warmup", str(args.warmup), "--steps", str(args.steps), "--blocks",
-                   str(args.blocks), "--worker", tree, *args.overrides]
+                   str(args.blocks), "--worker", tree, *args.overrides, *own]
             done = subprocess.run(cmd, capture_output=True, text=True)
             if done.returncode != 0:
                 raise SystemExit(f"{name} (round {r + 1}) failed:\n{done.stderr[-3000:]}")
-            run = {"version": name, "tree": tree, "round": r + 1, **json.loads(done.stdout.strip().splitlines()[-1])}
+            run = {"version": name, "tree": tree, "overrides": own, "round": r + 1, **json.loads(done.stdout.strip().splitlines()[-1])}
             print(f"{name} round {r + 1}: {statistics.mean(run['ms']):.2f} ms/step ({run['primitives_start']} -> "
                   f"{run['primitives_end']} primitives)", flush=True)
             runs.append(run)

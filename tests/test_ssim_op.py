@@ -82,15 +82,30 @@ def test_bad_arguments_are_named():
 def test_trainer_setting_installs_it_for_the_dssim_term():
     from warpgs.train.setup import install_training_ssim
 
-    cpu = torch.device("cpu")
     try:
-        assert install_training_ssim(True, cpu) is True
+        install_training_ssim(True)
         assert photometric._installed_ssim is fused_ssim
         pred = torch.rand(12, 10, 3, requires_grad=True)
         target = torch.rand(12, 10, 3)
         assert abs(photometric.training_ssim(pred, target).item() - ssim(pred, target).item()) < 1e-5
-        assert install_training_ssim(None, cpu) is False  # auto: CUDA only
+        install_training_ssim(False)
         assert photometric._installed_ssim is None
         assert photometric.training_ssim(pred, target).item() == ssim(pred, target).item()
+    finally:
+        photometric.use_training_ssim(None)
+
+
+def test_a_short_training_run_with_it(tmp_path):
+    from warpgs.config.loader import load_config
+    from warpgs.train.trainer import Trainer
+
+    cfg = load_config(None, ["steps=3", "train.fused_ssim=true", "train.device=cpu", "eval.every=0",
+                             "data.width=32", "data.height=24", f"output.dir={tmp_path}", "train.progress=false"])
+    try:
+        trainer = Trainer(cfg, quiet=True)
+        assert photometric._installed_ssim is fused_ssim
+        for _ in range(3):
+            trainer.train_step()
+        assert trainer.num_primitives > 0
     finally:
         photometric.use_training_ssim(None)

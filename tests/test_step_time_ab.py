@@ -14,10 +14,11 @@ import step_time_ab  # noqa: E402
 
 def test_two_versions_are_timed_in_alternating_processes(tmp_path, monkeypatch):
     monkeypatch.setenv("OUT", str(tmp_path))
-    result = step_time_ab.main([str(small_orbit()), "--trees", f"a={ROOT},b={ROOT}", "--device", "cpu",
+    result = step_time_ab.main([str(small_orbit()), "--trees", f"a={ROOT},b={ROOT}@train.fused_ssim=true", "--device", "cpu",
                                 "--warmup", "2", "--steps", "2", "--blocks", "2", "--rounds", "2", "--tag", "t",
                                 "strategy.refine_start=1000"])
     assert [(r["version"], r["round"]) for r in result["runs"]] == [("a", 1), ("b", 1), ("a", 2), ("b", 2)]
+    assert [r["overrides"] for r in result["runs"][:2]] == [[], ["train.fused_ssim=true"]]
     assert all(len(r["ms"]) == 2 and min(r["ms"]) > 0 for r in result["runs"])
     assert result["ratio_to_first"]["a"] == 1.0 and result["ratio_to_first"]["b"] > 0
     saved = json.loads((tmp_path / "step_time_ab_orbit64_cpu_t.json").read_text())
@@ -31,6 +32,9 @@ def test_trees_must_be_named_folders_holding_warpgs(tmp_path):
         step_time_ab.parse_trees(f"a={ROOT},b={tmp_path}")
     with pytest.raises(SystemExit, match="at least two"):
         step_time_ab.parse_trees(f"a={ROOT}")
+    with pytest.raises(SystemExit, match="key=value"):
+        step_time_ab.parse_trees(f"a={ROOT},b={ROOT}@fused")
+    assert step_time_ab.parse_trees(f"a={ROOT},b={ROOT}@x=1;y=2")["b"] == (str(ROOT), ["x=1", "y=2"])
 
 
 def test_a_tree_brings_its_own_kernels_past_an_editable_install(tmp_path):

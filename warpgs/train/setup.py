@@ -27,15 +27,13 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
-def install_training_ssim(fused: Optional[bool], device: torch.device) -> bool:
-    """train.fused_ssim: the D-SSIM through Warp kernels (render/ssim_op.py) or torch's filtering; None picks the
-    Warp one on CUDA only (Warp's CPU kernels run on one core). Returns whether the Warp one is in use."""
+def install_training_ssim(fused: bool) -> None:
+    """train.fused_ssim: the D-SSIM through Warp kernels (render/ssim_op.py) or torch's filtering (graphed on a
+    GPU, losses/cuda_graphs.py)."""
     from warpgs.losses import photometric
     from warpgs.render.ssim_op import fused_ssim
 
-    use = device.type == "cuda" if fused is None else bool(fused)
-    photometric.use_training_ssim(fused_ssim if use else None)
-    return use
+    photometric.use_training_ssim(fused_ssim if fused else None)
 
 
 def scene_label(data: DataConfig) -> str:
