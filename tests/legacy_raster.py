@@ -13,8 +13,8 @@ import warp as wp
 from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, choose_tile_size
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, _zero_grad, blended_images,
-                                     on_torch_stream, op_inputs, raster_settings, set_image_outputs,
-                                     upstream_image_gradients)
+                                     op_inputs, raster_settings, set_image_outputs, upstream_image_gradients)
+from warpgs.render.torch_streams import on_torch_stream
 
 
 def warp_inputs(tensors, needs, any_grad: bool, scale_dtype):

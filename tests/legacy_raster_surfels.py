@@ -14,8 +14,9 @@ from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN, choose_tile_size
 from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted, surfel_blend_params
-from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, on_torch_stream, raster_settings,
-                                     op_inputs, set_image_outputs)
+from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, raster_settings, op_inputs,
+                                     set_image_outputs)
+from warpgs.render.torch_streams import on_torch_stream
 from warpgs.render.pipeline_gaussians import (Bins, Settings, _gradient_buffers, _merge_gradient_buffers,
                                               _tile_launches, bin_into_tiles, choose_blend_kernel)
 from warpgs.render.surfels import DISTORTION_SCALE

@@ -109,3 +109,11 @@ def test_a_short_training_run_with_it(tmp_path):
         assert trainer.num_primitives > 0
     finally:
         photometric.use_training_ssim(None)
+
+
+def test_on_torch_stream_scopes_the_warp_device_on_the_cpu():
+    from warpgs.render.torch_streams import on_torch_stream, warp_device
+
+    assert warp_device(torch.device("cpu")) == wp.get_device("cpu")
+    with on_torch_stream(torch.device("cpu")):
+        assert wp.get_device() == wp.get_device("cpu")

@@ -6,7 +6,6 @@ Conventions follow gsplat so users can swap: OpenCV camera (x right, y down, z f
 """
 from __future__ import annotations
 
-from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, fields, replace
 from typing import Optional, Sequence
 
@@ -42,18 +41,6 @@ class RenderOutput:
     num_intersections: int = 0  # Gaussian-tile pairs (summed over a batch)
     sent: Optional[torch.Tensor] = None  # render_sharded with track_means2d: [R, N] this rank's splats sent per camera
     seen: Optional[torch.Tensor] = None  # ... and [R, N] those each camera's blend binned (its `visible`)
-
-
-def _wp_device(device: torch.device) -> str:
-    return "cpu" if device.type == "cpu" else f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"
-
-
-@contextmanager
-def on_torch_stream(device: torch.device):
-    """Warp launches on `device` and, on CUDA, on torch's current stream there (no race with torch's kernels)."""
-    with wp.ScopedDevice(_wp_device(device)):
-        with wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else nullcontext():
-            yield
 
 
 def raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,

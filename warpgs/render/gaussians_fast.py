@@ -25,6 +25,7 @@ from warpgs.render import fast_pipeline as fast
 from warpgs.render.camera_rows import camera_rows
 from warpgs.render.pipeline_gaussians import _cooperative
 from warpgs.render.validation import raise_flagged
+from warpgs.render.torch_streams import warp_stream
 from warpgs.render.workspace import Workspace
 
 class _DeviceState:
@@ -32,10 +33,7 @@ class _DeviceState:
 
     def __init__(self, device: torch.device, torch_stream):
         self.wdev = wp.get_device("cpu" if device.type == "cpu" else f"cuda:{device.index}")
-        self.stream = None
-        if torch_stream is not None:
-            self.stream = wp.Stream(self.wdev, cuda_stream=torch_stream.cuda_stream)
-            self.stream._torch_stream = torch_stream  # keeps torch's stream (and so its handle) alive
+        self.stream = None if torch_stream is None else warp_stream(torch_stream)  # one view per stream
         self.ws = Workspace(self.wdev)
         if torch_stream is not None:
             self.ws.graphs.stream_factory = lambda: _nonblocking_stream(device, self.wdev)

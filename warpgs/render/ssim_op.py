@@ -11,7 +11,7 @@ import warp as wp
 
 from warpgs.kernels import ssim as kernels
 from warpgs.metrics.image import _SSIM_EPS, _gaussian_window, _pair
-from warpgs.render.gaussians import on_torch_stream
+from warpgs.render.torch_streams import on_torch_stream
 
 
 def fused_ssim(pred: torch.Tensor, target: torch.Tensor, window_size: int = 11, max_val: float = 1.0) -> torch.Tensor:
