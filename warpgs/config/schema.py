@@ -106,7 +106,7 @@ class TrainConfig:
     profile_phases: bool = False
     # The D-SSIM loss through Warp kernels (render/ssim_op.py) instead of torch's filtering. On an H200: 1.7 ms
     # against 5.3 ms a 1080p loss forward + backward, but a bonsai800 step (800x534 images) took 6.45 ms against
-    # 4.88: the op's host time, not yet cut, lands on a host-bound step. Off by default until it is.
+    # 4.88 (then with a per-call stream view that freed the render's sort scratch, since fixed; not re-timed).
     fused_ssim: bool = False
 
     def render_options(self) -> dict:
