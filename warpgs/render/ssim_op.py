@@ -6,12 +6,15 @@ The target is data: no gradient flows to it (a target that requires grad is refu
 """
 from __future__ import annotations
 
+import threading
+
 import torch
 import warp as wp
 
 from warpgs.kernels import ssim as kernels
 from warpgs.metrics.image import _SSIM_EPS, _gaussian_window, _pair
-from warpgs.render.torch_streams import on_torch_stream
+from warpgs.render.torch_streams import on_torch_stream, warp_device
+from warpgs.render.workspace import LaunchCache
 
 
 def fused_ssim(pred: torch.Tensor, target: torch.Tensor, window_size: int = 11, max_val: float = 1.0) -> torch.Tensor:
@@ -26,8 +29,26 @@ def fused_ssim(pred: torch.Tensor, target: torch.Tensor, window_size: int = 11, 
     return _FusedSSIM.apply(pred, target, window, float(max_val)).mean()
 
 
-def _flat(t: torch.Tensor, dtype=wp.float32):
-    return wp.from_torch(t.contiguous().reshape(-1), dtype=dtype)
+def _desc(t: torch.Tensor, dtype=wp.float32):
+    """A bare array descriptor (cheaper than a wp.array) of a contiguous tensor, flat unless dtype is a vector."""
+    if dtype is wp.float32:
+        t = t.reshape(-1)
+    return wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
+
+
+_CACHES = threading.local()
+
+
+def _launches(device: torch.device) -> LaunchCache:
+    """This thread's recorded launches on `device`: a call re-packs only the arguments that changed (the render op's
+    LaunchCache), which is most of a small image's cost."""
+    by_device = getattr(_CACHES, "by_device", None)
+    if by_device is None:
+        by_device = _CACHES.by_device = {}
+    cache = by_device.get(device)
+    if cache is None:
+        cache = by_device[device] = LaunchCache(warp_device(device))
+    return cache
 
 
 class _FusedSSIM(torch.autograd.Function):
@@ -37,18 +58,19 @@ class _FusedSSIM(torch.autograd.Function):
         n = pred.numel()
         c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
         x, y = pred.detach().contiguous(), target.contiguous()
-        blur = kernels.blur_axis_kernel(5)
         moments = torch.empty(n, 5, device=pred.device, dtype=torch.float32)
         along_w = torch.empty_like(moments)
         means = torch.empty_like(moments)
         out = torch.empty_like(x)
+        blur = kernels.blur_axis_kernel(5)
+        run = _launches(pred.device).launch
         with on_torch_stream(pred.device):
-            wm, ww, wmeans = (wp.from_torch(a, dtype=kernels.Moments) for a in (moments, along_w, means))
-            weights = wp.from_torch(window)
-            wp.launch(kernels.image_moments, dim=n, inputs=[_flat(x), _flat(y)], outputs=[wm])
-            wp.launch(blur, dim=n, inputs=[wm, weights, w, c], outputs=[ww])
-            wp.launch(blur, dim=n, inputs=[ww, weights, h, w * c], outputs=[wmeans])
-            wp.launch(kernels.ssim_map, dim=n, inputs=[wmeans, c1, c2, _SSIM_EPS], outputs=[_flat(out)])
+            wm, ww, wmeans = (_desc(a, kernels.Moments) for a in (moments, along_w, means))
+            weights = _desc(window)
+            run("ssim_moments", kernels.image_moments, n, [_desc(x), _desc(y), wm])
+            run("ssim_blur_w", blur, n, [wm, weights, w, c, ww])
+            run("ssim_blur_h", blur, n, [ww, weights, h, w * c, wmeans])
+            run("ssim_map", kernels.ssim_map, n, [wmeans, c1, c2, _SSIM_EPS, _desc(out)])
         ctx.save_for_backward(x, y, window, means)
         ctx.consts = (c1, c2)
         return out
@@ -59,18 +81,19 @@ class _FusedSSIM(torch.autograd.Function):
         c1, c2 = ctx.consts
         b, h, w, c = x.shape
         n = x.numel()
-        adjoint = kernels.blur_axis_adjoint_kernel(3)
         moment_grads = torch.empty(n, 3, device=x.device, dtype=torch.float32)
         along_h = torch.empty_like(moment_grads)
         along_w = torch.empty_like(moment_grads)
         grad = torch.empty_like(x)
+        upstream = grad_map.contiguous()  # the mean's gradient arrives expanded (stride 0)
+        adjoint = kernels.blur_axis_adjoint_kernel(3)
+        run = _launches(x.device).launch
         with on_torch_stream(x.device):
-            wg, wh, ww = (wp.from_torch(a, dtype=kernels.MomentGrads) for a in (moment_grads, along_h, along_w))
-            weights = wp.from_torch(window)
-            wp.launch(kernels.ssim_map_adjoint, dim=n,
-                      inputs=[wp.from_torch(means, dtype=kernels.Moments), _flat(grad_map), c1, c2, _SSIM_EPS],
-                      outputs=[wg])
-            wp.launch(adjoint, dim=n, inputs=[wg, weights, h, w * c], outputs=[wh])
-            wp.launch(adjoint, dim=n, inputs=[wh, weights, w, c], outputs=[ww])
-            wp.launch(kernels.ssim_input_grad, dim=n, inputs=[ww, _flat(x), _flat(y)], outputs=[_flat(grad)])
+            wg, wh, ww = (_desc(a, kernels.MomentGrads) for a in (moment_grads, along_h, along_w))
+            weights = _desc(window)
+            run("ssim_map_adjoint", kernels.ssim_map_adjoint, n,
+                [_desc(means, kernels.Moments), _desc(upstream), c1, c2, _SSIM_EPS, wg])
+            run("ssim_adjoint_h", adjoint, n, [wg, weights, h, w * c, wh])
+            run("ssim_adjoint_w", adjoint, n, [wh, weights, w, c, ww])
+            run("ssim_input_grad", kernels.ssim_input_grad, n, [ww, _desc(x), _desc(y), _desc(grad)])
         return grad, None, None, None
