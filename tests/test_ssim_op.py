@@ -54,19 +54,29 @@ def blur_matrix(n: int, weights: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("n,size", [(6, 11), (11, 11), (30, 11), (4, 7), (2, 3)])
 def test_filter_and_adjoint_are_the_reflected_matrix_and_its_transpose(n, size):
+    """Along W (rows of n, 3 channels): the moments' filter against the matrix, its adjoint (through the input
+    gradient with y = 0 and only d mean(x) set, which is then the adjoint itself) against the transpose."""
     weights = _gaussian_window(size, torch.device("cpu"), torch.float32).reshape(-1).numpy()
-    rows, stride = 3, 1  # three independent rows of n along the fastest axis
-    src = np.random.default_rng(n).random((rows * n, 3)).astype(np.float32)
-    Vec = wp.types.vector(length=3, dtype=float)
-    a = wp.array(src, dtype=Vec, device="cpu")
-    w = wp.array(weights, dtype=float, device="cpu")
-    out = wp.zeros(rows * n, dtype=Vec, device="cpu")
+    rows, channels = 2, 3
+    rng = np.random.default_rng(n)
+    x = rng.random((rows, n, channels)).astype(np.float32)
     m = blur_matrix(n, weights.astype(np.float64))
-    for kernel, matrix in ((kernels.blur_axis_kernel(3), m), (kernels.blur_axis_adjoint_kernel(3), m.T)):
-        wp.launch(kernel, dim=rows * n, inputs=[a, w, n, stride], outputs=[out], device="cpu")
-        got = out.numpy().reshape(rows, n, 3)
-        want = np.einsum("oi,ric->roc", matrix, src.reshape(rows, n, 3).astype(np.float64))
-        assert np.abs(got - want).max() < 1e-5
+    w = wp.array(weights, dtype=float, device="cpu")
+    flat = lambda a: wp.array(a.reshape(-1), dtype=float, device="cpu")
+    out = wp.zeros(x.size, dtype=kernels.Moments, device="cpu")
+    wp.launch(kernels.blur_moments_along_w, dim=x.size, inputs=[flat(x), flat(x), w, n, channels], outputs=[out],
+              device="cpu")
+    got = out.numpy().reshape(rows, n, channels, 5)
+    assert np.abs(got[..., 0] - np.einsum("oi,ric->roc", m, x)).max() < 1e-5
+    assert np.abs(got[..., 2] - np.einsum("oi,ric->roc", m, x.astype(np.float64) ** 2)).max() < 1e-5
+    upstream = np.zeros((x.size, 3), dtype=np.float32)
+    upstream[:, 0] = x.reshape(-1)
+    grad = wp.zeros(x.size, dtype=float, device="cpu")
+    wp.launch(kernels.input_grad_along_w, dim=x.size,
+              inputs=[wp.array(upstream, dtype=kernels.MomentGrads, device="cpu"), w, n, channels, flat(x),
+                      flat(np.zeros_like(x))], outputs=[grad], device="cpu")
+    want = np.einsum("oi,roc->ric", m, x.astype(np.float64))  # the transpose applied
+    assert np.abs(grad.numpy().reshape(rows, n, channels) - want).max() < 1e-5
 
 
 def test_bad_arguments_are_named():

@@ -1,5 +1,5 @@
 """SSIM as a torch op over Warp kernels (kernels/ssim.py): the same value as warpgs.metrics.image.ssim (to float32
-rounding) in eight launches, differentiable in the prediction. The trainer hands it to the D-SSIM loss on a GPU
+rounding) in five launches, differentiable in the prediction. The trainer hands it to the D-SSIM loss on a GPU
 (`train.fused_ssim`), where torch's filtering is slow at high resolution and launch-bound at low.
 
 The target is data: no gradient flows to it (a target that requires grad is refused).
@@ -58,19 +58,15 @@ class _FusedSSIM(torch.autograd.Function):
         n = pred.numel()
         c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
         x, y = pred.detach().contiguous(), target.contiguous()
-        moments = torch.empty(n, 5, device=pred.device, dtype=torch.float32)
-        along_w = torch.empty_like(moments)
-        means = torch.empty_like(moments)
+        along_w = torch.empty(n, 5, device=pred.device, dtype=torch.float32)
+        means = torch.empty_like(along_w)
         out = torch.empty_like(x)
-        blur = kernels.blur_axis_kernel(5)
         run = _launches(pred.device).launch
         with on_torch_stream(pred.device):
-            wm, ww, wmeans = (_desc(a, kernels.Moments) for a in (moments, along_w, means))
-            weights = _desc(window)
-            run("ssim_moments", kernels.image_moments, n, [_desc(x), _desc(y), wm])
-            run("ssim_blur_w", blur, n, [wm, weights, w, c, ww])
-            run("ssim_blur_h", blur, n, [ww, weights, h, w * c, wmeans])
-            run("ssim_map", kernels.ssim_map, n, [wmeans, c1, c2, _SSIM_EPS, _desc(out)])
+            ww, wmeans, weights = _desc(along_w, kernels.Moments), _desc(means, kernels.Moments), _desc(window)
+            run("ssim_blur_w", kernels.blur_moments_along_w, n, [_desc(x), _desc(y), weights, w, c, ww])
+            run("ssim_blur_h", kernels.blur_along_h_to_ssim, n,
+                [ww, weights, h, w * c, c1, c2, _SSIM_EPS, wmeans, _desc(out)])
         ctx.save_for_backward(x, y, window, means)
         ctx.consts = (c1, c2)
         return out
@@ -83,17 +79,13 @@ class _FusedSSIM(torch.autograd.Function):
         n = x.numel()
         moment_grads = torch.empty(n, 3, device=x.device, dtype=torch.float32)
         along_h = torch.empty_like(moment_grads)
-        along_w = torch.empty_like(moment_grads)
         grad = torch.empty_like(x)
         upstream = grad_map.contiguous()  # the mean's gradient arrives expanded (stride 0)
-        adjoint = kernels.blur_axis_adjoint_kernel(3)
         run = _launches(x.device).launch
         with on_torch_stream(x.device):
-            wg, wh, ww = (_desc(a, kernels.MomentGrads) for a in (moment_grads, along_h, along_w))
-            weights = _desc(window)
+            wg, wh, weights = _desc(moment_grads, kernels.MomentGrads), _desc(along_h, kernels.MomentGrads), _desc(window)
             run("ssim_map_adjoint", kernels.ssim_map_adjoint, n,
                 [_desc(means, kernels.Moments), _desc(upstream), c1, c2, _SSIM_EPS, wg])
-            run("ssim_adjoint_h", adjoint, n, [wg, weights, h, w * c, wh])
-            run("ssim_adjoint_w", adjoint, n, [wh, weights, w, c, ww])
-            run("ssim_input_grad", kernels.ssim_input_grad, n, [ww, _desc(x), _desc(y), _desc(grad)])
+            run("ssim_adjoint_h", kernels.blur_adjoint_along_h, n, [wg, weights, h, w * c, wh])
+            run("ssim_input_grad", kernels.input_grad_along_w, n, [wh, weights, w, c, _desc(x), _desc(y), _desc(grad)])
         return grad, None, None, None
