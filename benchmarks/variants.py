@@ -1,10 +1,9 @@
 """Renderer variants to time side by side in one process (benchmarks/raster.py, profile_stages.py).
 
 A variant is `default` (whatever the WARPGS_* variables select) or `fast`, then optional options joined by '+':
-`fast+bwd=block`, `fast+sbwd=warp_sums`, `fast+det=on`, `fast+keys=scan`. Keys: bwd (the 3D GPU adjoint: warp_sums,
+`fast+bwd=block`, `fast+sbwd=warp_sums`, `fast+det=on`. Keys: bwd (the 3D GPU adjoint: warp_sums,
 block), sbwd (the surfel GPU adjoint: block, warp_sums), det (the deterministic adjoint: on, off; a no-op for the CPU's
-per-thread kernels, deterministic anyway), keys (how a GPU render writes its tile keys: search, scan); see
-warpgs/render/defaults.py.
+per-thread kernels, deterministic anyway); see warpgs/render/defaults.py.
 """
 from __future__ import annotations
 
@@ -12,7 +11,7 @@ from contextlib import contextmanager
 
 from warpgs.render.defaults import current_raster_options, raster_options
 
-KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel", "det": "deterministic", "keys": "tile_keys"}
+KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel", "det": "deterministic"}
 SWITCHES = {"on": True, "off": False}  # the values of on/off keys
 
 
@@ -44,5 +43,4 @@ def variant(spec: str):
 
 def describe() -> str:
     o = current_raster_options()
-    return (f"fast+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}" + ("+det=on" if o.deterministic else "")
-            + ("" if o.tile_keys == "search" else f"+keys={o.tile_keys}"))
+    return f"fast+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}" + ("+det=on" if o.deterministic else "")

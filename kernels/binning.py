@@ -155,42 +155,6 @@ def emit_tile_keys_per_pair(
 
 
 @wp.kernel
-def mark_slot_starts(
-    offsets: wp.array(dtype=wp.int32),  # inclusive prefix sum of `ordered`
-    ordered: wp.array(dtype=wp.int32),  # pair counts in depth order
-    total: int,
-    marks: wp.array(dtype=wp.int32),  # [total], zeroed beforehand: how many slots start at each pair
-):
-    """For `emit_tile_keys_from_slots`: a mark at every slot's first pair (empty slots mark where the next one
-    starts). The inclusive prefix sum of the marks at pair k is then the number of slots starting at or before k,
-    which is the index of k's slot plus one (slots after it start past its end)."""
-    s = wp.tid()
-    start = offsets[s] - ordered[s]
-    if start < total:
-        wp.atomic_add(marks, start, 1)
-
-
-@wp.kernel
-def emit_tile_keys_from_slots(
-    rects: wp.array(dtype=wp.vec4i),
-    order: wp.array(dtype=wp.int32),
-    offsets: wp.array(dtype=wp.int32),
-    ordered: wp.array(dtype=wp.int32),
-    slots_through: wp.array(dtype=wp.int32),  # inclusive prefix sum of mark_slot_starts' marks
-    tiles_x: int,
-    keys: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.int32),
-):
-    """`emit_tile_keys_per_pair`'s keys, each pair's slot read from a prefix sum instead of found by a binary search
-    of `offsets` (about 20 dependent loads a pair at a million primitives)."""
-    k = wp.tid()
-    slot = slots_through[k] - 1
-    i = order[slot]
-    keys[k] = pair_tile(rects[i], k - (offsets[slot] - ordered[slot]), tiles_x)
-    values[k] = i
-
-
-@wp.kernel
 def tile_ranges(
     keys: wp.array(dtype=wp.int32),  # sorted tile indices
     count: int,

@@ -49,47 +49,6 @@ def test_per_pair_emission_matches_the_per_primitive_loop(seed):
     np.testing.assert_array_equal(pair[1], loop[1])
 
 
-def test_an_unknown_tile_key_method_is_refused_by_name():
-    from warpgs.render.defaults import raster_options
-
-    with pytest.raises(ValueError, match="raster option tile_keys: expected one of"):
-        with raster_options(tile_keys="bisect"):
-            pass
-
-
-def emit_from_slots(rects, counts, order, tiles_x):
-    """emit_tile_keys_from_slots after mark_slot_starts and an inclusive prefix sum, as the fast path runs them."""
-    ordered = counts[order].astype(np.int32)
-    offsets = np.cumsum(ordered).astype(np.int32)
-    total = int(offsets[-1])
-    marks = wp.zeros(total, dtype=wp.int32, device="cpu")
-    through = wp.zeros(total, dtype=wp.int32, device="cpu")
-    wp.launch(binning.mark_slot_starts, dim=len(counts), inputs=[cpu(offsets, wp.int32), cpu(ordered, wp.int32), total,
-                                                                  marks], device="cpu")
-    wp.utils.array_scan(marks, through, inclusive=True)
-    keys = wp.zeros(total, dtype=wp.int32, device="cpu")
-    values = wp.zeros(total, dtype=wp.int32, device="cpu")
-    wp.launch(binning.emit_tile_keys_from_slots, dim=total,
-              inputs=[cpu(rects, wp.vec4i), cpu(order, wp.int32), cpu(offsets, wp.int32), cpu(ordered, wp.int32),
-                      through, tiles_x], outputs=[keys, values], device="cpu")
-    return keys.numpy(), values.numpy()
-
-
-@pytest.mark.parametrize("seed", [0, 1])
-def test_slots_from_a_prefix_sum_give_the_binary_searchs_keys(seed):
-    rects, counts, depths = random_rects(seed)
-    # culled primitives (count 0) first, in the middle and last in depth order: empty slots everywhere
-    order = np.argsort(depths, kind="stable").astype(np.int32)
-    empty = order[counts[order] == 0]
-    order = np.concatenate([empty[:5], order[counts[order] > 0], empty[5:]]).astype(np.int32)
-    order[[7, 8]] = order[[8, 7]]
-    assert counts[order[0]] == 0 and counts[order[-1]] == 0
-    search = emit(binning.emit_tile_keys_per_pair, rects, counts, order, 13)
-    scan = emit_from_slots(rects, counts, order, 13)
-    np.testing.assert_array_equal(scan[0], search[0])
-    np.testing.assert_array_equal(scan[1], search[1])
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_sorted_pairs_follow_tile_then_depth_then_index(seed):
     tiles_x, tiles_y = 13, 9

@@ -1,8 +1,7 @@
 """The block-cooperative GPU kernels (kernels/blend_gpu.py), run on the CPU through Warp's CPU blocks, must
 pass the same forward and gradient checks: CI has no GPU, and these are the kernels GPUs run. Every GPU adjoint
 (`backward_kernel_warp_sums`, the default, `backward_kernel` with and without its block sums, and the
-deterministic mode's twins) is checked, and so is either way of writing the tile keys (raster option tile_keys),
-against the float64 reference, and the op against its per-call oracle (tests/legacy_raster.py)."""
+deterministic mode's twins) is checked against the float64 reference, and the op against its per-call oracle (tests/legacy_raster.py)."""
 import os
 import subprocess
 import sys
@@ -27,9 +26,6 @@ VARIANTS = {  # name: (environment, test files)
     # the fixed-order adjoint (raster option deterministic): the float64 checks, and the default path's gradients
     "deterministic": ({"WARPGS_DETERMINISTIC": "1"},
                       ["test_raster_gradients.py", "test_deterministic_gradients.py"]),
-    # tile keys from a prefix sum of slot marks instead of a binary search per pair (raster option tile_keys)
-    "tile_keys_scan": ({"WARPGS_TILE_KEYS": "scan"},
-                       ["test_raster_fast_path.py", "test_surfels_fast_path.py", "test_raster_forward.py"]),
 }  # the per-call oracle runs in test_raster_fast_path.py, as the reference of the op
 
 

@@ -50,10 +50,6 @@ def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool) -> int:
 # Which GPU blend adjoint the ops launch (speed only: both give the same images and gradients, which the tests
 # check). Benchmarks switch them in one process with `raster_options(...)`; the WARPGS_* variables set the defaults.
 BACKWARD_KERNELS = ("warp_sums", "block")  # GPU blend adjoint: blend_gpu.backward_kernel_warp_sums / backward_kernel
-# How a GPU render finds each tile pair's primitive when it writes the sort keys (fast_pipeline.sort_into_tiles):
-# "search", a binary search of the prefix sums per pair; "scan", one prefix sum over the pairs of marks at each
-# primitive's first pair (kernels/binning.py emit_tile_keys_from_slots). Same keys either way.
-TILE_KEY_METHODS = ("search", "scan")
 
 
 @dataclass(frozen=True)
@@ -64,14 +60,11 @@ class RasterOptions:
     # GPU gradients bit-identical from run to run: the blend adjoint sums each primitive's per-tile parts in a fixed
     # order instead of with float atomics (render/pair_adjoint.py). Off: faster. The CPU is deterministic either way.
     deterministic: bool = os.environ.get("WARPGS_DETERMINISTIC", "0") == "1"
-    tile_keys: str = os.environ.get("WARPGS_TILE_KEYS", "search")
 
     def __post_init__(self):
         for f in ("backward_kernel", "surfel_backward_kernel"):
             if getattr(self, f) not in BACKWARD_KERNELS:
                 raise ValueError(f"raster option {f}: expected one of {BACKWARD_KERNELS}, got {getattr(self, f)!r}")
-        if self.tile_keys not in TILE_KEY_METHODS:
-            raise ValueError(f"raster option tile_keys: expected one of {TILE_KEY_METHODS}, got {self.tile_keys!r}")
         if not isinstance(self.deterministic, bool):
             raise ValueError(f"raster option deterministic: expected True or False, got {self.deterministic!r}")
 

@@ -27,7 +27,7 @@ import warp as wp
 
 from warpgs.kernels import binning, blend, blend_gpu, input_checks, pair_sums, project
 from warpgs.render.cpu_threads import run_threads
-from warpgs.render.defaults import DEPTH_EPS, current_raster_options
+from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
@@ -199,14 +199,6 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     keys = ws.array("tile_keys", 2 * total, wp.int32)
     if not _cooperative(dev):  # a loop per primitive: few threads, no search
         L.launch("emit", binning.emit_tile_keys, n, [rects, order, offsets, counts, s.tiles_x, keys, sorted_ids])
-    elif current_raster_options().tile_keys == "scan":  # a thread per pair, its slot from a prefix sum
-        # The upper halves of the sort's buffers are free until the sort: the marks and their prefix sum go there.
-        marks, through = keys[total:2 * total], sorted_ids[total:2 * total]
-        marks.zero_()
-        L.launch("mark_slots", binning.mark_slot_starts, n, [offsets, ordered, total, marks])
-        wp.utils.array_scan(marks, through, inclusive=True)
-        L.launch("emit", binning.emit_tile_keys_from_slots, total,
-                 [rects, order, offsets, ordered, through, s.tiles_x, keys, sorted_ids])
     else:  # a thread per (primitive, tile) pair, its slot by binary search: balanced across the GPU
         L.launch("emit", binning.emit_tile_keys_per_pair, total,
                  [rects, order, offsets, counts, s.tiles_x, n, keys, sorted_ids])
