@@ -108,6 +108,9 @@ class TrainConfig:
     # against 5.3 ms a 1080p loss forward + backward, but a bonsai800 step (800x534 images) took 6.45 ms against
     # 4.88 (then with a per-call stream view that freed the render's sort scratch, since fixed; not re-timed).
     fused_ssim: bool = False
+    # Coarse-to-fine: [[step, factor], ...], training views at 1/factor of their resolution from each step on (e.g.
+    # [[0, 4], [1000, 2], [3000, 1]]); evaluation and outputs stay at full resolution (train/resolution.py).
+    resolution_schedule: Optional[List[Any]] = None
 
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""

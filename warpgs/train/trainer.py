@@ -60,6 +60,7 @@ from warpgs.train.log import TrainLog
 from warpgs.train.loop import TrainingLoop, TrainResult
 from warpgs.train.loss_set import LossSet, resolve_terms
 from warpgs.train.state import Checkpointer, RunCounters, TrainingState
+from warpgs.train.resolution import ScaledViews
 from warpgs.train.views import TrainViews
 from warpgs.config.user_imports import import_user_module
 
@@ -209,6 +210,7 @@ class Trainer:
     def _set_up_views_and_evaluation(self, cfg: Config) -> None:
         """Training views (and train.steps=auto's validation split), the evaluator, counters and the lock."""
         self.views = TrainViews(self.scene, self.device, seed=cfg.train.seed, preload=cfg.data.preload)
+        self.scaled_views = ScaledViews(cfg.train.resolution_schedule)  # train.resolution_schedule (coarse to fine)
         if self.auto_steps:  # validation views from the training views (never the test views)
             self.strategy.schedule.auto = AutoStop(cfg.schedule)
             self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth)[1])
@@ -370,7 +372,8 @@ class Trainer:
 
     # ----- one step -------------------------------------------------------------------------------------------
     def view(self, index: int):
-        return self.views.view(index)
+        """Training view `index` as this step trains on it (train.resolution_schedule's scale)."""
+        return self.scaled_views.at(self.views.view(index), self.step)
 
     def make_batch(self, view, step: int) -> dict:
         """What losses read: image, camera, the view's optional maps (mask, inv_depth_prior + inv_depth_valid,
