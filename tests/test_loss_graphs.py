@@ -1,6 +1,6 @@
 """ShapeGraphs (warpgs/losses/cuda_graphs.py): which calls replay from a graph, one graph per signature, a cap.
 CI has no GPU, so the capture is a stand-in that records what it was given; the graphs themselves are checked
-against the plain SSIM on a GPU by benchmarks/loss_graphs.py."""
+against the plain SSIM on a GPU by benchmarks/ssim_loss.py."""
 import pytest
 import torch
 
