@@ -51,10 +51,8 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, window_size: int = 11, max_va
     through one separable filtering of the stacked channels with a cached window, not five: a training step's
     SSIM is then about a dozen kernels instead of about sixty, which is host time on a GPU."""
     pred, target = _pair(pred, target)
-    # Reflection padding needs window_size // 2 < min(H, W): shrink the window for tiny images.
-    window_size = min(int(window_size), 2 * min(pred.shape[1], pred.shape[2]) - 1)
     x, y = to_bchw(pred), to_bchw(target)
-    window = _gaussian_window(window_size, x.device, x.dtype)
+    window = ssim_window(window_size, pred.shape[1], pred.shape[2], x.device, x.dtype)
     local = filter2d_separable(torch.cat([x, y, x * x, y * y, x * y], 1), window, window, border_type="reflect")
     mu_x, mu_y, xx, yy, xy = local.chunk(5, 1)
     c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
@@ -65,6 +63,12 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, window_size: int = 11, max_va
 
 
 _SSIM_EPS = 1e-12  # kornia.metrics.ssim's default
+
+
+def ssim_window(window_size: int, height: int, width: int, device, dtype) -> torch.Tensor:
+    """The [1, size] window SSIM filters an image of height x width with: reflection padding needs
+    size // 2 < min(H, W), so tiny images get a smaller one."""
+    return _gaussian_window(min(int(window_size), 2 * min(height, width) - 1), device, dtype)
 
 
 @functools.lru_cache(maxsize=32)

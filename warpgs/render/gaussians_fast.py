@@ -25,14 +25,14 @@ from warpgs.render import fast_pipeline as fast
 from warpgs.render.camera_rows import camera_rows
 from warpgs.render.pipeline_gaussians import _cooperative
 from warpgs.render.validation import raise_flagged
-from warpgs.render.torch_streams import warp_stream
+from warpgs.render.torch_streams import warp_device, warp_stream
 from warpgs.render.workspace import Workspace
 
 class _DeviceState:
     """Per (thread, device, torch stream): the Warp device, the Warp view of torch's stream, the workspace."""
 
     def __init__(self, device: torch.device, torch_stream):
-        self.wdev = wp.get_device("cpu" if device.type == "cpu" else f"cuda:{device.index}")
+        self.wdev = warp_device(device)
         self.stream = None if torch_stream is None else warp_stream(torch_stream)  # one view per stream
         self.ws = Workspace(self.wdev)
         if torch_stream is not None:

@@ -12,7 +12,7 @@ import torch
 import warp as wp
 
 from warpgs.kernels import ssim as kernels
-from warpgs.metrics.image import _SSIM_EPS, _gaussian_window, _pair
+from warpgs.metrics.image import _SSIM_EPS, _pair, ssim_window
 from warpgs.render.torch_streams import on_torch_stream, warp_device
 from warpgs.render.workspace import LaunchCache
 
@@ -24,8 +24,7 @@ def fused_ssim(pred: torch.Tensor, target: torch.Tensor, window_size: int = 11, 
     pred, target = _pair(pred, target)
     if pred.dtype != torch.float32:
         raise ValueError(f"pred: fused_ssim takes float32 images, got {pred.dtype}")
-    window_size = min(int(window_size), 2 * min(pred.shape[1], pred.shape[2]) - 1)
-    window = _gaussian_window(window_size, pred.device, pred.dtype).reshape(-1).contiguous()
+    window = ssim_window(window_size, pred.shape[1], pred.shape[2], pred.device, pred.dtype).reshape(-1).contiguous()
     return _FusedSSIM.apply(pred, target, window, float(max_val)).mean()
 
 
