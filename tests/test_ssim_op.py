@@ -93,12 +93,14 @@ def test_trainer_setting_installs_it_for_the_dssim_term():
     from warpgs.train.setup import install_training_ssim
 
     try:
-        install_training_ssim(True)
-        assert photometric._installed_ssim is fused_ssim
+        install_training_ssim("auto", torch.device("cpu"))  # on the CPU torch's filters are the faster
+        assert photometric._installed_ssim is None
+        install_training_ssim(True, torch.device("cpu"))
+        assert photometric._installed_ssim.fn is fused_ssim
         pred = torch.rand(12, 10, 3, requires_grad=True)
         target = torch.rand(12, 10, 3)
         assert abs(photometric.training_ssim(pred, target).item() - ssim(pred, target).item()) < 1e-5
-        install_training_ssim(False)
+        install_training_ssim(False, torch.device("cpu"))
         assert photometric._installed_ssim is None
         assert photometric.training_ssim(pred, target).item() == ssim(pred, target).item()
     finally:
@@ -113,7 +115,7 @@ def test_a_short_training_run_with_it(tmp_path):
                              "data.width=32", "data.height=24", f"output.dir={tmp_path}", "train.progress=false"])
     try:
         trainer = Trainer(cfg, quiet=True)
-        assert photometric._installed_ssim is fused_ssim
+        assert photometric._installed_ssim.fn is fused_ssim
         for _ in range(3):
             trainer.train_step()
         assert trainer.num_primitives > 0
@@ -127,3 +129,19 @@ def test_on_torch_stream_scopes_the_warp_device_on_the_cpu():
     assert warp_device(torch.device("cpu")) == wp.get_device("cpu")
     with on_torch_stream(torch.device("cpu")):
         assert wp.get_device() == wp.get_device("cpu")
+
+
+@pytest.mark.parametrize("given, expected", [("auto", "auto"), ("AUTO", "auto"), (True, True), ("false", False),
+                                             ("on", True), (0, False)])
+def test_the_setting_takes_true_false_or_auto(given, expected):
+    from warpgs.config.loader import load_config
+
+    assert load_config(None, [f"train.fused_ssim={given}"]).train.fused_ssim == expected
+
+
+def test_a_bad_setting_is_named():
+    from warpgs.config.loader import load_config
+    from warpgs.config.schema import ConfigError
+
+    with pytest.raises(ConfigError, match="train.fused_ssim.*true, false or 'auto'"):
+        load_config(None, ["train.fused_ssim=sometimes"])

@@ -9,8 +9,8 @@ import typing
 from typing import Any, Dict, List, Mapping, Union
 
 from warpgs.render.defaults import LOWEST_TRANSMITTANCE_MIN, alpha_clamp_problem
-from warpgs.config.schema import (ALIASES, BACKGROUNDS, CHOICES, NON_NEGATIVE, POSITIVE, SECTIONS, Config, ConfigError,
-                                  all_keys)
+from warpgs.config.schema import (ALIASES, AUTO_BOOLS, BACKGROUNDS, CHOICES, NON_NEGATIVE, POSITIVE, SECTIONS,
+                                  Config, ConfigError, all_keys)
 
 
 def from_dict(raw: Mapping) -> Config:
@@ -88,6 +88,8 @@ def _check_value(key: str, value, tp):
     args = typing.get_args(tp)
     if key == "train.steps":
         return _check_steps(key, value)
+    if key in AUTO_BOOLS:
+        return _check_auto_bool(key, value)
     if tp is Any:
         value = _check_background(key, value) if key == "train.background" else value
         return value
@@ -113,13 +115,7 @@ def _check_value(key: str, value, tp):
             raise ConfigError(key, f"expected a list, got {value!r}")
         return list(value)
     if tp is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "yes", "on", "1", "false", "no", "off", "0"):
-            return value.lower() in ("true", "yes", "on", "1")
-        if isinstance(value, int) and value in (0, 1):
-            return bool(value)
-        raise ConfigError(key, f"expected true or false, got {value!r}")
+        return _as_bool(key, value)
     if tp is int:
         out = _as_number(key, value, int)
         if key in POSITIVE and out < 1:
@@ -144,6 +140,16 @@ def _check_value(key: str, value, tp):
             _check_device(key, value)
         return value
     return value
+
+
+def _as_bool(key: str, value) -> bool:
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, str) and value.lower() in ("true", "yes", "on", "1", "false", "no", "off", "0"):
+        return value.lower() in ("true", "yes", "on", "1")
+    if isinstance(value, int) and value in (0, 1):
+        return bool(value)
+    raise ConfigError(key, f"expected true or false, got {value!r}")
 
 
 def _as_number(key: str, value, kind):
@@ -174,6 +180,16 @@ def _check_steps(key: str, value):
     if steps < 1:
         raise ConfigError(key, f"expected a positive integer or 'auto', got {value!r}")
     return steps
+
+
+def _check_auto_bool(key: str, value):
+    """true, false or "auto" (the code picks per device)."""
+    if isinstance(value, str) and value.strip().lower() == "auto":
+        return "auto"
+    try:
+        return _as_bool(key, value)
+    except ConfigError:
+        raise ConfigError(key, f"expected true, false or 'auto', got {value!r}") from None
 
 
 def _check_device(key: str, value: str) -> None:

@@ -104,10 +104,10 @@ class TrainConfig:
     # Time each phase of the step (views, render + backward, all-reduce, optimizer, densify), the device synchronised
     # at each boundary: metrics.json["phases"] per rank; slows the steps a little (train/phase_timer.py).
     profile_phases: bool = False
-    # The D-SSIM loss through Warp kernels (render/ssim_op.py) instead of torch's filtering. On an H200: 1.7 ms
-    # against 5.3 ms a 1080p loss forward + backward, but a bonsai800 step (800x534 images) took 6.45 ms against
-    # 4.88 (then with a per-call stream view that freed the render's sort scratch, since fixed; not re-timed).
-    fused_ssim: bool = False
+    # The D-SSIM loss through Warp kernels (render/ssim_op.py) instead of torch's filtering, both replayed from CUDA
+    # graphs on a GPU. "auto": Warp on CUDA (an H200 loss forward + backward: 0.74 against 5.2 ms at 1080p, 0.53
+    # against 1.00 at 800x534), torch on the CPU (where one Warp launch uses one core and torch's filters all).
+    fused_ssim: Union[bool, str] = "auto"
     # Coarse-to-fine: [[step, factor], ...], training views at 1/factor of their resolution from each step on (e.g.
     # [[0, 4], [1000, 2], [3000, 1]]); evaluation and outputs stay at full resolution (train/resolution.py).
     resolution_schedule: Optional[List[Any]] = None
@@ -181,6 +181,7 @@ CHOICES = {
     "train.dist_backend": ("auto", "nccl", "gloo"),
     "train.parallel": ("data", "model"),
 }
+AUTO_BOOLS = {"train.fused_ssim"}  # true, false or "auto"
 POSITIVE = {"data.width", "data.height", "data.downscale", "data.n_train", "model.init_points", "model.init_knn",
             "train.steps", "train.tile_size", "train.batch_size", "train.dist_timeout"}
 NON_NEGATIVE = {"model.sh_interval", "model.background_points", "model.prior_points", "train.checkpoint_every", "train.log_every", "train.threads", "eval.every",

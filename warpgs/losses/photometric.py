@@ -17,11 +17,12 @@ _installed_ssim = None
 
 
 def use_training_ssim(fn=None) -> None:
-    """The SSIM the D-SSIM term differentiates, fn(pred, target) -> mean SSIM; None: torch's (metrics.image.ssim,
-    graphed on a GPU). The trainer installs the Warp-fused one (render/ssim_op.py) per `train.fused_ssim`; it is
-    a process-wide choice (losses take no render settings), the last trainer built sets it."""
+    """The SSIM the D-SSIM term differentiates, fn(pred, target) -> mean SSIM, replayed from CUDA graphs in a
+    GPU training step like torch's (a Warp op is host-bound there too); None: torch's (metrics.image.ssim).
+    The trainer installs the Warp-fused one (render/ssim_op.py) per `train.fused_ssim`; it is a process-wide
+    choice (losses take no render settings), the last trainer built sets it."""
     global _installed_ssim
-    _installed_ssim = fn
+    _installed_ssim = None if fn is None else ShapeGraphs(fn)
 
 
 def training_ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

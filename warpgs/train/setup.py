@@ -27,12 +27,14 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
-def install_training_ssim(fused: bool) -> None:
-    """train.fused_ssim: the D-SSIM through Warp kernels (render/ssim_op.py) or torch's filtering (graphed on a
-    GPU, losses/cuda_graphs.py)."""
+def install_training_ssim(fused, device: torch.device) -> None:
+    """train.fused_ssim: the D-SSIM through Warp kernels (render/ssim_op.py) or torch's filtering, replayed from
+    CUDA graphs on a GPU (losses/cuda_graphs.py); "auto" picks Warp's on CUDA only, where it is the faster."""
     from warpgs.losses import photometric
     from warpgs.render.ssim_op import fused_ssim
 
+    if fused == "auto":
+        fused = device.type == "cuda"
     photometric.use_training_ssim(fused_ssim if fused else None)
 
 

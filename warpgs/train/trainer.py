@@ -141,7 +141,7 @@ class Trainer:
             sharded_step.check_config(cfg, self.ranks.world_size)
         if cfg.train.deterministic:
             use_deterministic_algorithms(self.device, self.model_parallel)
-        train_setup.install_training_ssim(cfg.train.fused_ssim)
+        train_setup.install_training_ssim(cfg.train.fused_ssim, self.device)
 
     def _load_scene(self, cfg: Config, scene) -> None:
         """The scene (given, or loaded by rank 0 first), its extents, focal length, background and step bound."""
