@@ -133,6 +133,7 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "au
         print("gsplat loop: this gsplat's DefaultStrategy never resets opacities (gsplat PR #776); the loop applies "
               "gsplat's reset_opa on the reset steps", flush=True)
     device = train_setup.resolve_device(cfg.train.device)
+    train_setup.install_training_ssim(cfg.train.fused_ssim, device)  # the D-SSIM the warpgs run of `cfg` trains with
     seed_everything(cfg.train.seed)
     extent = train_setup.scene_extent(scene, cfg.train.scene_extent)
     background = train_setup.resolve_background(cfg.train.background, scene, device)
