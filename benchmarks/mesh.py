@@ -2,7 +2,7 @@
 by the environment extension, see surfel_overrides), meshed with warpgs-mesh's pipeline, scored beside the mesh
 TSDF-fused from the exact depth maps at the same voxel size. The run's held-out PSNR is reported with it.
 
-    python benchmarks/mesh.py [--steps 1500] [--width 128] [--voxel 0.02] [--device cpu] [--run DIR]
+    python benchmarks/mesh.py [--steps 1500] [--width 128] [--voxel 0.02] [--device cpu] [--run DIR] [key=value ...]
     python benchmarks/mesh.py --timing [--views 300] [--width 1280 --height 800] [--device cuda]
 
 Scores, inside the evaluation box (all objects and the ground around them, |x|, |y| <= 2, -0.5 <= z <= 1.5):
@@ -271,6 +271,7 @@ def accuracy_run(args) -> dict:
     run = Path(args.run) if args.run else None
     if run is None and args.steps > 0:
         overrides = surfel_overrides(args.steps, args.device, args.max_primitives, args.distortion, args.nc_from)
+        overrides += list(getattr(args, "overrides", ()))
         run = run_folder(work, args.width, args.height, args.steps, overrides)
         result["train_overrides"] = overrides
         if not (run / "point_cloud.ply").is_file():
@@ -336,6 +337,8 @@ def main(argv=None) -> int:
     ap.add_argument("--mesh-points", type=int, default=160_000)
     ap.add_argument("--timing", action="store_true", help="only time fusion + marching cubes of exact depth")
     ap.add_argument("--tag", default="", help="suffix of the result file name")
+    ap.add_argument("overrides", nargs="*", help="extra key=value overrides of the training run (e.g. "
+                                                 "train.surfel_screen_sigma=0.1)")
     args = ap.parse_args(argv)
     machine = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else "cpu"
     if args.timing:

@@ -47,3 +47,32 @@ def test_trainer_renders_pass_the_scaled_filter(tmp_path, monkeypatch, preset, o
     assert out.rgb.shape[:2] == (12, 16) and torch.isfinite(out.rgb).all()
     assert seen[0] == default  # a training view: exactly 2DGS's width / 3DGS's low-pass
     assert seen[1] == pytest.approx(default * at_half)
+
+
+def test_a_configured_surfel_width_is_the_training_views_and_scales_too(tmp_path, monkeypatch):
+    scene = write_synthetic_scene(tmp_path / "scene", "orbit", RigSettings(width=32, height=24, n_orbit=8),
+                                  n_points=200)
+    trainer = Trainer(resolve_config_source("surfels"),
+                      overrides=[f"data.path={scene}", f"output.dir={tmp_path / 'run'}", "train.steps=2",
+                                 "train.device=cpu", "train.progress=false", "eval.every=0", "eval.lpips=false",
+                                 "train.surfel_screen_sigma=0.1"], quiet=True)
+    seen = []
+    real = rendering.rasterize_surfels
+    monkeypatch.setattr(rendering, "rasterize_surfels", lambda **kw: seen.append(kw.get("screen_sigma")) or real(**kw))
+    view = trainer.scene.view(trainer.scene.train[0], trainer.device)
+    trainer.render(view)
+    half = copy.copy(view)
+    half.K = view.K.clone()
+    half.K[:2] /= 2
+    half.width, half.height = view.width // 2, view.height // 2
+    trainer.render(half)
+    assert seen == [pytest.approx(0.1), pytest.approx(0.05)]
+
+
+@pytest.mark.parametrize("value", ["0", "-0.5", "inf"])
+def test_a_surfel_width_that_is_not_a_positive_number_is_named(value):
+    from warpgs.config.loader import load_config
+    from warpgs.config.schema import ConfigError
+
+    with pytest.raises(ConfigError, match="train.surfel_screen_sigma"):
+        load_config(None, [f"train.surfel_screen_sigma={value}"])

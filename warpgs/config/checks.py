@@ -294,6 +294,9 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError("train.near", f"need 0 < near < far, got near={cfg.train.near}, far={cfg.train.far}")
     if cfg.train.tile_size is not None and cfg.train.tile_size > 32:
         raise ConfigError("train.tile_size", f"at most 32, got {cfg.train.tile_size}")
+    if not 0.0 < cfg.train.surfel_screen_sigma < float("inf"):
+        raise ConfigError("train.surfel_screen_sigma", f"expected a positive number of pixels, got "
+                          f"{cfg.train.surfel_screen_sigma}")
     if cfg.train.max_sigmas < 0:
         raise ConfigError("train.max_sigmas", f"expected >= 0 (0: exact footprint), got {cfg.train.max_sigmas}")
     problem = alpha_clamp_problem(cfg.train.alpha_min, cfg.train.alpha_max)

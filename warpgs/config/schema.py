@@ -9,7 +9,8 @@ from typing import Any, Dict, List, Optional, Union
 import yaml
 
 from warpgs.train.optim import OptimConfig
-from warpgs.render.defaults import DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_TRANSMITTANCE_MIN
+from warpgs.render.defaults import (DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_SURFEL_SCREEN_SIGMA,
+                                    DEFAULT_TRANSMITTANCE_MIN)
 from warpgs.train.schedule import ScheduleConfig
 from warpgs.train.strategy import StrategyConfig
 
@@ -78,6 +79,10 @@ class TrainConfig:
     alpha_min: float = DEFAULT_ALPHA_MIN  # skip contributions below this alpha
     transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN  # stop blending a pixel before its transmittance drops under this
     alpha_max: float = DEFAULT_ALPHA_MAX  # each contribution's alpha clamp: 3DGS's 0.99, gsplat's 0.999 (not for speed)
+    # Surfels: the screen-space fallback's sigma in pixels of a training image (2DGS: 1/sqrt(2)), scaled with every
+    # other image. Narrower, trained surfels sit nearer curved surfaces (a lone sphere's mesh 0.030 -> 0.014 inside
+    # at 0.1) but images can lose PSNR (docs/mesh.md, "One sphere alone").
+    surfel_screen_sigma: float = DEFAULT_SURFEL_SCREEN_SIGMA
     scene_extent: Optional[float] = None  # None: from the cameras (3DGS); scales means_lr and densify sizes
     checkpoint_every: int = 1000  # 0: only at the end (and on Ctrl-C)
     log_every: int = 100  # progress line period when the output is not a terminal

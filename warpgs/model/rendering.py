@@ -30,16 +30,17 @@ def check_outputs(kind: str, outputs: Sequence[str], who: str = "outputs") -> No
         raise ValueError(f"{who}: model.kind={kind} cannot render {missing}{hint}; it renders {list(can)}")
 
 
-def surfel_screen_sigma(focal: float, training_focal: Optional[float]) -> float:
+def surfel_screen_sigma(focal: float, training_focal: Optional[float],
+                        base: float = DEFAULT_SURFEL_SCREEN_SIGMA) -> float:
     """The surfels' screen-space fallback width (pixels) for an image of focal length `focal` (pixels) of a model
-    trained on images of focal length `training_focal`: 2DGS's 1/sqrt(2) px of a training image, in this image's
-    pixels. A fallback fixed in the pixels of every image dilates each surfel that is seen smaller than in training
+    trained on images of focal length `training_focal`: `base` px of a training image (2DGS: 1/sqrt(2),
+    train.surfel_screen_sigma), in this image's pixels. A fallback fixed in the pixels of every image dilates each surfel that is seen smaller than in training
     (a lower resolution, a wider view, from farther): on fern at 1/4 of the training resolution held-out PSNR fell
-    to 21.4 dB against 25.5 with the scaled width (docs/mesh.md). None: the default (a model without its training
-    cameras)."""
+    to 21.4 dB against 25.5 with the scaled width (docs/mesh.md). training_focal None: `base` (a model without its
+    training cameras)."""
     if not training_focal:
-        return DEFAULT_SURFEL_SCREEN_SIGMA
-    return DEFAULT_SURFEL_SCREEN_SIGMA * float(focal) / float(training_focal)
+        return base
+    return base * float(focal) / float(training_focal)
 
 
 def gaussian_low_pass(focal: float, training_focal: Optional[float]) -> float:
@@ -51,11 +52,13 @@ def gaussian_low_pass(focal: float, training_focal: Optional[float]) -> float:
     return DEFAULT_LOW_PASS * (float(focal) / float(training_focal)) ** 2
 
 
-def screen_filter(kind: str, focal: float, training_focal: Optional[float]) -> dict:
+def screen_filter(kind: str, focal: float, training_focal: Optional[float],
+                  surfel_sigma: float = DEFAULT_SURFEL_SCREEN_SIGMA) -> dict:
     """render_model's keyword for the kind's screen-space filter at this focal length: {"screen_sigma": ...} for
-    surfels, {"low_pass": ...} for 3D Gaussians."""
+    surfels (surfel_sigma at the training focal length, train.surfel_screen_sigma), {"low_pass": ...} for 3D
+    Gaussians."""
     if kind == "surfels":
-        return {"screen_sigma": surfel_screen_sigma(focal, training_focal)}
+        return {"screen_sigma": surfel_screen_sigma(focal, training_focal, surfel_sigma)}
     return {"low_pass": gaussian_low_pass(focal, training_focal)}
 
 

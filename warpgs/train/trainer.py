@@ -409,7 +409,8 @@ class Trainer:
         # camera on the host (no device read), another camera's from its K.
         index, cams = getattr(view, "index", -1), self.scene.cameras
         same = 0 <= index < len(cams) and (cams[index].width, cams[index].height) == (view.width, view.height)
-        filters = screen_filter(self.model.kind, focal_length(cams[index].K if same else view.K), self.training_focal)
+        filters = screen_filter(self.model.kind, focal_length(cams[index].K if same else view.K), self.training_focal,
+                                t.surfel_screen_sigma)
         out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,
                            background=self.background, inputs=self.render_inputs(batch, step, outputs),
                            track_means2d=track_means2d, check_inputs=not t.nan_guard,
