@@ -15,6 +15,15 @@ from warpgs.render.defaults import DEFAULT_LOW_PASS, DEFAULT_SURFEL_SCREEN_SIGMA
 from warpgs.train.trainer import Trainer
 
 
+def half_view(view):
+    """The same camera at half the resolution (focal lengths and principal point halved)."""
+    half = copy.copy(view)
+    half.K = view.K.clone()
+    half.K[:2] /= 2
+    half.width, half.height = view.width // 2, view.height // 2
+    return half
+
+
 def test_the_filters_follow_the_focal_length():
     assert surfel_screen_sigma(400.0, 400.0) == DEFAULT_SURFEL_SCREEN_SIGMA
     assert surfel_screen_sigma(100.0, 400.0) == pytest.approx(DEFAULT_SURFEL_SCREEN_SIGMA / 4)
@@ -39,11 +48,7 @@ def test_trainer_renders_pass_the_scaled_filter(tmp_path, monkeypatch, preset, o
     monkeypatch.setattr(rendering, op, lambda **kw: seen.append(kw.get(setting)) or real(**kw))
     view = trainer.scene.view(trainer.scene.train[0], trainer.device)
     trainer.render(view)
-    half = copy.copy(view)
-    half.K = view.K.clone()
-    half.K[:2] /= 2
-    half.width, half.height = view.width // 2, view.height // 2
-    out = trainer.render(half)
+    out = trainer.render(half_view(view))
     assert out.rgb.shape[:2] == (12, 16) and torch.isfinite(out.rgb).all()
     assert seen[0] == default  # a training view: exactly 2DGS's width / 3DGS's low-pass
     assert seen[1] == pytest.approx(default * at_half)
@@ -61,11 +66,7 @@ def test_a_configured_surfel_width_is_the_training_views_and_scales_too(tmp_path
     monkeypatch.setattr(rendering, "rasterize_surfels", lambda **kw: seen.append(kw.get("screen_sigma")) or real(**kw))
     view = trainer.scene.view(trainer.scene.train[0], trainer.device)
     trainer.render(view)
-    half = copy.copy(view)
-    half.K = view.K.clone()
-    half.K[:2] /= 2
-    half.width, half.height = view.width // 2, view.height // 2
-    trainer.render(half)
+    trainer.render(half_view(view))
     assert seen == [pytest.approx(0.1), pytest.approx(0.05)]
 
 
