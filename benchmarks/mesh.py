@@ -271,7 +271,7 @@ def accuracy_run(args) -> dict:
     run = Path(args.run) if args.run else None
     if run is None and args.steps > 0:
         overrides = surfel_overrides(args.steps, args.device, args.max_primitives, args.distortion, args.nc_from)
-        overrides += list(getattr(args, "overrides", ()))
+        overrides += list(args.overrides)
         run = run_folder(work, args.width, args.height, args.steps, overrides)
         result["train_overrides"] = overrides
         if not (run / "point_cloud.ply").is_file():

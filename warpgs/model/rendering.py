@@ -34,10 +34,10 @@ def surfel_screen_sigma(focal: float, training_focal: Optional[float],
                         base: float = DEFAULT_SURFEL_SCREEN_SIGMA) -> float:
     """The surfels' screen-space fallback width (pixels) for an image of focal length `focal` (pixels) of a model
     trained on images of focal length `training_focal`: `base` px of a training image (2DGS: 1/sqrt(2),
-    train.surfel_screen_sigma), in this image's pixels. A fallback fixed in the pixels of every image dilates each surfel that is seen smaller than in training
-    (a lower resolution, a wider view, from farther): on fern at 1/4 of the training resolution held-out PSNR fell
-    to 21.4 dB against 25.5 with the scaled width (docs/mesh.md). training_focal None: `base` (a model without its
-    training cameras)."""
+    train.surfel_screen_sigma), in this image's pixels. A fallback fixed in the pixels of every image dilates each
+    surfel that is seen smaller than in training (a lower resolution, a wider view, from farther): on fern at 1/4 of
+    the training resolution held-out PSNR fell to 21.4 dB against 25.5 with the scaled width (docs/mesh.md).
+    training_focal None: `base` (a model without its training cameras)."""
     if not training_focal:
         return base
     return base * float(focal) / float(training_focal)

@@ -12,8 +12,7 @@ from __future__ import annotations
 import copy
 from typing import List, Optional, Sequence, Tuple
 
-import torch
-import torch.nn.functional as F
+from warpgs.data.formats.resize import resize_tensor, scaled_size
 
 # View maps resized like the image (area averages) and those resized by nearest sampling (flags and ids).
 AREA_MAPS = ("image", "inv_depth_prior", "inv_depth_confidence")
@@ -55,7 +54,7 @@ def downscaled_view(view, factor: int):
     """A shallow copy of `view` at 1/factor resolution (round(W/factor) x round(H/factor), at least 1 px)."""
     if factor == 1:
         return view
-    width, height = max(1, round(view.width / factor)), max(1, round(view.height / factor))
+    width, height = scaled_size(view.width, view.height, factor)
     out = copy.copy(view)
     out.width, out.height = width, height
     K = view.K.clone()
@@ -65,24 +64,8 @@ def downscaled_view(view, factor: int):
     for name in AREA_MAPS + NEAREST_MAPS:
         value = getattr(view, name, None)
         if value is not None:
-            setattr(out, name, _resized(value, width, height, "area" if name in AREA_MAPS else "nearest"))
+            setattr(out, name, resize_tensor(value, width, height, "area" if name in AREA_MAPS else "nearest"))
     return out
-
-
-def _resized(t: torch.Tensor, width: int, height: int, mode: str) -> torch.Tensor:
-    """[H, W] or [H, W, C] map -> the same at (height, width); nearest keeps the dtype (flags, ids)."""
-    x = t[..., None] if t.dim() == 2 else t
-    x = x.permute(2, 0, 1)[None]
-    dtype = x.dtype
-    if mode == "area":
-        x = F.interpolate(x.float(), size=(height, width), mode="area")
-    else:
-        # the source pixel under each output pixel's centre (never blends flags or ids)
-        rows = ((torch.arange(height, device=x.device) + 0.5) * x.shape[2] / height).long().clamp_max(x.shape[2] - 1)
-        cols = ((torch.arange(width, device=x.device) + 0.5) * x.shape[3] / width).long().clamp_max(x.shape[3] - 1)
-        x = x[:, :, rows][:, :, :, cols]
-    out = x[0].permute(1, 2, 0).to(dtype).contiguous()
-    return out[..., 0] if t.dim() == 2 else out
 
 
 class ScaledViews:

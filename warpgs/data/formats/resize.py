@@ -8,28 +8,45 @@ import torch.nn.functional as F
 DOWNSCALE_FACTORS = (1, 2, 4, 8)
 
 
+def scaled_size(width: int, height: int, factor: int) -> tuple[int, int]:
+    """An image's size at 1/factor: round(W/factor) x round(H/factor), at least 1 px."""
+    return max(1, round(width / factor)), max(1, round(height / factor))
+
+
 def downscaled_size(width: int, height: int, factor: int) -> tuple[int, int]:
+    """scaled_size for the downscale factors a scene folder can be read at."""
     if factor not in DOWNSCALE_FACTORS:
         raise ValueError(f"downscale factor must be one of {DOWNSCALE_FACTORS}, got {factor}")
-    return max(1, round(width / factor)), max(1, round(height / factor))
+    return scaled_size(width, height, factor)
+
+
+def resize_tensor(t: torch.Tensor, width: int, height: int, mode: str) -> torch.Tensor:
+    """[H, W] or [H, W, C] tensor (on any device) -> the same at (height, width). mode "area" (the mean of each
+    output pixel's footprint) or "bilinear" compute in float32 and return the input's dtype; "nearest" takes the
+    source pixel under each output pixel's centre (resize_nearest's rule; never blends flags or ids)."""
+    x = (t[..., None] if t.dim() == 2 else t).permute(2, 0, 1)[None]
+    if mode == "nearest":
+        rows = ((torch.arange(height, device=x.device) + 0.5) * x.shape[2] / height).long().clamp_max(x.shape[2] - 1)
+        cols = ((torch.arange(width, device=x.device) + 0.5) * x.shape[3] / width).long().clamp_max(x.shape[3] - 1)
+        x = x[:, :, rows][:, :, :, cols]
+    else:
+        align = False if mode == "bilinear" else None
+        x = F.interpolate(x.float(), size=(height, width), mode=mode, align_corners=align).to(t.dtype)
+    out = x[0].permute(1, 2, 0).contiguous()
+    return out[..., 0] if t.dim() == 2 else out
 
 
 def resize_area(arr: np.ndarray, width: int, height: int) -> np.ndarray:
     """[H, W] or [H, W, C] float -> same rank at (height, width), each output pixel the mean of its footprint."""
     if arr.shape[1] == width and arr.shape[0] == height:
         return arr
-    t = torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32))
-    t = t[None, None] if t.ndim == 2 else t.permute(2, 0, 1)[None]
-    out = F.interpolate(t, size=(height, width), mode="area")[0]
-    return (out[0] if arr.ndim == 2 else out.permute(1, 2, 0)).numpy()
+    return resize_tensor(torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32)), width, height, "area").numpy()
 
 
 def resize_bilinear(arr: np.ndarray, width: int, height: int) -> np.ndarray:
     """Upsampling of smooth maps (a prior computed at a coarser scale)."""
-    t = torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32))
-    t = t[None, None] if t.ndim == 2 else t.permute(2, 0, 1)[None]
-    out = F.interpolate(t, size=(height, width), mode="bilinear", align_corners=False)[0]
-    return (out[0] if arr.ndim == 2 else out.permute(1, 2, 0)).numpy()
+    return resize_tensor(torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32)), width, height,
+                         "bilinear").numpy()
 
 
 def resize_nearest(arr: np.ndarray, width: int, height: int) -> np.ndarray:
