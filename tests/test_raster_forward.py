@@ -4,6 +4,7 @@ import torch
 
 from random_scenes import random_scene
 from raster_helpers import render_ours, render_ref, requested
+from warpgs.render.defaults import DENSE_PRIMITIVES_PER_PIXEL, choose_tile_size
 
 TOL = 1e-4
 
@@ -68,8 +69,8 @@ def test_batch_of_cameras_equals_single_renders():
 
 
 def test_default_tile_size_follows_device_and_whether_a_backward_pass_comes():
-    """tile_size=None: 16 for forward-only GPU renders, else 8 (the CPU, and renders that will be
-    differentiated); the image is the same."""
+    """tile_size=None: 16 for forward-only GPU renders of dense scenes, else 8 (the CPU, sparse scenes, and renders
+    that will be differentiated); the image is the same."""
     import torch as th
 
     from raster_helpers import DEVICE
@@ -79,9 +80,22 @@ def test_default_tile_size_follows_device_and_whether_a_backward_pass_comes():
     assert explicit[8].num_intersections != explicit[16].num_intersections  # tile pairs tell the sizes apart
     with th.no_grad():
         forward_only = render_ours(scene, ("rgb",))
-    expected = 16 if DEVICE.startswith("cuda") else 8
+    dense = scene["means"].shape[0] / (scene["width"] * scene["height"]) >= DENSE_PRIMITIVES_PER_PIXEL
+    expected = 16 if DEVICE.startswith("cuda") and dense else 8
     assert forward_only.num_intersections == explicit[expected].num_intersections
     learnt = dict(scene, opacities=scene["opacities"].clone().requires_grad_(True))
     trained = render_ours(learnt, ("rgb",))
     assert trained.num_intersections == explicit[8].num_intersections
     assert torch.allclose(trained.rgb.detach(), forward_only.rgb, atol=1e-6)
+
+
+def test_tile_size_rule():
+    """The rule itself, for every device and density: a given size wins; GPU forwards of dense 3D Gaussians (and of
+    surfels, which pass no density) take 16; everything else 8."""
+    assert choose_tile_size(32, needs_grad=False, on_gpu=True, primitives_per_pixel=1.0) == 32
+    assert choose_tile_size(None, needs_grad=False, on_gpu=False, primitives_per_pixel=1.0) == 8
+    assert choose_tile_size(None, needs_grad=True, on_gpu=True, primitives_per_pixel=1.0) == 8
+    assert choose_tile_size(None, needs_grad=False, on_gpu=True, primitives_per_pixel=1.0) == 16
+    assert choose_tile_size(None, needs_grad=False, on_gpu=True, primitives_per_pixel=100_000 / (1920 * 1080)) == 8
+    assert choose_tile_size(None, needs_grad=False, on_gpu=True, primitives_per_pixel=300_000 / (1920 * 1080)) == 16
+    assert choose_tile_size(None, needs_grad=False, on_gpu=True) == 16

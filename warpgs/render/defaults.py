@@ -1,15 +1,19 @@
 """Default renderer settings, shared by the render ops, the Warp pipelines and the trainer's config (no Warp or
 torch import here, so the config stays light). Thresholds are the 3DGS rules. Tile sizes change speed only (the
 image does not depend on them); the defaults are the fastest measured by benchmarks/raster.py --tile-sizes 8,16
-on an H100 and on the CPU. 8 on the CPU (up to 2x faster than 16, forward and backward) and on GPUs when a
-backward pass follows (fwd+bwd faster or within 2%); 16 for forward-only GPU renders (as fast at 100k
-Gaussians, 25-35% faster at 1M, where sorting 2.5x more tile keys costs)."""
+on H100/H200 GPUs and on the CPU: 8 on the CPU (up to 2x faster than 16, forward and backward) and on GPUs when a
+backward pass follows (fwd+bwd faster at 100k, 300k and 1M Gaussians); for forward-only GPU renders of 3D Gaussians
+8 while they are sparse (13% faster at 100k Gaussians at 1080p) and 16 once they are dense (6% faster at 300k, 20% at
+1M, where sorting 2-2.5x more tile keys costs); surfels' forward-only renders take 16."""
 import os
 from contextlib import contextmanager
 from dataclasses import dataclass, fields, replace
 
 DEFAULT_TILE_SIZE = 8  # the CPU, and GPU renders that will be differentiated (training)
-GPU_FORWARD_ONLY_TILE_SIZE = 16  # GPU renders nobody differentiates (evaluation, viewers)
+GPU_FORWARD_ONLY_TILE_SIZE = 16  # dense GPU renders nobody differentiates (evaluation, viewers)
+# 3D Gaussians per pixel of the image from which forward-only GPU renders take 16: between the measured sides of the
+# crossover at 1080p (100k Gaussians = 0.05 a pixel: 8 faster; 300k = 0.14: 16 faster; raster_cuda_h200_tiles_s27.json).
+DENSE_PRIMITIVES_PER_PIXEL = 0.1
 DEFAULT_ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
 DEFAULT_ALPHA_MAX = 0.99  # alpha is clamped here (3DGS; gsplat uses 0.999)
 DEFAULT_TRANSMITTANCE_MIN = 1.0e-4  # a pixel stops blending before its transmittance drops under this
@@ -40,11 +44,17 @@ def alpha_clamp_problem(alpha_min: float, alpha_max: float):
     return None
 
 
-def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool) -> int:
-    """tile_size as given, or (None) the measured default for this device and kind of render."""
+def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool, primitives_per_pixel=None) -> int:
+    """tile_size as given, or (None) the measured default for this device and kind of render. primitives_per_pixel
+    (3D Gaussians: their count over the image's pixels) keeps sparse forward-only GPU renders at 8; None (surfels,
+    whose crossover was not measured) gives 16 to every forward-only GPU render."""
     if tile_size is not None:
         return tile_size
-    return GPU_FORWARD_ONLY_TILE_SIZE if on_gpu and not needs_grad else DEFAULT_TILE_SIZE
+    if not on_gpu or needs_grad:
+        return DEFAULT_TILE_SIZE
+    if primitives_per_pixel is not None and primitives_per_pixel < DENSE_PRIMITIVES_PER_PIXEL:
+        return DEFAULT_TILE_SIZE
+    return GPU_FORWARD_ONLY_TILE_SIZE
 
 
 # Which GPU blend adjoint the ops launch (speed only: both give the same images and gradients, which the tests

@@ -273,7 +273,8 @@ def checked_call(known_outputs, outputs, means, quats, scales, opacities, colors
     if not 0.0 < float(screen_sigma) < float("inf"):
         raise ValueError(f"screen_sigma: expected a positive number of pixels, got {screen_sigma!r}")
     grad = track_means2d or _needs_grad(means, quats, scales, opacities, colors, features, viewmat, K, background)
-    return outputs, choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda")
+    density = means.shape[0] / float(width * height) if scale_dims == 3 else None  # surfels: see choose_tile_size
+    return outputs, choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda", primitives_per_pixel=density)
 
 
 def _needs_grad(*tensors) -> bool:
