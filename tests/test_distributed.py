@@ -183,9 +183,9 @@ def test_ranks_share_out_batches_and_derive_their_own_seeds():
 
 
 def test_a_batch_smaller_than_the_world_is_refused_by_name(scene, tmp_path, monkeypatch):
-    import warpgs.train.trainer as trainer_module
+    import warpgs.train.trainer_build as trainer_build
 
-    monkeypatch.setattr(trainer_module, "setup_ranks", lambda device, **kw: (Ranks(0, 4), device))
+    monkeypatch.setattr(trainer_build, "setup_ranks", lambda device, **kw: (Ranks(0, 4), device))
     with pytest.raises(ValueError, match=r"train.batch_size: 2 is less than the 4 processes"):
         Trainer(None, overrides=_overrides(scene, tmp_path / "x", 2), quiet=True)
 
