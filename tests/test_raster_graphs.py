@@ -101,3 +101,25 @@ def test_captures_leave_other_threads_default_stream_work_alone():
         stop.set()
         worker.join()
     assert not failures, failures
+
+
+@pytest.mark.parametrize("surfels", [False, True])
+def test_the_views_of_a_training_run_share_one_graph(monkeypatch, surfels):
+    """Each call's camera is copied into the op's own buffers before the graphed launches, so views that follow each
+    other (every step of a training run) replay one graph and each gets its own image."""
+    s = _scene()
+    views = []
+    for i in range(3):
+        v = s["viewmat"].clone()
+        v[0, 3] += 0.2 * i  # another camera in another tensor, as each training view holds its own
+        views.append(dict(s, viewmat=v, K=s["K"].clone()))
+    monkeypatch.setattr(workspace, "GRAPHS_ENABLED", False)
+    eager = [_render(v, surfels) for v in views]
+    monkeypatch.setattr(workspace, "GRAPHS_ENABLED", True)
+    graphs = _graphs()
+    replays = graphs.replays
+    for _ in range(3):
+        for v, want in zip(views, eager):
+            got = _render(v, surfels)
+            assert torch.equal(got[0], want[0])
+    assert not graphs.broken and graphs.replays - replays >= 6  # one capture, then replays across the views

@@ -16,7 +16,7 @@ from __future__ import annotations
 import functools
 import math
 import threading
-from typing import Dict
+from typing import Dict, Optional
 
 import torch
 import warp as wp
@@ -39,6 +39,7 @@ class _DeviceState:
             self.ws.graphs.stream_factory = lambda: _nonblocking_stream(device, self.wdev)
         self._descs: Dict = {}
         self._arrays: Dict = {}
+        self._staged: Dict = {}
 
     def desc(self, t: torch.Tensor, dtype):
         """`_desc(t, dtype)`, memoised by address, shape and strides (all a descriptor holds): the same memory seen
@@ -51,6 +52,18 @@ class _DeviceState:
                 self._descs.clear()
             d = self._descs[key] = _desc(t, dtype)
         return d
+
+    def staged(self, name: str, t: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
+        """t copied into this state's own buffer `name` (made once per shape and dtype, then rewritten in stream
+        order). A render's camera changes every training step; read from fixed buffers it leaves the launch
+        sequence's key (workspace.LaunchSequence) unchanged, so the sequence replays from its CUDA graph."""
+        if t is None:
+            return None
+        buf = self._staged.get(name)
+        if buf is None or buf.shape != t.shape or buf.dtype != t.dtype:
+            buf = self._staged[name] = torch.empty(t.shape, dtype=t.dtype, device=t.device)
+        buf.copy_(t)
+        return buf
 
     def tensor(self, a: wp.array) -> torch.Tensor:
         """wp.to_torch(a), memoised like `desc` (for workspace views read every call)."""
@@ -318,6 +331,17 @@ def image_outputs(state: "_DeviceState", like: torch.Tensor, settings, wanted, l
     return (color, alpha, depth, inv_depth, feats), zacc, arrays
 
 
+def staged_camera(state: "_DeviceState", viewmat: torch.Tensor, intrinsics: torch.Tensor, check):
+    """(viewmat, intrinsics, check) as the forward's launch sequence reads them: copied into the state's own buffers
+    (`_DeviceState.staged`), so the sequence's key does not change with the view. check: None, or the caller's
+    (features, K, background), K and background staged. The backward reads the caller's tensors (saved by the op):
+    the buffers are rewritten by the next render."""
+    if check is not None:
+        features, K, background = check
+        check = (features, state.staged("K", K), state.staged("background", background))
+    return state.staged("viewmat", viewmat), state.staged("intrinsics", intrinsics), check
+
+
 def input_check(state: "_DeviceState", primitives, viewmat: torch.Tensor, extra, alive: list) -> fast.InputCheck:
     """The finite-value check of a render (fast_pipeline.InputCheck). primitives: the contiguous (means, quats,
     scales, opacities, coeffs); viewmat [1, 4, 4]; extra: the caller's (features or None, K [3, 3], background or
@@ -350,7 +374,8 @@ class FastRasterizeFunction(torch.autograd.Function):
         (means, quats, scales, opacities, coeffs, features), viewmat, intrinsics = detached_inputs(
             ctx, (means, quats, scales, opacities, coeffs, features), viewmat, intrinsics)
         desc = state.desc
-        inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec3)
+        view, intr, check = staged_camera(state, viewmat, intrinsics, check)
+        inputs = projection_inputs(state, (means, quats, scales, coeffs, view, intr), wp.vec3)
         w_opac = desc(opacities, wp.float32)
         w_feat = _features_arg(features, nf, layout, state)
 
@@ -359,7 +384,7 @@ class FastRasterizeFunction(torch.autograd.Function):
                                                                                layout, keep)
 
         alive = []
-        checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), viewmat,
+        checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), view,
                                                         check, alive)
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, check=checks,

@@ -11,6 +11,7 @@ from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
                                           gradient_buffers, input_check, projection_adjoint, projection_inputs,
+                                          staged_camera,
                                           upstream_features, upstream_gradient)
 
 ALPHA, DEPTH = (next(i for i, (name, _, _) in enumerate(IMAGES) if name == n) for n in ("alpha", "depth"))
@@ -34,7 +35,8 @@ class FastSurfelsFunction(torch.autograd.Function):
         (means, quats, scales, opacities, coeffs, features), viewmat, intrinsics = detached_inputs(
             ctx, (means, quats, scales, opacities, coeffs, features), viewmat, intrinsics)
         desc = state.desc
-        inputs = projection_inputs(state, (means, quats, scales, coeffs, viewmat, intrinsics), wp.vec2)
+        view, intr, check = staged_camera(state, viewmat, intrinsics, check)
+        inputs = projection_inputs(state, (means, quats, scales, coeffs, view, intr), wp.vec2)
 
         empty = means.new_empty(0)
         images = [means.new_empty(H, W, c) if image_wanted(wanted, name) else empty for name, c, _ in IMAGES]
@@ -52,7 +54,7 @@ class FastSurfelsFunction(torch.autograd.Function):
             zacc = outputs[DEPTH] = (keep if keep is not None else ws)("zacc", npix, float)
 
         alive = []
-        checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), viewmat,
+        checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), view,
                                                         check, alive)
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
