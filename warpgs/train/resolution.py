@@ -75,9 +75,6 @@ class ScaledViews:
     def __init__(self, spec: Optional[Sequence]):
         self.schedule = parse_schedule(spec)
 
-    def __bool__(self) -> bool:
-        return bool(self.schedule)
-
     def factor(self, step: int) -> int:
         return factor_at(self.schedule, step)
 
