@@ -8,7 +8,7 @@ import torch
 from random_scenes import look_at, random_scene
 from raster_helpers import DEVICE
 from warpgs import rasterize, rasterize_surfels
-from warpgs.render import workspace
+from warpgs.render import gaussians_fast, validation, workspace
 
 OPS = {"gaussians": rasterize, "surfels": rasterize_surfels}
 
@@ -29,14 +29,22 @@ def _leaves(s, surfels):
     return leaves
 
 
-def _forward(s, leaves, viewmat, K, surfels):
+def _K(s, zoom):
+    K = s["K"].clone()
+    K[:2, :2] *= zoom
+    return K
+
+
+def _forward(s, leaves, viewmat, K, surfels, background=None):
     out = OPS["surfels" if surfels else "gaussians"](*leaves, viewmat, K, s["width"], s["height"],
-                                                     outputs=("rgb", "depth"))
+                                                     outputs=("rgb", "depth"), background=background)
     return out.rgb.sum() + 0.1 * out.depth.sum()
 
 
 @pytest.mark.parametrize("surfels", [False, True])
 def test_the_launch_sequence_key_does_not_change_with_the_camera(monkeypatch, surfels):
+    """With the in-pipeline input checks (the GPU's; here on the CPU too), which also read K and the background."""
+    monkeypatch.setattr(validation, "PIPELINE_CHECK_DEVICES", {"cpu", "cuda"})
     keys = []
     run = workspace.LaunchSequence.run
 
@@ -50,25 +58,40 @@ def test_the_launch_sequence_key_does_not_change_with_the_camera(monkeypatch, su
     monkeypatch.setattr(workspace.LaunchSequence, "run", recording)
     s = _scene()
     leaves = [t.detach() for t in _leaves(s, surfels)]
-    with torch.no_grad():
-        for eye in ((0.3, -0.2, -4.0), (-0.5, 0.1, -3.5)):
-            _forward(s, leaves, _camera(eye), s["K"].clone(), surfels)
+    for eye, zoom, grey in (((0.3, -0.2, -4.0), 1.0, 0.2), ((-0.5, 0.1, -3.5), 1.1, 0.6)):
+        # a background that wants a gradient while the Gaussians do not: the op runs without autograd
+        background = torch.full((3,), grey, device=DEVICE, requires_grad=True)
+        _forward(s, leaves, _camera(eye), _K(s, zoom), surfels, background)
     assert len(keys) == 2 and keys[0] == keys[1]
+    staged = gaussians_fast.device_state(leaves[0].device)._staged["background"]
+    assert staged.grad_fn is None and not staged.requires_grad  # no autograd chain through the staged copy
 
 
 @pytest.mark.parametrize("surfels", [False, True])
 def test_interleaved_renders_of_two_cameras_get_their_own_gradients(surfels):
     s = _scene()
-    eyes = ((0.3, -0.2, -4.0), (-0.5, 0.1, -3.5))
+    cameras = (((0.3, -0.2, -4.0), 1.0), ((-0.5, 0.1, -3.5), 1.15))  # each its own pose and intrinsics
     alone = []
-    for eye in eyes:
-        leaves, view = _leaves(s, surfels), _camera(eye).requires_grad_(True)
-        _forward(s, leaves, view, s["K"].clone(), surfels).backward()
-        alone.append([t.grad for t in leaves] + [view.grad])
-    both = [(_leaves(s, surfels), _camera(eye).requires_grad_(True)) for eye in eyes]
-    losses = [_forward(s, leaves, view, s["K"].clone(), surfels) for leaves, view in both]  # both forwards first
+    for eye, zoom in cameras:
+        leaves, view, K = _leaves(s, surfels), _camera(eye).requires_grad_(True), _K(s, zoom).requires_grad_(True)
+        _forward(s, leaves, view, K, surfels).backward()
+        alone.append([t.grad for t in leaves] + [view.grad, K.grad])
+    both = [(_leaves(s, surfels), _camera(eye).requires_grad_(True), _K(s, zoom).requires_grad_(True))
+            for eye, zoom in cameras]
+    losses = [_forward(s, leaves, view, K, surfels) for leaves, view, K in both]  # both forwards first
     for loss in reversed(losses):  # the first camera's backward runs after the second camera's forward
         loss.backward()
-    for (leaves, view), expected in zip(both, alone):
-        for got, want in zip([t.grad for t in leaves] + [view.grad], expected):
+    for (leaves, view, K), expected in zip(both, alone):
+        for got, want in zip([t.grad for t in leaves] + [view.grad, K.grad], expected):
             assert torch.allclose(got, want, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("surfels", [False, True])
+def test_a_first_render_under_inference_mode_leaves_later_renders_working(surfels):
+    gaussians_fast.release_workspaces()  # a fresh state for this thread: its buffers are made by the next render
+    s = _scene()
+    with torch.inference_mode():
+        _forward(s, [t.detach() for t in _leaves(s, surfels)], _camera((0.3, -0.2, -4.0)), s["K"], surfels)
+    leaves = _leaves(s, surfels)
+    _forward(s, leaves, _camera((-0.5, 0.1, -3.5)), s["K"], surfels).backward()
+    assert all(t.grad is not None and torch.isfinite(t.grad).all() for t in leaves)

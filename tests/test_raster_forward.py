@@ -68,14 +68,15 @@ def test_batch_of_cameras_equals_single_renders():
         assert torch.equal(batch.depth[b], single.depth)
 
 
-def test_default_tile_size_follows_device_and_whether_a_backward_pass_comes():
+@pytest.mark.parametrize("n", [48, 400])  # 0.04 and 0.33 Gaussians a pixel: sparse and dense
+def test_default_tile_size_follows_device_and_whether_a_backward_pass_comes(n):
     """tile_size=None: 16 for forward-only GPU renders of dense scenes, else 8 (the CPU, sparse scenes, and renders
     that will be differentiated); the image is the same."""
     import torch as th
 
     from raster_helpers import DEVICE
 
-    scene = random_scene(n=48, seed=4)
+    scene = random_scene(n=n, seed=4)
     explicit = {t: render_ours(scene, ("rgb",), tile_size=t) for t in (8, 16)}
     assert explicit[8].num_intersections != explicit[16].num_intersections  # tile pairs tell the sizes apart
     with th.no_grad():

@@ -120,7 +120,7 @@ def _intrinsics_vector(K: torch.Tensor) -> torch.Tensor:
     """(fx, fy, cx, cy) of K [3,3], differentiable. One gather, and none when the same K tensor comes again
     unchanged (same object, same version counter) and needs no gradient: at 100k Gaussians a GPU render is mostly
     host time, and this was a tenth of what the op did before its first kernel."""
-    if K.requires_grad:
+    if K.requires_grad or torch.is_inference_mode_enabled():  # an inference tensor must not serve later renders
         return _gather_intrinsics(K)
     seen = _INTRINSICS_SEEN.get(id(K))
     if seen is not None and seen[0] is K and seen[1] == K._version:
@@ -135,7 +135,8 @@ def _intrinsics_vector(K: torch.Tensor) -> torch.Tensor:
 def _gather_intrinsics(K: torch.Tensor) -> torch.Tensor:
     index = _INTRINSICS_INDEX.get(K.device)
     if index is None:
-        index = _INTRINSICS_INDEX[K.device] = torch.tensor([0, 4, 2, 5], device=K.device)
+        with torch.inference_mode(False):  # kept for every later render, inside inference_mode or not
+            index = _INTRINSICS_INDEX[K.device] = torch.tensor([0, 4, 2, 5], device=K.device)
     return K.reshape(9).index_select(0, index)
 
 
@@ -175,7 +176,8 @@ def rasterize(
     "features" is in `outputs`. Only the requested outputs are computed.
     track_means2d: also return `out.means2d` [N,2] (or [B,N,2]), the projected centres in pixels, a leaf
     whose `.grad` after backward is dL/dmeans2d (what 3DGS-style densification thresholds).
-    tile_size (speed only; None: 8, or 16 for GPU renders autograd will not differentiate; see raster_defaults).
+    tile_size (speed only; None: 8, or 16 for GPU renders autograd will not differentiate of at least 0.1 Gaussians
+    a pixel; see render/defaults.py choose_tile_size).
     Accuracy knobs (defaults: the 3DGS rules, exact within them): `max_sigmas` > 0 truncates each footprint at
     that many sigmas; `alpha_min` skips contributions below that alpha; blending stops before transmittance
     would drop under `transmittance_min`. Raising any of them trades accuracy for speed

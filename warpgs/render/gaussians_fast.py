@@ -61,8 +61,9 @@ class _DeviceState:
             return None
         buf = self._staged.get(name)
         if buf is None or buf.shape != t.shape or buf.dtype != t.dtype:
-            buf = self._staged[name] = torch.empty(t.shape, dtype=t.dtype, device=t.device)
-        buf.copy_(t)
+            with torch.inference_mode(False):  # made under inference_mode, a later render outside it could not write it
+                buf = self._staged[name] = torch.empty(t.shape, dtype=t.dtype, device=t.device)
+        buf.copy_(t.detach())  # the values only: a copy that autograd records would chain every render's graph to it
         return buf
 
     def tensor(self, a: wp.array) -> torch.Tensor:
