@@ -52,6 +52,18 @@ def test_ssim_on_images_smaller_than_the_window():
     assert float(ssim(x, 1 - x)) < 0.9
 
 
+def test_an_ssim_under_inference_mode_leaves_later_ones_differentiable():
+    """The window is built once per size and device: made under inference_mode it could not be saved for the
+    backward of any SSIM after it (the training D-SSIM included)."""
+    metrics._gaussian_window.cache_clear()
+    a, b = torch.rand(24, 20, 3), torch.rand(24, 20, 3)
+    with torch.inference_mode():
+        ssim(a, b)
+    x = a.clone().requires_grad_(True)
+    ssim(x, b).backward()
+    assert x.grad is not None and torch.isfinite(x.grad).all()
+
+
 def test_shape_errors():
     with pytest.raises(ValueError, match="shapes differ"):
         psnr(torch.zeros(4, 4, 3), torch.zeros(4, 5, 3))

@@ -73,8 +73,10 @@ def ssim_window(window_size: int, height: int, width: int, device, dtype) -> tor
 
 @functools.lru_cache(maxsize=32)
 def _gaussian_window(size: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
-    """[1, size] normalised Gaussian, sigma 1.5 (kornia's own window for SSIM); built once per size and device."""
-    return get_gaussian_kernel1d(size, 1.5, device=device, dtype=dtype)
+    """[1, size] normalised Gaussian, sigma 1.5 (kornia's own window for SSIM); built once per size and device, never
+    as an inference tensor (a first SSIM under inference_mode would otherwise break every differentiated one after)."""
+    with torch.inference_mode(False):
+        return get_gaussian_kernel1d(size, 1.5, device=device, dtype=dtype)
 
 
 def lpips_unavailable_reason(net: str = "alex") -> Optional[str]:
