@@ -81,6 +81,11 @@ class Environment(Extension):
             return out
         W, H = int(batch["width"]), int(batch["height"])
         viewmat, K = batch["viewmat"], batch["K"]
+        if torch.is_inference_mode_enabled() or viewmat.is_inference() or K.is_inference():
+            # nothing kept: inference tensors have no version counter, and kept ones could not serve a training step
+            env = trainer.modules["environment"](ray_directions(viewmat, K, W, H))
+            out.rgb = out.rgb + (1.0 - out.alpha) * env
+            return out
         # Keyed by the camera tensors' identity and version, not their values: reading the values is a host read
         # (a stall on a GPU) every step; a view keeps its tensors for the run. The entry holds them, so an id is
         # never another tensor's.
