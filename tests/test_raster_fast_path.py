@@ -288,3 +288,31 @@ def test_removed_and_unknown_raster_options_are_named():
     with pytest.raises(ValueError, match="backward_kernel"):
         with raster_options(backward_kernel="fastest"):
             pass
+
+
+@pytest.mark.parametrize("surfels", [False, True])
+def test_a_retained_graph_backs_up_twice(surfels):
+    """loss.backward(retain_graph=True) then again (two losses, two optimizers): the render's state stays until autograd
+    frees the graph, so the second backward adds the same gradients again, with another render in between."""
+    from warpgs import rasterize_surfels
+
+    op = rasterize_surfels if surfels else rasterize
+    s = {k: (v.float().to(DEVICE) if isinstance(v, torch.Tensor) else v) for k, v in random_scene(n=64, seed=3).items()}
+
+    def leaves():
+        out = [s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
+        if surfels:
+            out[2] = s["scales"][:, :2].clone().requires_grad_(True)
+        return out
+
+    kept = leaves()
+    out = op(*kept, s["viewmat"], s["K"], s["width"], s["height"], outputs=("rgb", "depth"))
+    loss = out.rgb.sum() + out.depth.sum()
+    loss.backward(retain_graph=True)
+    first = [t.grad.clone() for t in kept]
+    op(*leaves(), s["viewmat"], s["K"], s["width"], s["height"], outputs=("rgb",)).rgb.sum().backward()
+    loss.backward()
+    for t, g in zip(kept, first):
+        assert torch.allclose(t.grad, 2 * g, atol=1e-5, rtol=1e-4)
+    with pytest.raises(RuntimeError, match="backward through the graph a second time"):
+        loss.backward()  # torch's own error once the graph was not retained

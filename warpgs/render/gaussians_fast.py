@@ -397,6 +397,8 @@ class FastRasterizeFunction(torch.autograd.Function):
         count = frame.total  # a plain int: autograd passes it through (no tensor to make and wrap each call)
         ctx.mark_non_differentiable(visible)
         if any_grad:
+            # kept until autograd frees this node (the lease's buffers then go back to the pool), so a
+            # retain_graph backward can run again; training frees it before its next render
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
         ctx.device = device
@@ -433,7 +435,6 @@ class FastRasterizeFunction(torch.autograd.Function):
                 projection_adjoint(state, fast.project_backward, frame, settings,
                                    (means, quats, scales, coeffs, viewmat, intrinsics), grads, needs, projected,
                                    wp.vec3)
-        ctx.state = None
         grads[3] = g_opac if needs[3] else None
         grads[5] = g_features if needs[5] else None
         return (None, None, None) + tuple(grads) + (probe_grad, None)

@@ -124,6 +124,8 @@ class FastBlendRowsFunction(torch.autograd.Function):
             visible = state.tensor(frame.counts) > 0
         ctx.mark_non_differentiable(visible)
         if keep is not None:
+            # kept until autograd frees this node (the lease's buffers then go back to the pool), so a
+            # retain_graph backward can run again; training frees it before its next render
             ctx.state = (frame, keep, zacc, settings, wanted, options, layout, fields[5])
             ctx.save_for_backward(rows)  # its features columns are read in place
         return color, alpha, depth, inv_depth, feats, visible
@@ -131,7 +133,6 @@ class FastBlendRowsFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible):
         frame, keep, zacc, settings, wanted, options, layout, opacities = ctx.state
-        ctx.state = None
         (rows,) = ctx.saved_tensors
         state = device_state(rows.device)
         ws, n, nf = state.ws, frame.n, wanted.num_features
