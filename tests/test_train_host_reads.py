@@ -66,3 +66,27 @@ def test_a_densifying_step_reads_back_only_the_previous_steps_guard_flags(tmp_pa
     assert reads.sites[("tolist", "raise_if_failed")] == steps and other == {}, reads.sites
     assert all(info.pending is False for info in infos)  # on the CPU the values are there; they were not read
     assert infos[-1]["loss"] > 0  # and read on demand
+
+
+@pytest.mark.parametrize("preset", ["default", "surfels"])
+def test_the_deferred_guard_keeps_no_autograd_graph_into_the_next_step(tmp_path, preset, monkeypatch):
+    """The pending check holds the step's loss values, not its graph: a graph kept to the next step would keep its
+    renders' buffer sets leased (they are freed with it), so the next render would need a second set."""
+    from warpgs.render import workspace
+
+    overrides = quick_overrides(tmp_path, 100, **{"optim.adam_kernel": "fused"})
+    trainer = Trainer(str(ROOT / "configs" / f"{preset}.yaml"), overrides=overrides, quiet=True)
+    for _ in range(3):
+        trainer.train_step()
+    pending = trainer.step_guard.pending
+    assert pending is not None and pending.result.total.grad_fn is None
+    made, init = [0], workspace.Buffers.__init__
+
+    def counting(self, *args, **kwargs):
+        made[0] += 1
+        init(self, *args, **kwargs)
+
+    monkeypatch.setattr(workspace.Buffers, "__init__", counting)
+    for _ in range(5):
+        trainer.train_step()
+    assert made[0] == 0  # every render got the buffer set the step before gave back

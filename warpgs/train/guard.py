@@ -2,6 +2,8 @@
 parameter among the tensors it is given."""
 from __future__ import annotations
 
+import dataclasses
+
 from typing import Callable, Iterable, Optional, Sequence, Tuple
 
 import torch
@@ -99,6 +101,9 @@ class PendingCheck:
     without an error, as check lets it pass."""
 
     def __init__(self, step: int, labels: list, flags: torch.Tensor, result, guard: "NonFiniteGuard"):
+        # The loss's values only: its autograd graph (the renders' kept buffers with it) is freed with the step.
+        if dataclasses.is_dataclass(result):
+            result = dataclasses.replace(result, total=result.total.detach())
         self.step, self.labels, self.result, self.guard = step, labels, result, guard
         self.found_inf = flags.any().float()
         self._flags = HostCopy(flags)
