@@ -8,7 +8,7 @@ next view's render)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Dict, List, Optional, Sequence
 
 import torch
@@ -44,6 +44,12 @@ class HostScalars:
     def read(self) -> List[float]:
         """[total, one value per term, (image MSE)] as Python floats (waits for the copy the first time)."""
         return self._copy.read()
+
+
+def without_graph(result: LossResult) -> LossResult:
+    """A view's losses after its backward, without their autograd graph: held, the graph would keep the render's
+    buffer set leased (the render ops free it with the graph), so the next view's render would need another."""
+    return replace(result, total=result.total.detach())
 
 
 @dataclass

@@ -12,7 +12,8 @@ import time
 
 import torch
 
-from warpgs.train.batch import HostScalars, ViewPass, batch_result, batch_summary, local_sums, scalar_names
+from warpgs.train.batch import (HostScalars, ViewPass, batch_result, batch_summary, local_sums, scalar_names,
+                                 without_graph)
 from warpgs.train.guard import NonFiniteError
 from warpgs.train.model_parallel import render_shard, require_gaussians
 from warpgs.train.step import end_step, set_step_schedule
@@ -99,6 +100,7 @@ def view_pass_sharded(trainer, cameras, step: int, *, views_in_loss: int, densif
     if first:
         trainer.strategy.step_pre_backward(model, step)
     (result.total / views_in_loss).backward()
+    result = without_graph(result)
     p = ViewPass(view=view, result=result, scalars=HostScalars(result, out.rgb, view.image))
     if not densify:
         return p, []

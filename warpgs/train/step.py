@@ -7,7 +7,7 @@ import time
 
 from warpgs.train import setup as train_setup
 from warpgs.train.batch import (BatchScalars, HostScalars, ViewPass, batch_result, batch_summary,
-                                device_batch_result, local_sums, scalar_names)
+                                device_batch_result, local_sums, scalar_names, without_graph)
 from warpgs.train.optim import means_lr_at, update_learning_rates
 from warpgs.train.step_info import StepInfo
 
@@ -119,6 +119,7 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
     own_means_grad = densify and out.means2d is None and views_in_loss > 1
     before = model.means.grad.clone() if own_means_grad and model.means.grad is not None else None
     (result.total if views_in_loss == 1 else result.total / views_in_loss).backward()
+    result = without_graph(result)
     # The scalars for the log and the progress line: one device-to-host copy, read when the info is (a step later).
     p = ViewPass(view=view, result=result, scalars=HostScalars(result, out.rgb, view.image))
     if densify:
