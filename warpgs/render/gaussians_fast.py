@@ -170,6 +170,18 @@ def detached_inputs(ctx, primitives, viewmat: torch.Tensor, intrinsics: torch.Te
             viewmat.reshape(1, 4, 4).contiguous(), intrinsics.reshape(1, 4).contiguous())
 
 
+def take_backward_state(ctx) -> tuple:
+    """The state a render's forward left for its backward, taken: the buffer set it holds goes back to the pool when
+    the backward returns (held to the graph's end, a caller keeping each step's loss would lease a set a step)."""
+    state = ctx.state
+    if state is None:
+        raise RuntimeError("render backward: this render was back-propagated already (retain_graph=True); the render "
+                           "ops give their buffers back after one backward: render again, or sum the losses into "
+                           "one backward")
+    ctx.state = None
+    return state
+
+
 class _NoAutogradContext:
     """What a fast op's forward uses of its autograd context, for a call autograd will not differentiate."""
 
@@ -397,8 +409,6 @@ class FastRasterizeFunction(torch.autograd.Function):
         count = frame.total  # a plain int: autograd passes it through (no tensor to make and wrap each call)
         ctx.mark_non_differentiable(visible)
         if any_grad:
-            # kept until autograd frees this node (the lease's buffers then go back to the pool), so a
-            # retain_graph backward can run again; training frees it before its next render
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
         ctx.device = device
@@ -407,7 +417,7 @@ class FastRasterizeFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count):
         fast._stage(None, "between (loss, autograd)")
-        frame, keep, zacc, settings, wanted, options, needs, layout = ctx.state
+        frame, keep, zacc, settings, wanted, options, needs, layout = take_backward_state(ctx)
         means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors
         device = ctx.device
         state = device_state(device)

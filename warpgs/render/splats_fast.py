@@ -16,7 +16,7 @@ import warp as wp
 from warpgs.kernels import project, splat_rows
 from warpgs.render import fast_pipeline as fast
 from warpgs.render.gaussians_fast import (_PROJECTION_DTYPES, _features_arg, blend_upstream, device_state,
-                                          feature_gradient_arg, image_outputs, projection_inputs)
+                                          feature_gradient_arg, image_outputs, projection_inputs, take_backward_state)
 
 # A splat row: (first column, width, Warp dtype) of each field; the features follow from column SPLAT_COLUMNS on.
 _DTYPES = {"means2d": wp.vec2, "conics": wp.vec3, "cov2d": wp.vec3, "depths": wp.float32, "colors": wp.vec3,
@@ -124,15 +124,13 @@ class FastBlendRowsFunction(torch.autograd.Function):
             visible = state.tensor(frame.counts) > 0
         ctx.mark_non_differentiable(visible)
         if keep is not None:
-            # kept until autograd frees this node (the lease's buffers then go back to the pool), so a
-            # retain_graph backward can run again; training frees it before its next render
             ctx.state = (frame, keep, zacc, settings, wanted, options, layout, fields[5])
             ctx.save_for_backward(rows)  # its features columns are read in place
         return color, alpha, depth, inv_depth, feats, visible
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible):
-        frame, keep, zacc, settings, wanted, options, layout, opacities = ctx.state
+        frame, keep, zacc, settings, wanted, options, layout, opacities = take_backward_state(ctx)
         (rows,) = ctx.saved_tensors
         state = device_state(rows.device)
         ws, n, nf = state.ws, frame.n, wanted.num_features

@@ -11,7 +11,7 @@ from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
                                           gradient_buffers, input_check, projection_adjoint, projection_inputs,
-                                          staged_camera,
+                                          staged_camera, take_backward_state,
                                           upstream_features, upstream_gradient)
 
 ALPHA, DEPTH = (next(i for i, (name, _, _) in enumerate(IMAGES) if name == n) for n in ("alpha", "depth"))
@@ -64,8 +64,6 @@ class FastSurfelsFunction(torch.autograd.Function):
         count = frame.total  # a plain int: autograd passes it through (no tensor to make and wrap each call)
         ctx.mark_non_differentiable(visible)
         if any_grad:
-            # kept until autograd frees this node (the lease's buffers then go back to the pool), so a
-            # retain_graph backward can run again; training frees it before its next render
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
         ctx.device = means.device
@@ -73,7 +71,7 @@ class FastSurfelsFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *upstream):
-        frame, keep, zacc, settings, wanted, options, needs, layout = ctx.state
+        frame, keep, zacc, settings, wanted, options, needs, layout = take_backward_state(ctx)
         means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors
         state = device_state(ctx.device)
         ws = state.ws
