@@ -336,3 +336,21 @@ def test_keeping_each_steps_loss_leases_no_more_buffers(monkeypatch):
     for _ in range(4):
         step()
     assert made[0] == 0 and len(kept) == 5
+
+
+@pytest.mark.parametrize("surfels", [False, True])
+def test_a_second_derivative_through_a_render_is_refused(surfels):
+    """The ops' backward is Warp kernels, differentiable once: a gradient penalty (create_graph=True, then a backward
+    of the gradient) must fail loudly, not leave the render's part of it out."""
+    from warpgs import rasterize_surfels
+
+    op = rasterize_surfels if surfels else rasterize
+    s = {k: (v.float().to(DEVICE) if isinstance(v, torch.Tensor) else v) for k, v in random_scene(n=64, seed=3).items()}
+    leaves = [s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
+    if surfels:
+        leaves[2] = s["scales"][:, :2].clone().requires_grad_(True)
+    out = op(*leaves, s["viewmat"], s["K"], s["width"], s["height"], outputs=("rgb",))
+    (g,) = torch.autograd.grad(((out.rgb - 0.5) ** 2).sum(), [leaves[0]], create_graph=True)
+    penalty = (g ** 2).sum() + (leaves[0] ** 2).sum()  # another term keeps the sum differentiable
+    with pytest.raises(RuntimeError, match="once_differentiable"):
+        penalty.backward()

@@ -20,6 +20,7 @@ from typing import Dict, Optional
 
 import torch
 import warp as wp
+from torch.autograd.function import once_differentiable
 
 from warpgs.render import fast_pipeline as fast
 from warpgs.render.camera_rows import camera_rows
@@ -415,6 +416,7 @@ class FastRasterizeFunction(torch.autograd.Function):
         return color, alpha, depth, inv_depth, feats, visible, count
 
     @staticmethod
+    @once_differentiable  # Warp kernels: a second derivative is refused, not silently left out
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count):
         fast._stage(None, "between (loss, autograd)")
         frame, keep, zacc, settings, wanted, options, needs, layout = take_backward_state(ctx)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import torch
 import warp as wp
+from torch.autograd.function import once_differentiable
 
 from warpgs.kernels import project, splat_rows
 from warpgs.render import fast_pipeline as fast
@@ -64,6 +65,7 @@ class FastProjectRowsFunction(torch.autograd.Function):
         return rows, is_valid
 
     @staticmethod
+    @once_differentiable  # Warp kernels: a second derivative is refused, not silently left out
     def backward(ctx, g_rows, _g_valid):
         saved = ctx.saved_tensors
         needs = ctx.needs_input_grad[1:7]
@@ -129,6 +131,7 @@ class FastBlendRowsFunction(torch.autograd.Function):
         return color, alpha, depth, inv_depth, feats, visible
 
     @staticmethod
+    @once_differentiable  # Warp kernels: a second derivative is refused, not silently left out
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible):
         frame, keep, zacc, settings, wanted, options, layout, opacities = take_backward_state(ctx)
         (rows,) = ctx.saved_tensors

@@ -10,6 +10,7 @@ import threading
 
 import torch
 import warp as wp
+from torch.autograd.function import once_differentiable
 
 from warpgs.kernels import ssim as kernels
 from warpgs.metrics.image import _SSIM_EPS, _pair, ssim_window
@@ -71,6 +72,7 @@ class _FusedSSIM(torch.autograd.Function):
         return out
 
     @staticmethod
+    @once_differentiable  # Warp kernels: a second derivative is refused, not silently left out
     def backward(ctx, grad_map):
         x, y, window, means = ctx.saved_tensors
         c1, c2 = ctx.consts

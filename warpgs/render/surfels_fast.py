@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 import warp as wp
+from torch.autograd.function import once_differentiable
 
 from warpgs.render import fast_pipeline_surfels as fast
 from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
@@ -70,6 +71,7 @@ class FastSurfelsFunction(torch.autograd.Function):
         return tuple(images) + (feats, visible, count)
 
     @staticmethod
+    @once_differentiable  # Warp kernels: a second derivative is refused, not silently left out
     def backward(ctx, *upstream):
         frame, keep, zacc, settings, wanted, options, needs, layout = take_backward_state(ctx)
         means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors
