@@ -9,7 +9,7 @@ import torch
 from legacy_raster import rasterize_legacy
 from random_scenes import look_at, random_scene
 from raster_helpers import DEVICE, assert_same_result as _assert_same
-from warpgs import rasterize
+from warpgs import rasterize, rasterize_surfels
 from warpgs.render.defaults import raster_options
 
 INPUTS = ("means", "quats", "scales", "opacities", "colors", "features", "viewmat", "K")
@@ -37,6 +37,16 @@ def _render(scene, leaves, outputs, op=rasterize, **kw):
     return op(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
                      leaves["viewmat"], leaves["K"], scene["width"], scene["height"], sh_degree=scene["sh_degree"],
                      features=leaves["features"], outputs=outputs, **kw)
+
+
+def _op_inputs(surfels: bool):
+    """(op, scene, leaves): rasterize or rasterize_surfels, a small float32 scene and fresh leaves (means, quats,
+    scales, opacities, colors; 2D scales for surfels)."""
+    s = {k: (v.float().to(DEVICE) if isinstance(v, torch.Tensor) else v) for k, v in random_scene(n=64, seed=3).items()}
+    leaves = [s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
+    if surfels:
+        leaves[2] = s["scales"][:, :2].clone().requires_grad_(True)
+    return (rasterize_surfels if surfels else rasterize), s, leaves
 
 
 def _loss(out, weights):
@@ -112,7 +122,6 @@ def test_forward_only_renders_match():
 def test_renders_nobody_differentiates_skip_autograd_and_match(op, monkeypatch):
     """With grad mode on but no input needing a gradient (evaluation, viewers), or grad mode off, the ops run their
     forward without the autograd Function (gaussians_fast.run_op): the same images, and nothing to differentiate."""
-    from warpgs import rasterize_surfels
     from warpgs.render.gaussians_fast import FastRasterizeFunction
     from warpgs.render.surfels_fast import FastSurfelsFunction
 
@@ -141,8 +150,6 @@ def test_renders_nobody_differentiates_skip_autograd_and_match(op, monkeypatch):
 def test_a_render_where_one_input_needs_a_gradient_still_gets_it(op, leaf):
     """run_op skips autograd only when no tensor argument needs a gradient: an input that alone needs one (the
     features, the camera, or the background, which is blended outside the op) still gets it."""
-    from warpgs import rasterize_surfels
-
     scene = random_scene(n=60, seed=7, num_features=2)
     if op == "surfels":
         scene = dict(scene, scales=scene["scales"][:, :2])
@@ -295,13 +302,7 @@ def test_a_second_backward_through_a_render_is_refused_by_name(surfels):
     """The render ops give a render's buffers back after its backward (held to the graph's end, a caller keeping
     each step's loss would lease a set a step), so loss.backward(retain_graph=True) twice raises a clear error
     instead of failing inside the op; the first backward's gradients are intact."""
-    from warpgs import rasterize_surfels
-
-    op = rasterize_surfels if surfels else rasterize
-    s = {k: (v.float().to(DEVICE) if isinstance(v, torch.Tensor) else v) for k, v in random_scene(n=64, seed=3).items()}
-    leaves = [s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
-    if surfels:
-        leaves[2] = s["scales"][:, :2].clone().requires_grad_(True)
+    op, s, leaves = _op_inputs(surfels)
     out = op(*leaves, s["viewmat"], s["K"], s["width"], s["height"], outputs=("rgb", "depth"))
     loss = out.rgb.sum() + out.depth.sum()
     loss.backward(retain_graph=True)
@@ -315,8 +316,7 @@ def test_keeping_each_steps_loss_leases_no_more_buffers(monkeypatch):
     render's buffer set per step: the op gives it back when its backward ends."""
     from warpgs.render import workspace
 
-    s = {k: (v.float().to(DEVICE) if isinstance(v, torch.Tensor) else v) for k, v in random_scene(n=64, seed=3).items()}
-    leaves = [s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
+    _, s, leaves = _op_inputs(surfels=False)
     kept = []
 
     def step():
@@ -342,13 +342,7 @@ def test_keeping_each_steps_loss_leases_no_more_buffers(monkeypatch):
 def test_a_second_derivative_through_a_render_is_refused(surfels):
     """The ops' backward is Warp kernels, differentiable once: a gradient penalty (create_graph=True, then a backward
     of the gradient) must fail loudly, not leave the render's part of it out."""
-    from warpgs import rasterize_surfels
-
-    op = rasterize_surfels if surfels else rasterize
-    s = {k: (v.float().to(DEVICE) if isinstance(v, torch.Tensor) else v) for k, v in random_scene(n=64, seed=3).items()}
-    leaves = [s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
-    if surfels:
-        leaves[2] = s["scales"][:, :2].clone().requires_grad_(True)
+    op, s, leaves = _op_inputs(surfels)
     out = op(*leaves, s["viewmat"], s["K"], s["width"], s["height"], outputs=("rgb",))
     (g,) = torch.autograd.grad(((out.rgb - 0.5) ** 2).sum(), [leaves[0]], create_graph=True)
     penalty = (g ** 2).sum() + (leaves[0] ** 2).sum()  # another term keeps the sum differentiable
