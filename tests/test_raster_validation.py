@@ -37,6 +37,11 @@ def test_wrong_shapes(name, value, match):
         call(**{name: value})
 
 
+def test_a_batch_of_no_cameras_is_named():
+    with pytest.raises(ValueError, match="viewmat: a batch of 0 cameras"):
+        call(viewmat=torch.zeros(0, 4, 4), K=torch.zeros(0, 3, 3))
+
+
 @pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmat", "K"])
 def test_wrong_dtypes(name):
     a, _ = args()

@@ -318,6 +318,8 @@ def _check_arguments(means, quats, scales, opacities, colors, viewmat, K, width,
             raise ValueError("features: need at least one channel")
     if viewmat.dim() == 3:
         check_tensor("viewmat", viewmat, (None, 4, 4))
+        if viewmat.shape[0] == 0:
+            raise ValueError("viewmat: a batch of 0 cameras; give at least one ([B, 4, 4] with B >= 1, or [4, 4])")
         check_tensor("K", K, (viewmat.shape[0], 3, 3))
     else:
         check_tensor("viewmat", viewmat, (4, 4))
