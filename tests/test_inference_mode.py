@@ -11,13 +11,15 @@ def test_inference_mode_renders_and_evaluations_between_training_steps(tmp_path)
                                                          "train.device=cpu", "eval.every=0"],
                       quiet=True, out_dir=tmp_path / "run")
     with torch.inference_mode():  # before the first step: every cache is made here first
-        trainer.render(trainer.view(0), ("rgb", "depth"))
-        before = trainer.evaluate()["psnr"]
+        for index in (0, trainer.train_indices[0]):  # a test view, and a training view the run keeps
+            trainer.render(trainer.view(index), ("rgb", "depth"))
+        before = trainer.evaluate()["psnr"]  # the evaluation views are chosen (and kept) here
     for _ in range(6):
         trainer.train_step()
+    after = trainer.evaluate()["psnr"]  # the same views, now outside inference_mode
     with torch.inference_mode():
-        after = trainer.evaluate()["psnr"]
-    for _ in range(3):
+        trainer.evaluate()
+    for _ in range(len(trainer.train_indices) + 3):  # every training view drawn at least once
         trainer.train_step()
-    assert trainer.step == 9 and torch.isfinite(torch.tensor(trainer.last_loss))
+    assert torch.isfinite(torch.tensor(trainer.last_loss))
     assert after > before  # it trained

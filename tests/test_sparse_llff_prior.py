@@ -213,6 +213,11 @@ def test_the_depth_loss_reads_confidence_from_the_batch_or_its_view():
     conf[0, 0, 0] = float("nan")
     with pytest.raises(ValueError, match="inv_depth_confidence.*NaN"):
         marr.depth(_render_out(inv), {**base, "inv_depth_confidence": conf}, None, 0)
+    # A map made under inference_mode has no version counter to remember it by: checked each time, no error.
+    with torch.inference_mode():
+        made = torch.ones(8, 8, 1)
+        marr.depth(_render_out(inv.detach()), {**base, "inv_depth_confidence": made}, None, 0)
+    assert torch.isfinite(marr.depth(_render_out(inv), {**base, "inv_depth_confidence": made}, None, 0))
 
 
 # --- initial points from the prior (model.prior_points) ----------------------------------------------------------

@@ -33,6 +33,14 @@ def test_value_and_gradient_match_float64(shape):
     assert torch.isfinite(pred.grad).all()
 
 
+def test_a_second_derivative_is_refused():
+    """The op's backward is Warp kernels: create_graph=True through it raises instead of dropping its part of a
+    gradient penalty (SSIM ends in a mean, so torch's once_differentiable would let it through)."""
+    pred = torch.rand(12, 10, 3, generator=torch.Generator().manual_seed(2)).requires_grad_(True)
+    with pytest.raises(RuntimeError, match="Warp SSIM.*not differentiable"):
+        torch.autograd.grad(fused_ssim(pred, torch.rand(12, 10, 3)), [pred], create_graph=True)
+
+
 def test_identical_images_give_one_and_a_zero_gradient():
     img = torch.rand(16, 12, 3, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
     value = fused_ssim(img, img.detach().clone())

@@ -197,6 +197,8 @@ _SEEN_FINITE_SIZE = 1024
 
 
 def _seen_finite(t: torch.Tensor) -> bool:
+    if t.is_inference():  # no version counter to key on: checked every time
+        return False
     seen = _SEEN_FINITE.get(id(t))
     if seen is not None and seen[0]() is t and seen[1] == t._version:
         return True
@@ -225,7 +227,8 @@ def prior_weight(batch, like: torch.Tensor, power: Optional[float] = None) -> Op
                          f"{list(like.shape[-2:])}")
     if not _seen_finite(given) and not bool(torch.isfinite(conf).all()):
         raise ValueError(f"batch.{CONFIDENCE_KEY}: contains NaN or Inf")
-    _SEEN_FINITE[id(given)] = (weakref.ref(given), given._version)
+    if not given.is_inference():
+        _SEEN_FINITE[id(given)] = (weakref.ref(given), given._version)
     return conf.clamp(0.0, 1.0).pow(power).expand_as(like)
 
 

@@ -9,6 +9,8 @@ from typing import List, Optional, Sequence
 import torch
 import torch.distributed as dist
 
+from warpgs.render.differentiable_once import differentiable_once
+
 
 def _all_to_all_rows(sends: Sequence[torch.Tensor], group) -> List[torch.Tensor]:
     world = dist.get_world_size(group)
@@ -38,6 +40,7 @@ class _ExchangeRows(torch.autograd.Function):
         return tuple(received)
 
     @staticmethod
+    @differentiable_once("the row exchange (exchange_rows)")
     def backward(ctx, *grads):
         filled = [g.contiguous() if g is not None else torch.zeros(shape, dtype=ctx.dtype, device=ctx.device)
                   for g, shape in zip(grads, ctx.received_shapes)]

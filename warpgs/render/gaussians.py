@@ -120,7 +120,7 @@ def _intrinsics_vector(K: torch.Tensor) -> torch.Tensor:
     """(fx, fy, cx, cy) of K [3,3], differentiable. One gather, and none when the same K tensor comes again
     unchanged (same object, same version counter) and needs no gradient: at 100k Gaussians a GPU render is mostly
     host time, and this was a tenth of what the op did before its first kernel."""
-    if K.requires_grad or torch.is_inference_mode_enabled():  # an inference tensor must not serve later renders
+    if K.requires_grad or torch.is_inference_mode_enabled() or K.is_inference():  # no version counter, or not to keep
         return _gather_intrinsics(K)
     seen = _INTRINSICS_SEEN.get(id(K))
     if seen is not None and seen[0] is K and seen[1] == K._version:

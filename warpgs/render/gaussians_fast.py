@@ -20,10 +20,10 @@ from typing import Dict, Optional
 
 import torch
 import warp as wp
-from torch.autograd.function import once_differentiable
 
 from warpgs.render import fast_pipeline as fast
 from warpgs.render.camera_rows import camera_rows
+from warpgs.render.differentiable_once import differentiable_once
 from warpgs.render.pipeline_gaussians import _cooperative
 from warpgs.render.validation import raise_flagged
 from warpgs.render.torch_streams import warp_device, warp_stream
@@ -416,7 +416,7 @@ class FastRasterizeFunction(torch.autograd.Function):
         return color, alpha, depth, inv_depth, feats, visible, count
 
     @staticmethod
-    @once_differentiable  # Warp kernels: a second derivative is refused, not silently left out
+    @differentiable_once("the 3D render (rasterize)")
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count):
         fast._stage(None, "between (loss, autograd)")
         frame, keep, zacc, settings, wanted, options, needs, layout = take_backward_state(ctx)

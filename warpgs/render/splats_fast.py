@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import torch
 import warp as wp
-from torch.autograd.function import once_differentiable
 
 from warpgs.kernels import project, splat_rows
 from warpgs.render import fast_pipeline as fast
+from warpgs.render.differentiable_once import differentiable_once
 from warpgs.render.gaussians_fast import (_PROJECTION_DTYPES, _features_arg, blend_upstream, device_state,
                                           feature_gradient_arg, image_outputs, projection_inputs, take_backward_state)
 
@@ -65,7 +65,7 @@ class FastProjectRowsFunction(torch.autograd.Function):
         return rows, is_valid
 
     @staticmethod
-    @once_differentiable  # Warp kernels: a second derivative is refused, not silently left out
+    @differentiable_once("the split render's projection (project_rows)")
     def backward(ctx, g_rows, _g_valid):
         saved = ctx.saved_tensors
         needs = ctx.needs_input_grad[1:7]
@@ -131,7 +131,7 @@ class FastBlendRowsFunction(torch.autograd.Function):
         return color, alpha, depth, inv_depth, feats, visible
 
     @staticmethod
-    @once_differentiable  # Warp kernels: a second derivative is refused, not silently left out
+    @differentiable_once("the split render's blend (blend_rows)")
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible):
         frame, keep, zacc, settings, wanted, options, layout, opacities = take_backward_state(ctx)
         (rows,) = ctx.saved_tensors

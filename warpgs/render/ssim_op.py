@@ -10,10 +10,10 @@ import threading
 
 import torch
 import warp as wp
-from torch.autograd.function import once_differentiable
 
 from warpgs.kernels import ssim as kernels
 from warpgs.metrics.image import _SSIM_EPS, _pair, ssim_window
+from warpgs.render.differentiable_once import differentiable_once
 from warpgs.render.torch_streams import on_torch_stream, warp_device
 from warpgs.render.workspace import LaunchCache
 
@@ -72,7 +72,7 @@ class _FusedSSIM(torch.autograd.Function):
         return out
 
     @staticmethod
-    @once_differentiable  # Warp kernels: a second derivative is refused, not silently left out
+    @differentiable_once("the Warp SSIM (train.fused_ssim)")
     def backward(ctx, grad_map):
         x, y, window, means = ctx.saved_tensors
         c1, c2 = ctx.consts

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import torch
 import warp as wp
-from torch.autograd.function import once_differentiable
 
 from warpgs.render import fast_pipeline_surfels as fast
+from warpgs.render.differentiable_once import differentiable_once
 from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
@@ -71,7 +71,7 @@ class FastSurfelsFunction(torch.autograd.Function):
         return tuple(images) + (feats, visible, count)
 
     @staticmethod
-    @once_differentiable  # Warp kernels: a second derivative is refused, not silently left out
+    @differentiable_once("the surfel render (rasterize_surfels)")
     def backward(ctx, *upstream):
         frame, keep, zacc, settings, wanted, options, needs, layout = take_backward_state(ctx)
         means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors

@@ -8,7 +8,7 @@ next view's render)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, is_dataclass, replace
 from typing import Dict, List, Optional, Sequence
 
 import torch
@@ -49,7 +49,7 @@ class HostScalars:
 def without_graph(result: LossResult) -> LossResult:
     """A view's losses after its backward, without their autograd graph: held, the graph would keep the render's
     buffer set leased (the render ops free it with the graph), so the next view's render would need another."""
-    return replace(result, total=result.total.detach())
+    return replace(result, total=result.total.detach()) if is_dataclass(result) else result
 
 
 @dataclass

@@ -56,10 +56,10 @@ class TrainViews:
     def view(self, index: int):
         """Scene view `index` on the device (kept for the next call when preloading)."""
         if index not in self._kept:
-            v = self.scene.view(index, self.device)
             if not self.preload:
-                return v
-            self._kept[index] = _compact(v)
+                return self.scene.view(index, self.device)
+            with torch.inference_mode(False):  # kept for training steps: never inference tensors
+                self._kept[index] = _compact(self.scene.view(index, self.device))
         return _expanded(self._kept[index])
 
     def load_all(self) -> int:
