@@ -70,8 +70,8 @@ def test_a_densifying_step_reads_back_only_the_previous_steps_guard_flags(tmp_pa
 
 @pytest.mark.parametrize("preset", ["default", "surfels"])
 def test_the_deferred_guard_keeps_no_autograd_graph_into_the_next_step(tmp_path, preset):
-    """The pending check holds the step's loss values, not its graph: a graph kept to the next step would keep its
-    renders' buffer set leased (they are freed with it), so the next render would need a second set."""
+    """The pending check holds the step's loss values, not its graph, and the renders hand their buffer set back
+    after their backward: one set serves every step."""
     from warpgs.render import gaussians_fast
 
     gaussians_fast.release_workspaces()  # this thread's pool starts empty
@@ -85,8 +85,8 @@ def test_the_deferred_guard_keeps_no_autograd_graph_into_the_next_step(tmp_path,
 
 
 def test_a_batch_of_views_renders_each_into_the_same_buffer_set(tmp_path):
-    """A view's pass keeps its losses without their graph, so its render's buffer set is free again for the next
-    view of the same step: a batch of two views leaves one set in the pool, as one view does."""
+    """A view's pass keeps its losses without their graph, and its render's buffer set is back in the pool for the
+    next view of the same step: a batch of two views leaves one set in the pool, as one view does."""
     from warpgs.render import gaussians_fast
 
     gaussians_fast.release_workspaces()  # this thread's pool starts empty

@@ -47,8 +47,8 @@ class HostScalars:
 
 
 def without_graph(result: LossResult) -> LossResult:
-    """A view's losses after its backward, without their autograd graph: held, the graph would keep the render's
-    buffer set leased (the render ops free it with the graph), so the next view's render would need another."""
+    """A view's losses after its backward, without their autograd graph: the step keeps them (the NaN guard, the
+    log) past the next view's render, and a graph held that long keeps its nodes and whatever their contexts hold."""
     return replace(result, total=result.total.detach()) if is_dataclass(result) else result
 
 

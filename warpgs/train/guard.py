@@ -101,7 +101,7 @@ class PendingCheck:
     without an error, as check lets it pass."""
 
     def __init__(self, step: int, labels: list, flags: torch.Tensor, result, guard: "NonFiniteGuard"):
-        # The loss's values only: its autograd graph (the renders' kept buffers with it) is freed with the step.
+        # The loss's values only: held to the next step's check, its autograd graph would outlive the step.
         if dataclasses.is_dataclass(result):
             result = dataclasses.replace(result, total=result.total.detach())
         self.step, self.labels, self.result, self.guard = step, labels, result, guard
