@@ -79,22 +79,22 @@ class Environment(Extension):
     def after_render(self, trainer, out, batch: dict, step: int):
         if out.rgb is None or out.alpha is None:
             return out
+        env = trainer.modules["environment"](self._directions(batch))
+        out.rgb = out.rgb + (1.0 - out.alpha) * env
+        return out
+
+    def _directions(self, batch: dict) -> torch.Tensor:
+        """The view's ray directions, kept per camera. Keyed by the camera tensors' identity and version, not their
+        values: reading the values is a host read (a stall on a GPU) every step; a view keeps its tensors for the
+        run. The entry holds them, so an id is never another tensor's."""
         W, H = int(batch["width"]), int(batch["height"])
         viewmat, K = batch["viewmat"], batch["K"]
         if torch.is_inference_mode_enabled() or viewmat.is_inference() or K.is_inference():
-            # nothing kept: inference tensors have no version counter, and kept ones could not serve a training step
-            env = trainer.modules["environment"](ray_directions(viewmat, K, W, H))
-            out.rgb = out.rgb + (1.0 - out.alpha) * env
-            return out
-        # Keyed by the camera tensors' identity and version, not their values: reading the values is a host read
-        # (a stall on a GPU) every step; a view keeps its tensors for the run. The entry holds them, so an id is
-        # never another tensor's.
+            return ray_directions(viewmat, K, W, H)  # inference tensors: no version counter, unfit for training
         key = (id(viewmat), viewmat._version, id(K), K._version, W, H)
         hit = self._dirs.get(key)
         if hit is None or hit[0] is not viewmat or hit[1] is not K:
             if len(self._dirs) > 512:
                 self._dirs.clear()
             hit = self._dirs[key] = (viewmat, K, ray_directions(viewmat, K, W, H))
-        env = trainer.modules["environment"](hit[2])
-        out.rgb = out.rgb + (1.0 - out.alpha) * env
-        return out
+        return hit[2]
