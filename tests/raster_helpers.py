@@ -3,8 +3,9 @@ import os
 
 import torch
 
+from random_scenes import random_scene
 from reference import render_reference
-from warpgs import rasterize
+from warpgs import rasterize, rasterize_surfels
 
 ALL_OUTPUTS = ("rgb", "alpha", "depth", "inv_depth", "features")
 # The suite runs on the CPU (CI); WARPGS_TEST_DEVICE=cuda runs the Warp side of it on a GPU instead.
@@ -45,3 +46,22 @@ def assert_same_result(a, b, name, exact=True):
     else:
         scale = max(1.0, b.abs().max().item()) if b.numel() else 1.0
         assert torch.allclose(a.double(), b.double(), atol=2e-6 * scale, rtol=1e-4), f"{name}: max diff {diff:.3g}"
+
+
+def op_for(surfels: bool):
+    """rasterize, or rasterize_surfels."""
+    return rasterize_surfels if surfels else rasterize
+
+
+def op_scene(n: int = 64, seed: int = 3) -> dict:
+    """A small random scene as float32 tensors on DEVICE, for calling the ops directly."""
+    return {k: (v.float().to(DEVICE) if isinstance(v, torch.Tensor) else v)
+            for k, v in random_scene(n=n, seed=seed).items()}
+
+
+def op_leaves(scene: dict, surfels: bool) -> list:
+    """Fresh leaves (means, quats, scales, opacities, colors) of `scene` that want gradients; 2D scales for surfels."""
+    leaves = [scene[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
+    if surfels:
+        leaves[2] = scene["scales"][:, :2].clone().requires_grad_(True)
+    return leaves

@@ -5,28 +5,13 @@ buffers are rewritten by the next render."""
 import pytest
 import torch
 
-from random_scenes import look_at, random_scene
-from raster_helpers import DEVICE
-from warpgs import rasterize, rasterize_surfels
+from random_scenes import look_at
+from raster_helpers import DEVICE, op_for, op_leaves as _leaves, op_scene as _scene
 from warpgs.render import gaussians_fast, validation, workspace
-
-OPS = {"gaussians": rasterize, "surfels": rasterize_surfels}
-
-
-def _scene():
-    s = random_scene(n=64, seed=3)
-    return {k: (v.float().to(DEVICE) if isinstance(v, torch.Tensor) else v) for k, v in s.items()}
 
 
 def _camera(eye):
     return look_at(eye, (0.0, 0.0, 0.0)).float().to(DEVICE)
-
-
-def _leaves(s, surfels):
-    leaves = [s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
-    if surfels:
-        leaves[2] = s["scales"][:, :2].clone().requires_grad_(True)
-    return leaves
 
 
 def _K(s, zoom):
@@ -36,8 +21,8 @@ def _K(s, zoom):
 
 
 def _forward(s, leaves, viewmat, K, surfels, background=None):
-    out = OPS["surfels" if surfels else "gaussians"](*leaves, viewmat, K, s["width"], s["height"],
-                                                     outputs=("rgb", "depth"), background=background)
+    out = op_for(surfels)(*leaves, viewmat, K, s["width"], s["height"], outputs=("rgb", "depth"),
+                          background=background)
     return out.rgb.sum() + 0.1 * out.depth.sum()
 
 

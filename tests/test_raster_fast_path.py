@@ -8,8 +8,8 @@ import torch
 
 from legacy_raster import rasterize_legacy
 from random_scenes import look_at, random_scene
-from raster_helpers import DEVICE, assert_same_result as _assert_same
-from warpgs import rasterize, rasterize_surfels
+from raster_helpers import DEVICE, assert_same_result as _assert_same, op_for, op_leaves, op_scene
+from warpgs import rasterize
 from warpgs.render.defaults import raster_options
 
 INPUTS = ("means", "quats", "scales", "opacities", "colors", "features", "viewmat", "K")
@@ -37,16 +37,6 @@ def _render(scene, leaves, outputs, op=rasterize, **kw):
     return op(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
                      leaves["viewmat"], leaves["K"], scene["width"], scene["height"], sh_degree=scene["sh_degree"],
                      features=leaves["features"], outputs=outputs, **kw)
-
-
-def _op_inputs(surfels: bool):
-    """(op, scene, leaves): rasterize or rasterize_surfels, a small float32 scene and fresh leaves (means, quats,
-    scales, opacities, colors; 2D scales for surfels)."""
-    s = {k: (v.float().to(DEVICE) if isinstance(v, torch.Tensor) else v) for k, v in random_scene(n=64, seed=3).items()}
-    leaves = [s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
-    if surfels:
-        leaves[2] = s["scales"][:, :2].clone().requires_grad_(True)
-    return (rasterize_surfels if surfels else rasterize), s, leaves
 
 
 def _loss(out, weights):
@@ -128,7 +118,7 @@ def test_renders_nobody_differentiates_skip_autograd_and_match(op, monkeypatch):
     scene = random_scene(n=60, seed=7, num_features=2)
     if op == "surfels":
         scene = dict(scene, scales=scene["scales"][:, :2])
-    render = rasterize if op == "gaussians" else rasterize_surfels
+    render = op_for(op == "surfels")
     outputs = ("rgb", "alpha", "depth", "features")
     graded = _render(scene, _leaves(scene), outputs, op=render, tile_size=8)
     function = FastRasterizeFunction if op == "gaussians" else FastSurfelsFunction
@@ -153,7 +143,7 @@ def test_a_render_where_one_input_needs_a_gradient_still_gets_it(op, leaf):
     scene = random_scene(n=60, seed=7, num_features=2)
     if op == "surfels":
         scene = dict(scene, scales=scene["scales"][:, :2])
-    render = rasterize if op == "gaussians" else rasterize_surfels
+    render = op_for(op == "surfels")
     leaves = _leaves(scene, False)
     background = torch.full((3,), 0.3, device=DEVICE)
     wanted = {"features": leaves["features"], "K": leaves["K"], "background": background}[leaf].requires_grad_(True)
@@ -302,7 +292,8 @@ def test_a_second_backward_through_a_render_is_refused_by_name(surfels):
     """The render ops give a render's buffers back after its backward (held to the graph's end, a caller keeping
     each step's loss would lease a set a step), so loss.backward(retain_graph=True) twice raises a clear error
     instead of failing inside the op; the first backward's gradients are intact."""
-    op, s, leaves = _op_inputs(surfels)
+    op, s = op_for(surfels), op_scene()
+    leaves = op_leaves(s, surfels)
     out = op(*leaves, s["viewmat"], s["K"], s["width"], s["height"], outputs=("rgb", "depth"))
     loss = out.rgb.sum() + out.depth.sum()
     loss.backward(retain_graph=True)
@@ -316,7 +307,8 @@ def test_keeping_each_steps_loss_leases_no_more_buffers(monkeypatch):
     render's buffer set per step: the op gives it back when its backward ends."""
     from warpgs.render import workspace
 
-    _, s, leaves = _op_inputs(surfels=False)
+    s = op_scene()
+    leaves = op_leaves(s, surfels=False)
     kept = []
 
     def step():
@@ -344,7 +336,8 @@ def test_a_second_derivative_through_a_render_is_refused(surfels, loss):
     """The ops' backward is Warp kernels, differentiable once: a gradient penalty (create_graph=True) must fail
     loudly, not leave the render's part of it out, also for a loss linear in the image (whose incoming gradient is
     a constant: torch's once_differentiable lets that through)."""
-    op, s, leaves = _op_inputs(surfels)
+    op, s = op_for(surfels), op_scene()
+    leaves = op_leaves(s, surfels)
     out = op(*leaves, s["viewmat"], s["K"], s["width"], s["height"], outputs=("rgb",))
     value = ((out.rgb - 0.5) ** 2).sum() if loss == "squared" else out.rgb.mean()
     with pytest.raises(RuntimeError, match="render.*not differentiable"):
