@@ -7,7 +7,7 @@ import torch
 
 from random_scenes import look_at
 from raster_helpers import DEVICE, op_for, op_leaves as _leaves, op_scene as _scene
-from warpgs.render import gaussians_fast, validation, workspace
+from warpgs.render import device_state, validation, workspace
 
 
 def _camera(eye):
@@ -42,7 +42,7 @@ def test_the_launch_sequence_key_does_not_change_with_the_camera(monkeypatch, su
 
     monkeypatch.setattr(workspace.LaunchSequence, "run", recording)
     # a fresh state: a full descriptor memo (after many other tests) is cleared whole, which can change a key once
-    gaussians_fast.release_workspaces()
+    device_state.release_workspaces()
     s = _scene()
     leaves = [t.detach() for t in _leaves(s, surfels)]
     for eye, zoom, grey in (((0.3, -0.2, -4.0), 1.0, 0.2), ((-0.5, 0.1, -3.5), 1.1, 0.6)):
@@ -50,7 +50,7 @@ def test_the_launch_sequence_key_does_not_change_with_the_camera(monkeypatch, su
         background = torch.full((3,), grey, device=DEVICE, requires_grad=True)
         _forward(s, leaves, _camera(eye), _K(s, zoom), surfels, background)
     assert len(keys) == 2 and keys[0] == keys[1]
-    staged = gaussians_fast.device_state(leaves[0].device)._staged["background"]
+    staged = device_state.device_state(leaves[0].device)._staged["background"]
     assert staged.grad_fn is None and not staged.requires_grad  # no autograd chain through the staged copy
 
 
@@ -75,7 +75,7 @@ def test_interleaved_renders_of_two_cameras_get_their_own_gradients(surfels):
 
 @pytest.mark.parametrize("surfels", [False, True])
 def test_a_first_render_under_inference_mode_leaves_later_renders_working(surfels):
-    gaussians_fast.release_workspaces()  # a fresh state for this thread: its buffers are made by the next render
+    device_state.release_workspaces()  # a fresh state for this thread: its buffers are made by the next render
     s = _scene()
     with torch.inference_mode():
         _forward(s, [t.detach() for t in _leaves(s, surfels)], _camera((0.3, -0.2, -4.0)), s["K"], surfels)

@@ -6,7 +6,7 @@ import torch
 
 from random_scenes import random_scene
 from warpgs import rasterize, rasterize_surfels
-from warpgs.render import gaussians_fast, workspace
+from warpgs.render import device_state, workspace
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
 
@@ -27,7 +27,7 @@ def _render(s, surfels=False, **kw):
 
 
 def _graphs():
-    return gaussians_fast.device_state(torch.device("cuda", torch.cuda.current_device())).ws.graphs
+    return device_state.device_state(torch.device("cuda", torch.cuda.current_device())).ws.graphs
 
 
 @pytest.mark.parametrize("surfels", [False, True])
@@ -77,7 +77,7 @@ def test_captures_leave_other_threads_default_stream_work_alone():
     (a viewer beside the trainer, say) must not fail while this thread captures."""
     import threading
 
-    from warpgs.render.gaussians_fast import release_workspaces
+    from warpgs.render.device_state import release_workspaces
 
     s = _scene()
     reference = _render(s)[0]

@@ -72,26 +72,26 @@ def test_a_densifying_step_reads_back_only_the_previous_steps_guard_flags(tmp_pa
 def test_the_deferred_guard_keeps_no_autograd_graph_into_the_next_step(tmp_path, preset):
     """The pending check holds the step's loss values, not its graph, and the renders hand their buffer set back
     after their backward: one set serves every step."""
-    from warpgs.render import gaussians_fast
+    from warpgs.render import device_state
 
-    gaussians_fast.release_workspaces()  # this thread's pool starts empty
+    device_state.release_workspaces()  # this thread's pool starts empty
     overrides = quick_overrides(tmp_path, 100, **{"optim.adam_kernel": "fused"})
     trainer = Trainer(str(ROOT / "configs" / f"{preset}.yaml"), overrides=overrides, quiet=True)
     for _ in range(4):
         trainer.train_step()
     pending = trainer.step_guard.pending
     assert pending is not None and pending.result.total.grad_fn is None
-    assert len(gaussians_fast.device_state(trainer.device).ws._free_frames) == 1
+    assert len(device_state.device_state(trainer.device).ws._free_frames) == 1
 
 
 def test_a_batch_of_views_renders_each_into_the_same_buffer_set(tmp_path):
     """A view's pass keeps its losses without their graph, and its render's buffer set is back in the pool for the
     next view of the same step: a batch of two views leaves one set in the pool, as one view does."""
-    from warpgs.render import gaussians_fast
+    from warpgs.render import device_state
 
-    gaussians_fast.release_workspaces()  # this thread's pool starts empty
+    device_state.release_workspaces()  # this thread's pool starts empty
     overrides = quick_overrides(tmp_path, 100, **{"optim.adam_kernel": "fused", "train.batch_size": 2})
     trainer = Trainer(str(ROOT / "configs" / "default.yaml"), overrides=overrides, quiet=True)
     for _ in range(4):
         trainer.train_step()
-    assert len(gaussians_fast.device_state(trainer.device).ws._free_frames) == 1
+    assert len(device_state.device_state(trainer.device).ws._free_frames) == 1

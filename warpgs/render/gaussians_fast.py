@@ -15,141 +15,19 @@ from __future__ import annotations
 
 import functools
 import math
-import threading
-from typing import Dict, Optional
 
 import torch
 import warp as wp
 
 from warpgs.render import fast_pipeline as fast
 from warpgs.render.camera_rows import camera_rows
+from warpgs.render.device_state import DeviceState, device_state
 from warpgs.render.differentiable_once import differentiable_once
 from warpgs.render.pipeline_gaussians import _cooperative
 from warpgs.render.validation import raise_flagged
-from warpgs.render.torch_streams import warp_device, warp_stream
-from warpgs.render.workspace import Workspace
-
-class _DeviceState:
-    """Per (thread, device, torch stream): the Warp device, the Warp view of torch's stream, the workspace."""
-
-    def __init__(self, device: torch.device, torch_stream):
-        self.wdev = warp_device(device)
-        self.stream = None if torch_stream is None else warp_stream(torch_stream)  # one view per stream
-        self.ws = Workspace(self.wdev)
-        if torch_stream is not None:
-            self.ws.graphs.stream_factory = lambda: _nonblocking_stream(device, self.wdev)
-        self._descs: Dict = {}
-        self._arrays: Dict = {}
-        self._staged: Dict = {}
-
-    def desc(self, t: torch.Tensor, dtype):
-        """`_desc(t, dtype)`, memoised by address, shape and strides (all a descriptor holds): the same memory seen
-        again (parameters updated in place, torch's allocator handing back a block) gives the same object, which
-        a recorded launch then does not re-pack."""
-        key = (t.data_ptr(), t.shape, t.stride(), dtype)
-        d = self._descs.get(key)
-        if d is None:
-            if len(self._descs) > _MEMO_SIZE:
-                self._descs.clear()
-            d = self._descs[key] = _desc(t, dtype)
-        return d
-
-    def staged(self, name: str, t: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
-        """t copied into this state's own buffer `name` (made once per shape and dtype, then rewritten in stream
-        order). A render's camera changes every training step; read from fixed buffers it leaves the launch
-        sequence's key (workspace.LaunchSequence) unchanged, so the sequence replays from its CUDA graph."""
-        if t is None:
-            return None
-        buf = self._staged.get(name)
-        if buf is None or buf.shape != t.shape or buf.dtype != t.dtype:
-            with torch.inference_mode(False):  # made under inference_mode, a later render outside it could not write it
-                buf = self._staged[name] = torch.empty(t.shape, dtype=t.dtype, device=t.device)
-        buf.copy_(t.detach())  # the values only: a copy that autograd records would chain every render's graph to it
-        return buf
-
-    def tensor(self, a: wp.array) -> torch.Tensor:
-        """wp.to_torch(a), memoised like `desc` (for workspace views read every call)."""
-        key = ("tensor", a.ptr, a.shape, a.dtype)
-        t = self._descs.get(key)
-        if t is None:
-            if len(self._descs) > _MEMO_SIZE:
-                self._descs.clear()
-            t = self._descs[key] = wp.to_torch(a, requires_grad=False)
-        return t
-
-    def array(self, t: torch.Tensor, n: int, dtype) -> wp.array:
-        """A Warp array of n elements over a tensor's memory, memoised like `desc`."""
-        key = (t.data_ptr(), n, dtype)
-        a = self._arrays.get(key)
-        if a is None:
-            if len(self._arrays) > _MEMO_SIZE:
-                self._arrays.clear()
-            a = self._arrays[key] = wp.array(ptr=key[0], dtype=dtype, shape=(n,), device=self.wdev)
-        return a
-
-    def scope(self):
-        """Makes torch's stream Warp's current one (no cross-stream sync: all our work is on torch's stream)."""
-        if self.stream is None:
-            return _NULL_SCOPE
-        return wp.ScopedStream(self.stream, sync_enter=False)
 
 
-def _nonblocking_stream(device: torch.device, wdev) -> wp.Stream:
-    """A Warp view of a new non-blocking CUDA stream (torch makes its streams non-blocking), where graphs are
-    captured: a blocking one would make other threads' work on the legacy default stream fail during a capture."""
-    side = torch.cuda.Stream(device)
-    stream = wp.Stream(wdev, cuda_stream=side.cuda_stream)
-    stream._torch_stream = side  # keeps torch's stream (and so its handle) alive
-    return stream
-
-
-class _NullScope:
-    def __enter__(self):
-        return None
-
-    def __exit__(self, *exc):
-        return False
-
-
-_NULL_SCOPE = _NullScope()
-_MEMO_SIZE = 256  # descriptors and array views kept per device state
-_local = threading.local()
-
-
-def device_state(device: torch.device) -> _DeviceState:
-    table: Dict = getattr(_local, "table", None)
-    if table is None:
-        table = _local.table = {}
-    stream = None
-    if device.type == "cuda":
-        if device.index is None:
-            device = torch.device("cuda", torch.cuda.current_device())
-        stream = torch.cuda.current_stream(device)
-        key = (device.index, stream.cuda_stream)
-    else:
-        key = None
-    state = table.get(key)
-    if state is None:
-        state = table[key] = _DeviceState(device, stream)
-    return state
-
-
-def release_workspaces() -> None:
-    """Frees this thread's workspaces: scratch memory, lent buffer sets not in use, recorded launches. The next
-    render allocates them again."""
-    _local.table = {}
-
-
-def _desc(t: torch.Tensor, dtype):
-    """A bare Warp array descriptor of a contiguous tensor, holding no reference to it (torch keeps the memory
-    alive for the call; a recorded launch must not keep it alive afterwards)."""
-    d = wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
-    d._ref = None
-    d._gradref = None
-    return d
-
-
-def _features_arg(t, num_features: int, layout: str, state: "_DeviceState"):
+def _features_arg(t, num_features: int, layout: str, state: "DeviceState"):
     """Features (or their gradients) for the blend kernels: [rows, C] floats on the CPU, length-C vectors on GPUs."""
     if num_features == 0:
         ws = state.ws
@@ -211,13 +89,13 @@ _PROJECTION_DTYPES = (wp.vec3, wp.vec4, None, wp.vec3, wp.mat44, wp.vec4)  # sca
 _CAMERA_VIEWS = (None, None, None, None, (1, 4, 4), (1, 4))
 
 
-def projection_inputs(state: "_DeviceState", tensors, scale_dtype) -> list:
+def projection_inputs(state: "DeviceState", tensors, scale_dtype) -> list:
     """Descriptors of (means, quats, scales, coeffs, viewmat [1,4,4], intrinsics [1,4]), contiguous tensors, as the
     projection kernels take them."""
     return [state.desc(t, scale_dtype if dt is None else dt) for t, dt in zip(tensors, _PROJECTION_DTYPES)]
 
 
-def projection_gradients(state: "_DeviceState", grads, scale_dtype) -> list:
+def projection_gradients(state: "DeviceState", grads, scale_dtype) -> list:
     """The projection adjoint's gradient descriptors from the op's eight input gradients (means, quats, scales,
     opacities, coeffs, features, viewmat, intrinsics; None where not wanted): those of the projection inputs."""
     picked = (grads[0], grads[1], grads[2], grads[4], grads[6], grads[7])
@@ -225,7 +103,7 @@ def projection_gradients(state: "_DeviceState", grads, scale_dtype) -> list:
             for g, dt, v in zip(picked, _PROJECTION_DTYPES, _CAMERA_VIEWS)]
 
 
-def projection_adjoint(state: "_DeviceState", backward, frame, settings, tensors, grads, needs, projected,
+def projection_adjoint(state: "DeviceState", backward, frame, settings, tensors, grads, needs, projected,
                        scale_dtype) -> None:
     """Runs `backward` (a pipeline's project_backward) on the projection inputs `tensors` (means, quats, scales,
     coeffs, viewmat, intrinsics) with the op's eight input gradients. On GPUs (the cooperative kernels) a wanted
@@ -272,7 +150,7 @@ def _contiguous_strides(shape) -> tuple:
     return tuple(reversed(strides))
 
 
-def upstream_gradient(state: "_DeviceState", layout: str, alive: list, g, name: str, shape, dtype, rows_dtype=None):
+def upstream_gradient(state: "DeviceState", layout: str, alive: list, g, name: str, shape, dtype, rows_dtype=None):
     """The upstream gradient of an output in the kernels' layout (a descriptor of a contiguous copy, appended to
     `alive`, which must outlive the launches); a shared zero buffer when autograd has none (the loss did not use
     that output). rows_dtype: the dtype of the CPU kernels' [rows, C] layout, where it differs."""
@@ -284,7 +162,7 @@ def upstream_gradient(state: "_DeviceState", layout: str, alive: list, g, name: 
     return state.desc(g, rows_dtype if rows else dtype)
 
 
-def upstream_features(state: "_DeviceState", layout: str, alive: list, g, npix: int, num_features: int):
+def upstream_features(state: "DeviceState", layout: str, alive: list, g, npix: int, num_features: int):
     """`upstream_gradient` of the feature image (a dummy when no features were rendered)."""
     if not num_features:
         return _features_arg(None, 0, layout, state)
@@ -292,7 +170,7 @@ def upstream_features(state: "_DeviceState", layout: str, alive: list, g, npix: 
                              fast.blend_gpu.feature_vector_type(num_features), wp.float32)
 
 
-def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: str, state: "_DeviceState"):
+def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: str, state: "DeviceState"):
     """Where the blend adjoint accumulates the feature gradients ([rows, C] floats on the CPU, vectors on GPUs)."""
     if num_features and layout == "rows":
         return wp.array(ptr=g_features.data_ptr(), dtype=wp.float32, shape=tuple(g_features.shape),
@@ -302,7 +180,7 @@ def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: st
     return _features_arg(None, 0, layout, state)
 
 
-def blend_upstream(state: "_DeviceState", layout: str, alive: list, settings, wanted, grads) -> tuple:
+def blend_upstream(state: "DeviceState", layout: str, alive: list, settings, wanted, grads) -> tuple:
     """The blend adjoint's upstream (color, alpha, depth, inv_depth, features) from the op's output gradients
     `grads` (None where the loss did not use an output; zero buffers there), as the kernels take them: the depth's is
     the expected depth's, which the adjoint takes through the division itself. Copies go to `alive`."""
@@ -321,7 +199,7 @@ def blend_upstream(state: "_DeviceState", layout: str, alive: list, settings, wa
     return gc, ga, gd, gi, gf
 
 
-def image_outputs(state: "_DeviceState", like: torch.Tensor, settings, wanted, layout: str, keep):
+def image_outputs(state: "DeviceState", like: torch.Tensor, settings, wanted, layout: str, keep):
     """The blend's outputs for one render: ((color, alpha, depth, inv_depth, features) fresh [H, W, C] tensors on
     `like`'s device, empty where not wanted; zacc, the depth accumulation in `keep` (or the workspace); the arrays
     as the blend kernels take them, `fast.forward`'s `outputs`)."""
@@ -345,7 +223,7 @@ def image_outputs(state: "_DeviceState", like: torch.Tensor, settings, wanted, l
     return (color, alpha, depth, inv_depth, feats), zacc, arrays
 
 
-def staged_camera(state: "_DeviceState", viewmat: torch.Tensor, intrinsics: torch.Tensor, check):
+def staged_camera(state: "DeviceState", viewmat: torch.Tensor, intrinsics: torch.Tensor, check):
     """(viewmat, intrinsics, check) as the forward's launch sequence reads them: copied into the state's own buffers
     (`_DeviceState.staged`), so the sequence's key does not change with the view. check: None, or the caller's
     (features, K, background), K and background staged. The backward reads the caller's tensors (saved by the op):
@@ -356,7 +234,7 @@ def staged_camera(state: "_DeviceState", viewmat: torch.Tensor, intrinsics: torc
     return state.staged("viewmat", viewmat), state.staged("intrinsics", intrinsics), check
 
 
-def input_check(state: "_DeviceState", primitives, viewmat: torch.Tensor, extra, alive: list) -> fast.InputCheck:
+def input_check(state: "DeviceState", primitives, viewmat: torch.Tensor, extra, alive: list) -> fast.InputCheck:
     """The finite-value check of a render (fast_pipeline.InputCheck). primitives: the contiguous (means, quats,
     scales, opacities, coeffs); viewmat [1, 4, 4]; extra: the caller's (features or None, K [3, 3], background or
     None), checked as given (features even when not rendered, all nine entries of K). Copies made here go to

@@ -16,7 +16,8 @@ import warp as wp
 from warpgs.kernels import project, splat_rows
 from warpgs.render import fast_pipeline as fast
 from warpgs.render.differentiable_once import differentiable_once
-from warpgs.render.gaussians_fast import (_PROJECTION_DTYPES, _features_arg, blend_upstream, device_state,
+from warpgs.render.device_state import device_state
+from warpgs.render.gaussians_fast import (_PROJECTION_DTYPES, _features_arg, blend_upstream,
                                           feature_gradient_arg, image_outputs, projection_inputs, take_backward_state)
 
 # A splat row: (first column, width, Warp dtype) of each field; the features follow from column SPLAT_COLUMNS on.

@@ -21,7 +21,8 @@ from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.fast_pipeline_surfels import IMAGES, SurfelWanted, image_wanted
 from warpgs.render.gaussians import (RenderOutput, _intrinsics_vector, _stack, _to_wp, checked_call, raster_settings,
                                      op_inputs, set_image_outputs)
-from warpgs.render.gaussians_fast import _features_arg, device_state, run_op
+from warpgs.render.device_state import device_state
+from warpgs.render.gaussians_fast import _features_arg, run_op
 from warpgs.render.pipeline_gaussians import Settings
 from warpgs.render.validation import checks_before_render
 from warpgs.render.surfels_fast import FastSurfelsFunction

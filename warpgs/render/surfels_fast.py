@@ -10,7 +10,8 @@ from warpgs.render import fast_pipeline_surfels as fast
 from warpgs.render.differentiable_once import differentiable_once
 from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.fast_pipeline import feature_layout
-from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, device_state, feature_gradient_arg,
+from warpgs.render.device_state import device_state
+from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, feature_gradient_arg,
                                           gradient_buffers, input_check, projection_adjoint, projection_inputs,
                                           staged_camera, take_backward_state,
                                           upstream_features, upstream_gradient)
