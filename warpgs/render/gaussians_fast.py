@@ -225,7 +225,7 @@ def image_outputs(state: "DeviceState", like: torch.Tensor, settings, wanted, la
 
 def staged_camera(state: "DeviceState", viewmat: torch.Tensor, intrinsics: torch.Tensor, check):
     """(viewmat, intrinsics, check) as the forward's launch sequence reads them: copied into the state's own buffers
-    (`_DeviceState.staged`), so the sequence's key does not change with the view. check: None, or the caller's
+    (`DeviceState.staged`), so the sequence's key does not change with the view. check: None, or the caller's
     (features, K, background), K and background staged. The backward reads the caller's tensors (saved by the op):
     the buffers are rewritten by the next render."""
     if check is not None:
