@@ -224,7 +224,7 @@ def main():
                 workspace.GRAPHS_ENABLED = HAS_GRAPHS
                 g_times = tuple(statistics.median(v) for v in times["gsplat"]) if args.gsplat else None
                 fwd_tile = choose_tile_size(tile, False, on_gpu=device.startswith("cuda"),  # the forward's
-                                            primitives_per_pixel=None if surfels else n / (W * H))
+                                            primitives_per_pixel=n / (W * H), surfels=surfels)
                 if surfels:
                     work = surfel_work(means, quats, scales, opacities, viewmat, K, W, H, tile_size=fwd_tile)
                     evals, pairs = work["evaluations"], work["tile_pairs"]

@@ -203,7 +203,7 @@ def rasterize_surfels_legacy(means, quats, scales, opacities, colors, viewmat, K
     kw = dict(sh_degree=sh_degree, features=features, background=background, outputs=outputs)
     grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad
                                            for t in (means, quats, scales, opacities, colors, features))
-    tile_size = choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda")
+    tile_size = choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda", surfels=True)
     if viewmat.dim() == 3:
         return _stack([rasterize_surfels_legacy(means, quats, scales, opacities, colors, viewmat[b], K[b], width,
                                                 height, tile_size=tile_size, **kw)

@@ -91,8 +91,8 @@ def test_default_tile_size_follows_device_and_whether_a_backward_pass_comes(n):
 
 
 def test_tile_size_rule():
-    """The rule itself, for every device and density: a given size wins; GPU forwards of dense 3D Gaussians (and of
-    surfels, which pass no density) take 16; everything else 8."""
+    """The rule itself, for every device and density: a given size wins; GPU forwards of dense 3D Gaussians (or of
+    3D Gaussians of unknown density) take 16; everything else, surfels included, 8."""
     assert choose_tile_size(32, needs_grad=False, on_gpu=True, primitives_per_pixel=1.0) == 32
     assert choose_tile_size(None, needs_grad=False, on_gpu=False, primitives_per_pixel=1.0) == 8
     assert choose_tile_size(None, needs_grad=True, on_gpu=True, primitives_per_pixel=1.0) == 8
@@ -100,3 +100,4 @@ def test_tile_size_rule():
     assert choose_tile_size(None, needs_grad=False, on_gpu=True, primitives_per_pixel=100_000 / (1920 * 1080)) == 8
     assert choose_tile_size(None, needs_grad=False, on_gpu=True, primitives_per_pixel=300_000 / (1920 * 1080)) == 16
     assert choose_tile_size(None, needs_grad=False, on_gpu=True) == 16
+    assert choose_tile_size(None, needs_grad=False, on_gpu=True, primitives_per_pixel=1.0, surfels=True) == 8

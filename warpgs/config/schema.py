@@ -72,7 +72,7 @@ class TrainConfig:
     near: float = 0.01
     far: float = 1e10
     tile_size: Optional[int] = None  # speed only (the image does not depend on it); None: 8, or 16 for forward-only
-    #                                  GPU renders of dense scenes (render/defaults.py choose_tile_size)
+    #                                  GPU renders of dense 3D Gaussians (render/defaults.py choose_tile_size)
     # Accuracy knobs of the renderer (defaults: the 3DGS rules, exact within them); raising them trades
     # accuracy for speed, see benchmarks/speed_vs_error.py.
     max_sigmas: float = 0.0  # > 0: truncate each footprint at this many sigmas

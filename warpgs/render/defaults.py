@@ -4,13 +4,14 @@ image does not depend on them); the defaults are the fastest measured by benchma
 on H100/H200 GPUs and on the CPU: 8 on the CPU (up to 2x faster than 16, forward and backward) and on GPUs when a
 backward pass follows (fwd+bwd faster at 100k, 300k and 1M Gaussians); for forward-only GPU renders of 3D Gaussians
 8 while they are sparse (13% faster at 100k Gaussians at 1080p) and 16 once they are dense (6% faster at 300k, 20% at
-1M, where sorting 2-2.5x more tile keys costs); surfels' forward-only renders take 16."""
+1M, where sorting 2-2.5x more tile keys costs); surfels take 8 for every render (their forward at 8 is 10-25% faster
+than at 16 at 100k, 300k and 1M: raster_cuda_h200_surfels_tiles_s28.json)."""
 import os
 from contextlib import contextmanager
 from dataclasses import dataclass, fields, replace
 
 DEFAULT_TILE_SIZE = 8  # the CPU, and GPU renders that will be differentiated (training)
-GPU_FORWARD_ONLY_TILE_SIZE = 16  # dense GPU renders nobody differentiates (evaluation, viewers)
+GPU_FORWARD_ONLY_TILE_SIZE = 16  # dense GPU renders of 3D Gaussians nobody differentiates (evaluation, viewers)
 # 3D Gaussians per pixel of the image from which forward-only GPU renders take 16: between the measured sides of the
 # crossover at 1080p (100k Gaussians = 0.05 a pixel: 8 faster; 300k = 0.14: 16 faster; raster_cuda_h200_tiles_s27.json).
 DENSE_PRIMITIVES_PER_PIXEL = 0.1
@@ -44,13 +45,13 @@ def alpha_clamp_problem(alpha_min: float, alpha_max: float):
     return None
 
 
-def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool, primitives_per_pixel=None) -> int:
-    """tile_size as given, or (None) the measured default for this device and kind of render. primitives_per_pixel
-    (3D Gaussians: their count over the image's pixels) keeps sparse forward-only GPU renders at 8; None (surfels,
-    whose crossover was not measured) gives 16 to every forward-only GPU render."""
+def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool, primitives_per_pixel=None, surfels: bool = False) -> int:
+    """tile_size as given, or (None) the measured default for this device and kind of render. 3D Gaussians:
+    primitives_per_pixel (their count over the image's pixels) keeps sparse forward-only GPU renders at 8 (None: taken
+    as dense). Surfels: 8 always."""
     if tile_size is not None:
         return tile_size
-    if not on_gpu or needs_grad:
+    if not on_gpu or needs_grad or surfels:
         return DEFAULT_TILE_SIZE
     if primitives_per_pixel is not None and primitives_per_pixel < DENSE_PRIMITIVES_PER_PIXEL:
         return DEFAULT_TILE_SIZE

@@ -176,8 +176,8 @@ def rasterize(
     "features" is in `outputs`. Only the requested outputs are computed.
     track_means2d: also return `out.means2d` [N,2] (or [B,N,2]), the projected centres in pixels, a leaf
     whose `.grad` after backward is dL/dmeans2d (what 3DGS-style densification thresholds).
-    tile_size (speed only; None: 8, or 16 for GPU renders autograd will not differentiate of at least 0.1 Gaussians
-    a pixel; see render/defaults.py choose_tile_size).
+    tile_size (speed only; None: 8, or 16 for GPU renders of 3D Gaussians autograd will not differentiate of at
+    least 0.1 Gaussians a pixel; see render/defaults.py choose_tile_size).
     Accuracy knobs (defaults: the 3DGS rules, exact within them): `max_sigmas` > 0 truncates each footprint at
     that many sigmas; `alpha_min` skips contributions below that alpha; blending stops before transmittance
     would drop under `transmittance_min`. Raising any of them trades accuracy for speed
@@ -275,8 +275,8 @@ def checked_call(known_outputs, outputs, means, quats, scales, opacities, colors
     if not 0.0 < float(screen_sigma) < float("inf"):
         raise ValueError(f"screen_sigma: expected a positive number of pixels, got {screen_sigma!r}")
     grad = track_means2d or _needs_grad(means, quats, scales, opacities, colors, features, viewmat, K, background)
-    density = means.shape[0] / float(width * height) if scale_dims == 3 else None  # surfels: see choose_tile_size
-    return outputs, choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda", primitives_per_pixel=density)
+    return outputs, choose_tile_size(tile_size, grad, on_gpu=means.device.type == "cuda",
+                                     primitives_per_pixel=means.shape[0] / float(width * height), surfels=scale_dims == 2)
 
 
 def _needs_grad(*tensors) -> bool:
