@@ -56,14 +56,25 @@ def evaluation_period(eval_every: int, marks: list) -> int:
     return math.gcd(int(eval_every), *(int(m) for m in marks))
 
 
+def auto_bound(configured: int, overrides: list, marks: list) -> int:
+    """schedule.max_steps of a train.steps=auto run: the largest mark, or a smaller bound the overrides name (the run
+    is still scored at every mark it reaches)."""
+    if not any(o.split("=", 1)[0].strip() == "schedule.max_steps" for o in overrides):
+        return marks[-1]
+    if configured > marks[-1]:
+        raise SystemExit(f"schedule.max_steps={configured}: the bound of train.steps=auto cannot exceed the largest "
+                         f"--steps mark ({marks[-1]}); raise --steps")
+    return configured
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", help="scene folder (COLMAP, transforms.json or LLFF)")
     ap.add_argument("--config", default="gaussians", help="preset or YAML (default: gaussians, the 3DGS recipe)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--steps", default="7000", help="comma-separated evaluation steps; the run goes to the largest "
-                                                    "(with train.steps=auto it is schedule.max_steps, whatever the "
-                                                    "overrides say)")
+                                                    "(with train.steps=auto it is schedule.max_steps unless an override "
+                                                    "sets a smaller one)")
     ap.add_argument("--eval-every", type=int, default=1000,
                     help="evaluation period; the run scores every gcd(this, each --steps mark) steps, so every mark "
                          "is scored")
@@ -111,7 +122,7 @@ def main(argv=None) -> dict:
     cfg = load_config(resolve_config_source(args.config), overrides + list(args.overrides))
     gsplat_cfg = cfg
     if cfg.train.steps == "auto":  # (override train.steps=auto) warpgs stops by its own rule within the largest mark
-        cfg.schedule.max_steps = marks[-1]
+        cfg.schedule.max_steps = auto_bound(cfg.schedule.max_steps, list(args.overrides), marks)
         gsplat_cfg = cfg.copy()
         gsplat_cfg.train.steps = marks[-1]  # the gsplat loop runs its fixed schedule to the largest mark
 

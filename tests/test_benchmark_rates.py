@@ -42,6 +42,15 @@ def test_marks_without_a_useful_common_period_are_refused(tmp_path):
         real_capture.main([str(tmp_path), "--steps", "7001", "--eval-every", "1000"])
 
 
+def test_an_auto_run_keeps_the_bound_an_override_names():
+    marks = [7000, 30000]
+    assert real_capture.auto_bound(30000, ["data.downscale=2"], marks) == 30000
+    assert real_capture.auto_bound(30000, [], [7000]) == 7000
+    assert real_capture.auto_bound(20000, ["schedule.max_steps=20000"], marks) == 20000
+    with pytest.raises(SystemExit, match="schedule.max_steps=40000.*largest --steps mark"):
+        real_capture.auto_bound(40000, ["schedule.max_steps = 40000"], marks)
+
+
 def test_each_evaluation_is_echoed_once_as_it_happens(capsys):
     from types import SimpleNamespace
 
