@@ -1,9 +1,10 @@
 """Renderer variants to time side by side in one process (benchmarks/raster.py, profile_stages.py).
 
 A variant is `default` (whatever the WARPGS_* variables select) or `fast`, then optional options joined by '+':
-`fast+bwd=block`, `fast+sbwd=warp_sums`, `fast+det=on`. Keys: bwd (the 3D GPU adjoint: warp_sums,
+`fast+bwd=block`, `fast+sbwd=warp_sums`, `fast+det=on`, `fast+keys=full`. Keys: bwd (the 3D GPU adjoint: warp_sums,
 block), sbwd (the surfel GPU adjoint: block, warp_sums), det (the deterministic adjoint: on, off; a no-op for the CPU's
-per-thread kernels, deterministic anyway); see warpgs/render/defaults.py.
+per-thread kernels, deterministic anyway), keys (the GPU tile-key emission's search: full, table); see
+warpgs/render/defaults.py.
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from contextlib import contextmanager
 
 from warpgs.render.defaults import current_raster_options, raster_options
 
-KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel", "det": "deterministic"}
+KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel", "det": "deterministic", "keys": "pair_search"}
 SWITCHES = {"on": True, "off": False}  # the values of on/off keys
 
 
@@ -43,4 +44,5 @@ def variant(spec: str):
 
 def describe() -> str:
     o = current_raster_options()
-    return f"fast+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}" + ("+det=on" if o.deterministic else "")
+    return (f"fast+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}+keys={o.pair_search}"
+            + ("+det=on" if o.deterministic else ""))

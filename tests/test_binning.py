@@ -30,23 +30,62 @@ def emit(kernel, rects, counts, order, tiles_x):
     total = int(offsets[-1])
     keys = wp.zeros(total, dtype=wp.int32, device="cpu")
     values = wp.zeros(total, dtype=wp.int32, device="cpu")
-    inputs = [cpu(rects, wp.vec4i), cpu(order, wp.int32), cpu(offsets, wp.int32), cpu(counts, wp.int32), tiles_x]
+    wp_rects, wp_order, wp_offsets, wp_counts = (cpu(rects, wp.vec4i), cpu(order, wp.int32), cpu(offsets, wp.int32),
+                                                 cpu(counts, wp.int32))
+    inputs = [wp_rects, wp_order, wp_offsets, wp_counts, tiles_x]
     if kernel is binning.emit_tile_keys:
         wp.launch(kernel, dim=len(counts), inputs=inputs, outputs=[keys, values], device="cpu")
+    elif kernel is binning.emit_tile_keys_by_table:
+        table = wp.full(binning.pair_table_length(total), -1, dtype=wp.int32, device="cpu")
+        wp.launch(binning.pair_slot_table, dim=table.shape[0], inputs=[wp_offsets, len(counts), total, table],
+                  device="cpu")
+        wp.launch(kernel, dim=total, inputs=[wp_rects, wp_order, wp_offsets, wp_counts, table, tiles_x],
+                  outputs=[keys, values], device="cpu")
     else:
         wp.launch(kernel, dim=total, inputs=inputs + [len(counts)], outputs=[keys, values], device="cpu")
     return keys.numpy(), values.numpy()
 
 
+@pytest.mark.parametrize("kernel", [binning.emit_tile_keys_per_pair, binning.emit_tile_keys_by_table])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_per_pair_emission_matches_the_per_primitive_loop(seed):
+def test_per_pair_emission_matches_the_per_primitive_loop(seed, kernel):
     rects, counts, depths = random_rects(seed)
     order = np.argsort(depths, kind="stable").astype(np.int32)
     loop = emit(binning.emit_tile_keys, rects, counts, order, 13)
-    pair = emit(binning.emit_tile_keys_per_pair, rects, counts, order, 13)
+    pair = emit(kernel, rects, counts, order, 13)
     assert len(loop[0]) == counts.sum() > 1000
     np.testing.assert_array_equal(pair[0], loop[0])
     np.testing.assert_array_equal(pair[1], loop[1])
+
+
+@pytest.mark.parametrize("case", ["one pair", "a table stride exactly", "culled runs", "one huge primitive"])
+def test_table_emission_at_the_edges(case):
+    """The coarse table's ends: totals at and around its stride, long runs of culled slots (count 0, so many slots
+    share one prefix sum), a primitive whose pairs span many table entries."""
+    stride = binning.PAIR_TABLE_STRIDE
+    if case == "one pair":
+        counts = np.array([0, 1, 0], np.int32)
+    elif case == "a table stride exactly":
+        counts = np.array([stride // 2, 0, stride // 2], np.int32)
+    elif case == "culled runs":
+        counts = np.zeros(500, np.int32)
+        counts[[3, 250, 251, 499]] = [5, stride + 1, 2, 7]
+    else:
+        counts = np.array([1, 0, 13 * 9, 1], np.int32)
+    n = len(counts)
+    rects = np.zeros((n, 4), np.int32)
+    rects[:, 2:] = -1
+    for i, c in enumerate(counts):
+        if c == 13 * 9:
+            rects[i] = (0, 0, 12, 8)  # 13 x 9 tiles
+        elif c:
+            rects[i] = (0, 0, int(c) - 1, 0)  # a row of c tiles
+    order = np.arange(n, dtype=np.int32)[::-1].copy()  # slots in reverse index order, as a depth sort may leave them
+    loop = emit(binning.emit_tile_keys, rects, counts, order, 64)
+    table = emit(binning.emit_tile_keys_by_table, rects, counts, order, 64)
+    assert len(loop[0]) == counts.sum()
+    np.testing.assert_array_equal(table[0], loop[0])
+    np.testing.assert_array_equal(table[1], loop[1])
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -61,6 +61,10 @@ def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool, primitives_per_p
 # Which GPU blend adjoint the ops launch (speed only: both give the same images and gradients, which the tests
 # check). Benchmarks switch them in one process with `raster_options(...)`; the WARPGS_* variables set the defaults.
 BACKWARD_KERNELS = ("warp_sums", "block")  # GPU blend adjoint: blend_gpu.backward_kernel_warp_sums / backward_kernel
+# How a GPU thread of the tile-key emission finds its primitive: "full" (kernels/binning.py emit_tile_keys_per_pair,
+# a binary search over every primitive) or "table" (emit_tile_keys_by_table, the search narrowed by a coarse table;
+# not yet timed on a GPU, so not the default).
+PAIR_SEARCHES = ("full", "table")
 
 
 @dataclass(frozen=True)
@@ -71,11 +75,14 @@ class RasterOptions:
     # GPU gradients bit-identical from run to run: the blend adjoint sums each primitive's per-tile parts in a fixed
     # order instead of with float atomics (render/pair_adjoint.py). Off: faster. The CPU is deterministic either way.
     deterministic: bool = os.environ.get("WARPGS_DETERMINISTIC", "0") == "1"
+    pair_search: str = os.environ.get("WARPGS_PAIR_SEARCH", "full")  # both give the same keys (tests/test_binning.py)
 
     def __post_init__(self):
         for f in ("backward_kernel", "surfel_backward_kernel"):
             if getattr(self, f) not in BACKWARD_KERNELS:
                 raise ValueError(f"raster option {f}: expected one of {BACKWARD_KERNELS}, got {getattr(self, f)!r}")
+        if self.pair_search not in PAIR_SEARCHES:
+            raise ValueError(f"raster option pair_search: expected one of {PAIR_SEARCHES}, got {self.pair_search!r}")
         if not isinstance(self.deterministic, bool):
             raise ValueError(f"raster option deterministic: expected True or False, got {self.deterministic!r}")
 

@@ -27,7 +27,7 @@ import warp as wp
 
 from warpgs.kernels import binning, blend, blend_gpu, input_checks, pair_sums, project
 from warpgs.render.cpu_threads import run_threads
-from warpgs.render.defaults import DEPTH_EPS
+from warpgs.render.defaults import DEPTH_EPS, current_raster_options
 from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
@@ -199,6 +199,11 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     keys = ws.array("tile_keys", 2 * total, wp.int32)
     if not _cooperative(dev):  # a loop per primitive: few threads, no search
         L.launch("emit", binning.emit_tile_keys, n, [rects, order, offsets, counts, s.tiles_x, keys, sorted_ids])
+    elif current_raster_options().pair_search == "table":  # as below, each pair's search narrowed by a coarse
+        table = ws.array("pair_table", binning.pair_table_length(total), wp.int32)  # table of every 32nd pair's slot
+        L.launch("pair_table", binning.pair_slot_table, table.shape[0], [offsets, n, total, table])
+        L.launch("emit", binning.emit_tile_keys_by_table, total,
+                 [rects, order, offsets, counts, table, s.tiles_x, keys, sorted_ids])
     else:  # a thread per (primitive, tile) pair, its slot by binary search: balanced across the GPU
         L.launch("emit", binning.emit_tile_keys_per_pair, total,
                  [rects, order, offsets, counts, s.tiles_x, n, keys, sorted_ids])
