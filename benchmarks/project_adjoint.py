@@ -1,5 +1,6 @@
 """The 3D projection's adjoint, run for every Gaussian (`project_gaussians`) against run only for those with an
-upstream gradient (`project_gaussians_reached`, what the renderer launches), in one process, for several fractions
+upstream gradient (`project_gaussians_reached`, what the renderer launches) and the written-out one
+(`kernels/project_adjoint.py`, raster option project_adjoint="written"), in one process, for several fractions
 of Gaussians that reach a pixel (a 360° capture sees a part of its Gaussians from any one camera). With
 --camera-grads the camera is differentiated too, also with one camera row per Gaussian (what the renderer does then).
 
@@ -21,7 +22,7 @@ from common import ROOT, time_call, write_json
 
 sys.path.insert(0, str(ROOT))
 
-from kernels import project  # noqa: E402
+from kernels import project, project_adjoint  # noqa: E402
 
 
 def arrays(n: int, device: str, camera_grads: bool, seed: int = 0) -> dict:
@@ -76,6 +77,15 @@ def launcher(kernel, A: dict, g: list, n: int, device: str, camera_rows: bool = 
     return run
 
 
+def written_launcher(A: dict, g: list, n: int, device: str):
+    """kernels/project_adjoint.py's adjoint on the same inputs (the renderer's raster option project_adjoint)."""
+    want = (project_adjoint.WANT_MEANS | project_adjoint.WANT_QUATS | project_adjoint.WANT_SCALES
+            | project_adjoint.WANT_COEFFS)
+    inputs = ([A["means"], A["quats"], A["scales"], A["coeffs"], A["viewmat"], A["intrinsics"],
+               1280, 720, 0.01, project.COLOR_SH, 3, 0.3] + list(g) + [want] + A["grads"][:4])
+    return lambda: wp.launch(project_adjoint.project_gaussians_adjoint, dim=n, inputs=inputs, device=device)
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
@@ -92,6 +102,8 @@ def main(argv=None) -> dict:
         g = upstream(args.n, fraction, args.device)
         runs = {"all": launcher(project.project_gaussians, A, g, args.n, args.device),
                 "reached": launcher(project.project_gaussians_reached, A, g, args.n, args.device)}
+        if not args.camera_grads:  # the written-out adjoint covers an undifferentiated camera only
+            runs["written"] = written_launcher(A, g, args.n, args.device)
         if args.camera_grads:
             runs["reached_rows"] = launcher(project.project_gaussians_reached, A, g, args.n, args.device, True)
         rounds = {name: [] for name in runs}
@@ -101,11 +113,14 @@ def main(argv=None) -> dict:
         times = {name: statistics.median(t) for name, t in rounds.items()}
         rows.append({"fraction": fraction, "ms_all": times["all"], "ms_reached": times["reached"],
                      "ratio": times["reached"] / times["all"]}
-                    | ({"ms_reached_camera_rows": times["reached_rows"]} if args.camera_grads else {}))
+                    | ({"ms_reached_camera_rows": times["reached_rows"]} if args.camera_grads else
+                       {"ms_written": times["written"], "written_over_reached": times["written"] / times["reached"]}))
         print(f"{args.n} Gaussians, {fraction:.0%} reached: every row {rows[-1]['ms_all']:.3f} ms, "
               f"reached rows only {rows[-1]['ms_reached']:.3f} ms ({rows[-1]['ratio']:.2f}x)"
-              + (f"; with a camera row per Gaussian {times['reached_rows']:.3f} ms" if args.camera_grads else ""))
-    result = {"device": args.device, "n": args.n, "sh_degree": 3, "camera_grads": args.camera_grads, "repeats": args.repeats, "rounds": args.rounds, "rows": rows}
+              + (f"; with a camera row per Gaussian {times['reached_rows']:.3f} ms" if args.camera_grads else
+                 f"; written out {times['written']:.3f} ms ({times['written'] / times['reached']:.2f}x reached)"))
+    result = {"device": args.device, "n": args.n, "sh_degree": 3, "camera_grads": args.camera_grads,
+              "repeats": args.repeats, "rounds": args.rounds, "rows": rows}
     if args.device.startswith("cuda"):
         result["gpu"] = wp.get_device(args.device).name
     write_json(f"project_adjoint_{args.device.split(':')[0]}" + ("_camera" if args.camera_grads else ""), result)

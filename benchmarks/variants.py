@@ -3,8 +3,8 @@
 A variant is `default` (whatever the WARPGS_* variables select) or `fast`, then optional options joined by '+':
 `fast+bwd=block`, `fast+sbwd=warp_sums`, `fast+det=on`, `fast+keys=full`. Keys: bwd (the 3D GPU adjoint: warp_sums,
 block), sbwd (the surfel GPU adjoint: block, warp_sums), det (the deterministic adjoint: on, off; a no-op for the CPU's
-per-thread kernels, deterministic anyway), keys (the GPU tile-key emission's search: full, table); see
-warpgs/render/defaults.py.
+per-thread kernels, deterministic anyway), keys (the GPU tile-key emission's search: full, table), padj (the 3D
+projection's adjoint: generated, written); see warpgs/render/defaults.py.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from contextlib import contextmanager
 
 from warpgs.render.defaults import current_raster_options, raster_options
 
-KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel", "det": "deterministic", "keys": "pair_search"}
+KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel", "det": "deterministic", "keys": "pair_search", "padj": "project_adjoint"}
 SWITCHES = {"on": True, "off": False}  # the values of on/off keys
 
 
@@ -45,4 +45,5 @@ def variant(spec: str):
 def describe() -> str:
     o = current_raster_options()
     return (f"fast+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}+keys={o.pair_search}"
+            f"+padj={o.project_adjoint}"
             + ("+det=on" if o.deterministic else ""))

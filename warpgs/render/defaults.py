@@ -65,6 +65,9 @@ BACKWARD_KERNELS = ("warp_sums", "block")  # GPU blend adjoint: blend_gpu.backwa
 # a binary search over every primitive) or "table" (emit_tile_keys_by_table, the search narrowed by a coarse table;
 # not yet timed on a GPU, so not the default).
 PAIR_SEARCHES = ("full", "table")
+# The 3D projection's adjoint: "generated" (Warp's, of kernels/project.py) or "written" (kernels/project_adjoint.py,
+# for one camera that is not differentiated; the generated one still serves the rest). Not yet timed on a GPU.
+PROJECT_ADJOINTS = ("generated", "written")
 
 
 @dataclass(frozen=True)
@@ -76,11 +79,15 @@ class RasterOptions:
     # order instead of with float atomics (render/pair_adjoint.py). Off: faster. The CPU is deterministic either way.
     deterministic: bool = os.environ.get("WARPGS_DETERMINISTIC", "0") == "1"
     pair_search: str = os.environ.get("WARPGS_PAIR_SEARCH", "full")  # both give the same keys (tests/test_binning.py)
+    project_adjoint: str = os.environ.get("WARPGS_PROJECT_ADJOINT", "generated")  # tests/test_project_adjoint.py
 
     def __post_init__(self):
         for f in ("backward_kernel", "surfel_backward_kernel"):
             if getattr(self, f) not in BACKWARD_KERNELS:
                 raise ValueError(f"raster option {f}: expected one of {BACKWARD_KERNELS}, got {getattr(self, f)!r}")
+        if self.project_adjoint not in PROJECT_ADJOINTS:
+            raise ValueError(f"raster option project_adjoint: expected one of {PROJECT_ADJOINTS}, got "
+                             f"{self.project_adjoint!r}")
         if self.pair_search not in PAIR_SEARCHES:
             raise ValueError(f"raster option pair_search: expected one of {PAIR_SEARCHES}, got {self.pair_search!r}")
         if not isinstance(self.deterministic, bool):

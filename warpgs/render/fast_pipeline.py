@@ -25,7 +25,7 @@ from typing import Callable, Optional
 
 import warp as wp
 
-from warpgs.kernels import binning, blend, blend_gpu, input_checks, pair_sums, project
+from warpgs.kernels import binning, blend, blend_gpu, input_checks, pair_sums, project, project_adjoint
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.defaults import DEPTH_EPS, current_raster_options
 from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
@@ -366,9 +366,34 @@ def launch_projection_adjoint(ws: Workspace, key: str, s: Settings, n: int, inpu
     input_grads: the gradient arrays of `inputs` (None where not wanted), accumulated into; projected_grads:
     upstream (means2d, conics, colors, depths), also read to pick the Gaussians."""
     g_means2d, g_conics, g_colors, g_depths = projected_grads
+    if (current_raster_options().project_adjoint == "written" and input_grads[4] is None and input_grads[5] is None
+            and inputs[4].shape[0] == 1):  # one camera, not differentiated: the written-out adjoint covers it
+        launch_written_projection_adjoint(ws, key, s, n, inputs, input_grads, projected_grads)
+        return
     adj = list(input_grads) + [0, 0, 0.0, 0.0, 0, 0, 0.0, g_means2d, g_conics, None, g_depths, g_colors, None]
     args = projection_args(s, inputs, outs) + [g_means2d, g_conics, g_colors, g_depths]
     ws.launches.launch_adjoint(key, project.project_gaussians_reached, n, args, adj + [None] * 4)
+
+
+def launch_written_projection_adjoint(ws: Workspace, key: str, s: Settings, n: int, inputs, input_grads,
+                                      projected_grads) -> None:
+    """kernels/project_adjoint.py's adjoint (one camera, no camera gradient): input_grads (means, quats, scales,
+    coeffs; None where not wanted) accumulated into, as by the generated one."""
+    want = 0
+    grads = []
+    for bit, g, shape, dtype in zip((project_adjoint.WANT_MEANS, project_adjoint.WANT_QUATS,
+                                     project_adjoint.WANT_SCALES, project_adjoint.WANT_COEFFS), input_grads[:4],
+                                    (1, 1, 1, (1, 1)), (wp.vec3, wp.vec4, wp.vec3, wp.vec3)):
+        if g is None:  # a placeholder the kernel never writes
+            g = ws.memo(("projection_adjoint_placeholder", bit),
+                        lambda: wp.zeros(shape, dtype=dtype, device=ws.device))  # made at once: no late binding
+        else:
+            want |= bit
+        grads.append(g)
+    color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
+    ws.launches.launch(key + "_written", project_adjoint.project_gaussians_adjoint, n,
+                       list(inputs) + [s.width, s.height, s.near, color_mode, max(s.sh_degree, 0), s.low_pass]
+                       + list(projected_grads) + [want] + grads)
 
 
 def _flat(ws: Workspace, name: str, a):
