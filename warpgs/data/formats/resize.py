@@ -26,8 +26,8 @@ def resize_tensor(t: torch.Tensor, width: int, height: int, mode: str) -> torch.
     source pixel under each output pixel's centre (resize_nearest's rule; never blends flags or ids)."""
     x = (t[..., None] if t.dim() == 2 else t).permute(2, 0, 1)[None]
     if mode == "nearest":
-        rows = ((torch.arange(height, device=x.device) + 0.5) * x.shape[2] / height).long().clamp_max(x.shape[2] - 1)
-        cols = ((torch.arange(width, device=x.device) + 0.5) * x.shape[3] / width).long().clamp_max(x.shape[3] - 1)
+        rows = torch.from_numpy(nearest_sources(height, x.shape[2])).to(x.device)
+        cols = torch.from_numpy(nearest_sources(width, x.shape[3])).to(x.device)
         x = x[:, :, rows][:, :, :, cols]
     else:
         align = False if mode == "bilinear" else None
@@ -49,12 +49,15 @@ def resize_bilinear(arr: np.ndarray, width: int, height: int) -> np.ndarray:
                          "bilinear").numpy()
 
 
+def nearest_sources(size: int, source_size: int) -> np.ndarray:
+    """For each of `size` output pixels along an axis, the source pixel under its centre (of `source_size`)."""
+    return np.minimum(((np.arange(size) + 0.5) * source_size / size).astype(np.int64), source_size - 1)
+
+
 def resize_nearest(arr: np.ndarray, width: int, height: int) -> np.ndarray:
     """Label maps and other ids: take the source pixel under each output pixel's centre (never blends ids)."""
     h, w = arr.shape[:2]
-    rows = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
-    cols = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
-    return arr[rows[:, None], cols[None, :]]
+    return arr[nearest_sources(height, h)[:, None], nearest_sources(width, w)[None, :]]
 
 
 def resize_masked(values: np.ndarray, valid: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
