@@ -12,7 +12,8 @@ from contextlib import contextmanager
 
 from warpgs.render.defaults import current_raster_options, raster_options
 
-KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel", "det": "deterministic", "keys": "pair_search", "padj": "project_adjoint"}
+KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel", "det": "deterministic", "keys": "pair_search",
+        "padj": "project_adjoint"}
 SWITCHES = {"on": True, "off": False}  # the values of on/off keys
 
 
