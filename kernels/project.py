@@ -15,6 +15,16 @@ COLOR_SH = wp.constant(1)
 
 
 @wp.func
+def view_bounds(width: int, height: int, intr: wp.vec4) -> wp.vec4:
+    """(lo_x, hi_x, lo_y, hi_y): the limits of x/z and y/z in the EWA Jacobian, 1.3x the field of view as in 3DGS
+    (keeps far off-screen Gaussians from producing huge footprints). intr: (fx, fy, cx, cy)."""
+    tan_x = 0.5 * float(width) / intr[0]
+    tan_y = 0.5 * float(height) / intr[1]
+    return wp.vec4(-(intr[2] / intr[0] + 0.3 * tan_x), (float(width) - intr[2]) / intr[0] + 0.3 * tan_x,
+                   -(intr[3] / intr[1] + 0.3 * tan_y), (float(height) - intr[3]) / intr[1] + 0.3 * tan_y)
+
+
+@wp.func
 def project_one(
     i: int,
     means: wp.array(dtype=wp.vec3),
@@ -54,12 +64,10 @@ def project_one(
     z = p[2]
     zs = wp.max(z, near)  # guarded depth: finite maths for culled Gaussians
 
-    # EWA Jacobian, with x/z and y/z clamped to 1.3x the field of view as in 3DGS (keeps far off-screen
-    # Gaussians from producing huge footprints).
-    tan_x = 0.5 * float(width) / fx
-    tan_y = 0.5 * float(height) / fy
-    xz = wp.clamp(p[0] / zs, -(cx / fx + 0.3 * tan_x), (float(width) - cx) / fx + 0.3 * tan_x)
-    yz = wp.clamp(p[1] / zs, -(cy / fy + 0.3 * tan_y), (float(height) - cy) / fy + 0.3 * tan_y)
+    # EWA Jacobian, x/z and y/z clamped (view_bounds)
+    bounds = view_bounds(width, height, intr)
+    xz = wp.clamp(p[0] / zs, bounds[0], bounds[1])
+    yz = wp.clamp(p[1] / zs, bounds[2], bounds[3])
     J = wp.mat33(fx / zs, 0.0, -fx * xz / zs, 0.0, fy / zs, -fy * yz / zs, 0.0, 0.0, 0.0)
 
     s = scales[i]

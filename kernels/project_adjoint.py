@@ -6,8 +6,8 @@ generated adjoint does (to the operand the forward picked), so the two agree on 
 Gaussians included (tests/test_project_adjoint.py)."""
 import warp as wp
 
-from .gaussian_math import MAX_SCALE, rotation_of, translation_of
-from .project import COLOR_SH
+from .gaussian_math import MAX_SCALE, quat_wxyz_to_rotation, rotation_of, translation_of
+from .project import COLOR_SH, view_bounds
 from .sh import (SH_C0, SH_C1, eval_sh, SH_C2_0, SH_C2_1, SH_C2_2, SH_C2_3, SH_C2_4, SH_C3_0, SH_C3_1, SH_C3_2, SH_C3_3,
                  SH_C3_4, SH_C3_5, SH_C3_6)
 
@@ -188,20 +188,17 @@ def project_gaussians_adjoint(
     intr = intrinsics[0]
     fx = intr[0]
     fy = intr[1]
-    cx = intr[2]
-    cy = intr[3]
 
     # The forward, as far as the chain rule needs it.
     mu = means[i]
     p = R * mu + t
     z = p[2]
     zs = wp.max(z, near)
-    tan_x = 0.5 * float(width) / fx
-    tan_y = 0.5 * float(height) / fy
-    lo_x = -(cx / fx + 0.3 * tan_x)
-    hi_x = (float(width) - cx) / fx + 0.3 * tan_x
-    lo_y = -(cy / fy + 0.3 * tan_y)
-    hi_y = (float(height) - cy) / fy + 0.3 * tan_y
+    bounds = view_bounds(width, height, intr)
+    lo_x = bounds[0]
+    hi_x = bounds[1]
+    lo_y = bounds[2]
+    hi_y = bounds[3]
     xr = p[0] / zs
     yr = p[1] / zs
     xz = wp.clamp(xr, lo_x, hi_x)
@@ -209,16 +206,7 @@ def project_gaussians_adjoint(
     J = wp.mat33(fx / zs, 0.0, -fx * xz / zs, 0.0, fy / zs, -fy * yz / zs, 0.0, 0.0, 0.0)
     s = scales[i]
     q = quats[i]
-    n2 = wp.dot(q, q)
-    inv_norm = 1.0 / wp.sqrt(wp.max(n2, 1.0e-24))
-    qw = q[0] * inv_norm
-    qx = q[1] * inv_norm
-    qy = q[2] * inv_norm
-    qz = q[3] * inv_norm
-    Rq = wp.mat33(
-        1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy),
-        2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx),
-        2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
+    Rq = quat_wxyz_to_rotation(q)
     sx = wp.clamp(s[0], -MAX_SCALE, MAX_SCALE)
     sy = wp.clamp(s[1], -MAX_SCALE, MAX_SCALE)
     sz = wp.clamp(s[2], -MAX_SCALE, MAX_SCALE)
