@@ -3,8 +3,8 @@
 A variant is `default` (whatever the WARPGS_* variables select) or `fast`, then optional options joined by '+':
 `fast+bwd=block`, `fast+sbwd=warp_sums`, `fast+det=on`, `fast+keys=full`. Keys: bwd (the 3D GPU adjoint: warp_sums,
 block), sbwd (the surfel GPU adjoint: block, warp_sums), det (the deterministic adjoint: on, off; a no-op for the CPU's
-per-thread kernels, deterministic anyway), keys (the GPU tile-key emission's search: full, table), padj (the 3D
-projection's adjoint: generated, written); see warpgs/render/defaults.py.
+per-thread kernels, deterministic anyway), keys (the GPU tile-key emission's search: table, full), padj (the 3D
+projection's adjoint: written, generated); see warpgs/render/defaults.py.
 """
 from __future__ import annotations
 

@@ -1,9 +1,10 @@
-"""The 3D projection's adjoint written out (kernels/project.py's `project_one` run backwards), for the common training
-case: one camera that is not differentiated. Warp's generated adjoint (what the renderer launches by default) replays
-the forward, stores its outputs again and adds every input gradient with an atomic; this one recomputes only what the
-chain rule needs and writes each Gaussian's gradients once. Every min/max/clamp routes its gradient the way Warp's
-generated adjoint does (to the operand the forward picked), so the two agree on every input, culled and clamped
-Gaussians included (tests/test_project_adjoint.py)."""
+"""The 3D projection's adjoint written out (kernels/project.py's `project_one` run backwards), for the common
+training case: one camera that is not differentiated (the renderer's default there; raster option project_adjoint).
+Warp's generated adjoint, which serves the other cases, replays the forward, stores its outputs again and adds every
+input gradient with an atomic; this one recomputes only what the chain rule needs and writes each Gaussian's
+gradients once. Every min/max/clamp routes its gradient the way Warp's generated adjoint does (to the operand the
+forward picked), so the two agree on every input, culled and clamped Gaussians included (tests/test_project_adjoint.py).
+"""
 import warp as wp
 
 from .gaussian_math import MAX_SCALE, quat_wxyz_to_rotation, rotation_of, translation_of

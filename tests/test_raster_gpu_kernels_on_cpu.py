@@ -17,8 +17,8 @@ VARIANTS = {  # name: (environment, test files)
                    "test_raster_knobs.py",  # covers the surfel kernels at other thresholds too
                    "test_raster_degenerate.py", "test_raster_fast_path.py",
                    "test_render_splats.py"]),  # the split op of model-parallel rendering
-    # the tile-key emission narrowed by a coarse table (raster option pair_search): the op against its oracle
-    "pair_table": ({"WARPGS_PAIR_SEARCH": "table"}, ["test_raster_fast_path.py", "test_binning.py"]),
+    # the tile-key emission's full search (raster option pair_search; the default narrows it): the op against its oracle
+    "pair_full": ({"WARPGS_PAIR_SEARCH": "full"}, ["test_raster_fast_path.py", "test_binning.py"]),
     "block": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "1"},
               ["test_raster_gradients.py",
                "test_raster_knobs.py::test_gaussians_gradients_follow_reference_at_other_thresholds",

@@ -20,7 +20,7 @@ VARIANTS = {  # name: (environment, test files)
                         ["test_surfels_gradients.py::test_gradients_of_all_inputs_through_all_outputs"]),
     "warp_sums": ({"WARPGS_SURFEL_BWD_KERNEL": "warp_sums"}, ["test_surfels_gradients.py"]),
     "deterministic": ({"WARPGS_DETERMINISTIC": "1"}, ["test_surfels_gradients.py"]),  # the fixed-order adjoint
-    "pair_table": ({"WARPGS_PAIR_SEARCH": "table"}, ["test_surfels_fast_path.py"]),  # the tile keys' coarse table
+    "pair_full": ({"WARPGS_PAIR_SEARCH": "full"}, ["test_surfels_fast_path.py"]),  # the tile keys' full search
 }
 
 

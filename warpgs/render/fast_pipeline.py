@@ -199,12 +199,13 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     keys = ws.array("tile_keys", 2 * total, wp.int32)
     if not _cooperative(dev):  # a loop per primitive: few threads, no search
         L.launch("emit", binning.emit_tile_keys, n, [rects, order, offsets, counts, s.tiles_x, keys, sorted_ids])
-    elif current_raster_options().pair_search == "table":  # as below, each pair's search narrowed by a coarse
-        table = ws.array("pair_table", binning.pair_table_length(total), wp.int32)  # table of every 32nd pair's slot
+    elif current_raster_options().pair_search == "table":  # a thread per (primitive, tile) pair (balanced across
+        # the GPU), its primitive found by a binary search narrowed by a coarse table of every 32nd pair's slot
+        table = ws.array("pair_table", binning.pair_table_length(total), wp.int32)
         L.launch("pair_table", binning.pair_slot_table, table.shape[0], [offsets, n, total, table])
         L.launch("emit", binning.emit_tile_keys_by_table, total,
                  [rects, order, offsets, counts, table, s.tiles_x, keys, sorted_ids])
-    else:  # a thread per (primitive, tile) pair, its slot by binary search: balanced across the GPU
+    else:  # the same, each pair's search over every primitive
         L.launch("emit", binning.emit_tile_keys_per_pair, total,
                  [rects, order, offsets, counts, s.tiles_x, n, keys, sorted_ids])
     _stage(on_stage, "sort: emit keys")
