@@ -33,6 +33,7 @@ class BlendParams:
     alpha_max: float  # alpha is clamped here (3DGS: 0.99, gsplat: 0.999); the clamp passes no gradient
     t_min: float  # blending stops before transmittance would drop under this
     depth_eps: float  # > 0: write_pixel also writes the expected depth, Σ w z / max(alpha, depth_eps)
+    want_absgrad: int  # 3D adjoints: 1 also sums each pixel's |d means2d| per Gaussian (AbsGS densification)
 
 
 @wp.func
@@ -303,12 +304,14 @@ def pixel_gradient(
 @wp.func
 def add_gradient_row(g: int, row: GradRow, adj_means2d: wp.array(dtype=wp.vec2), adj_conics: wp.array(dtype=wp.vec3),
                      adj_opacities: wp.array(dtype=float), adj_colors: wp.array(dtype=wp.vec3),
-                     adj_depths: wp.array(dtype=float)):
+                     adj_depths: wp.array(dtype=float), adj_means2d_abs: wp.array(dtype=wp.vec2), want_absgrad: int):
     wp.atomic_add(adj_means2d, g, wp.vec2(row[0], row[1]))
     wp.atomic_add(adj_conics, g, wp.vec3(row[2], row[3], row[4]))
     wp.atomic_add(adj_opacities, g, row[5])
     wp.atomic_add(adj_colors, g, wp.vec3(row[6], row[7], row[8]))
     wp.atomic_add(adj_depths, g, row[9])
+    if want_absgrad != 0:
+        wp.atomic_add(adj_means2d_abs, g, wp.vec2(wp.abs(row[0]), wp.abs(row[1])))
 
 
 @wp.kernel
@@ -337,6 +340,7 @@ def blend_backward(
     adj_colors: wp.array(dtype=wp.vec3),
     adj_depths: wp.array(dtype=float),
     adj_features: wp.array2d(dtype=float),
+    adj_means2d_abs: wp.array(dtype=wp.vec2),  # written when p.want_absgrad (a placeholder otherwise)
 ):
     """The blending adjoint, one thread per pixel, adding each pixel's gradient to global memory (CPU)."""
     inside, pix, tile, fx, fy = thread_pixel(wp.tid(), p)
@@ -359,7 +363,8 @@ def blend_backward(
             row = pixel_gradient(mean, conics[g], seen, colors[g], depths[g], fx, fy, T, suffix, up, feature_dot, p)
             T = row[ROW_T]
             suffix = row[ROW_SUFFIX]
-            add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
+            add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths, adj_means2d_abs,
+                             p.want_absgrad)
             for c in range(p.num_features):
                 wp.atomic_add(adj_features, g, c, row[ROW_WEIGHT] * grad_features[pix, c])
 

@@ -39,8 +39,8 @@ from .blend import (
 )
 
 
-# What the block sums per Gaussian: the ten gradient entries of a GradRow and its "used" flag.
-GradSum = wp.types.vector(length=11, dtype=float)
+# What the block sums per Gaussian: the ten gradient entries of a GradRow, its "used" flag, and |d means2d| (AbsGS).
+GradSum = wp.types.vector(length=13, dtype=float)
 
 
 def feature_vector_type(num_features: int):
@@ -55,18 +55,21 @@ def _vector_type(length: int):
 
 @wp.func
 def gradient_sum_part(row: GradRow) -> GradSum:
-    return GradSum(row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7], row[8], row[9], row[ROW_USED])
+    return GradSum(row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7], row[8], row[9], row[ROW_USED],
+                   wp.abs(row[0]), wp.abs(row[1]))
 
 
 @wp.func
 def add_gradient_sum(g: int, total: GradSum, adj_means2d: wp.array(dtype=wp.vec2), adj_conics: wp.array(dtype=wp.vec3),
                      adj_opacities: wp.array(dtype=float), adj_colors: wp.array(dtype=wp.vec3),
-                     adj_depths: wp.array(dtype=float)):
+                     adj_depths: wp.array(dtype=float), adj_means2d_abs: wp.array(dtype=wp.vec2), want_absgrad: int):
     wp.atomic_add(adj_means2d, g, wp.vec2(total[0], total[1]))
     wp.atomic_add(adj_conics, g, wp.vec3(total[2], total[3], total[4]))
     wp.atomic_add(adj_opacities, g, total[5])
     wp.atomic_add(adj_colors, g, wp.vec3(total[6], total[7], total[8]))
     wp.atomic_add(adj_depths, g, total[9])
+    if want_absgrad != 0:
+        wp.atomic_add(adj_means2d_abs, g, wp.vec2(total[11], total[12]))
 
 
 @functools.lru_cache(maxsize=None)  # compiled once per block size and feature count
@@ -185,6 +188,7 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deter
         adj_colors: wp.array(dtype=wp.vec3),
         adj_depths: wp.array(dtype=float),
         adj_features: wp.array(dtype=FeatureVec),
+        adj_means2d_abs: wp.array(dtype=wp.vec2),  # written when p.want_absgrad (a placeholder otherwise)
     ):
         tid = wp.tid()
         lane = tid % wp.static(block_dim)
@@ -230,14 +234,16 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deter
                         dest = pair_part_index(lo + j, tid, p.tile_size, wp.static(block_dim))
                     total = wp.tile_sum(wp.tile(gradient_sum_part(row), preserve_type=True))[0]
                     if lane == 0 and total[10] > 0.0:
-                        add_gradient_sum(dest, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
+                        add_gradient_sum(dest, total, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths,
+                                         adj_means2d_abs, p.want_absgrad)
                     if wp.static(has_features):
                         f_total = wp.tile_sum(wp.tile(row[ROW_WEIGHT] * up_features, preserve_type=True))[0]
                         if lane == 0 and total[10] > 0.0:
                             wp.atomic_add(adj_features, dest, f_total)
                 else:
                     if row[ROW_USED] > 0.0:
-                        add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths)
+                        add_gradient_row(g, row, adj_means2d, adj_conics, adj_opacities, adj_colors, adj_depths,
+                                         adj_means2d_abs, p.want_absgrad)
                         if wp.static(has_features):
                             wp.atomic_add(adj_features, g, row[ROW_WEIGHT] * up_features)
 
@@ -299,6 +305,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
         adj_colors: wp.array(dtype=wp.vec3),
         adj_depths: wp.array(dtype=float),
         adj_features: wp.array(dtype=FeatureVec),
+        adj_means2d_abs: wp.array(dtype=wp.vec2),  # written when p.want_absgrad (a placeholder otherwise)
     ):
         tid = wp.tid()
         lane = tid % WARP
@@ -359,6 +366,10 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
                         wp.atomic_add(adj_opacities, dest, o)
                         wp.atomic_add(adj_colors, dest, col)
                         wp.atomic_add(adj_depths, dest, d)
+                    if p.want_absgrad != 0:  # each pixel's |d means2d|, summed (AbsGS)
+                        m_abs = lane_sum2(wp.vec2(wp.abs(row[0]), wp.abs(row[1])))
+                        if lane == 0:
+                            wp.atomic_add(adj_means2d_abs, dest, m_abs)
                     if wp.static(has_features):
                         f_sum = FeatureVec()
                         for ch in range(wp.static(num_features)):

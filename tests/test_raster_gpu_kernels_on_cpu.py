@@ -15,19 +15,20 @@ VARIANTS = {  # name: (environment, test files)
     "warp_sums": ({"WARPGS_BWD_KERNEL": "warp_sums"},
                   ["test_raster_forward.py", "test_raster_gradients.py",
                    "test_raster_knobs.py",  # covers the surfel kernels at other thresholds too
-                   "test_raster_degenerate.py", "test_raster_fast_path.py",
+                   "test_raster_degenerate.py", "test_raster_fast_path.py", "test_absgrad.py",
                    "test_render_splats.py"]),  # the split op of model-parallel rendering
     # the tile-key emission's full search (raster option pair_search; the default narrows it): the op against its oracle
     "pair_full": ({"WARPGS_PAIR_SEARCH": "full"}, ["test_raster_fast_path.py", "test_binning.py"]),
     "block": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "1"},
               ["test_raster_gradients.py",
                "test_raster_knobs.py::test_gaussians_gradients_follow_reference_at_other_thresholds",
-               "test_render_splats.py::test_projecting_then_blending_is_rasterize"]),
+               "test_render_splats.py::test_projecting_then_blending_is_rasterize", "test_absgrad.py"]),
     "block-no-reduce": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "0"},
-                        ["test_raster_gradients.py::test_gradients_of_all_inputs_match_reference"]),
+                        ["test_raster_gradients.py::test_gradients_of_all_inputs_match_reference",
+                         "test_absgrad.py"]),
     # the fixed-order adjoint (raster option deterministic): the float64 checks, and the default path's gradients
     "deterministic": ({"WARPGS_DETERMINISTIC": "1"},
-                      ["test_raster_gradients.py", "test_deterministic_gradients.py"]),
+                      ["test_raster_gradients.py", "test_deterministic_gradients.py", "test_absgrad.py"]),
 }  # the per-call oracle runs in test_raster_fast_path.py, as the reference of the op
 
 

@@ -254,7 +254,8 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
     (dummies for outputs not rendered); zacc: the forward's depth accumulation, given when the depth upstream is the
     expected depth's (the blend wrote the division, whose adjoint the kernels then run per pixel). adj_opacities /
     adj_features: where the opacity and feature gradients accumulate (zeroed by the caller). Returns the projected
-    gradients (means2d, conics, colors, depths), in the workspace: valid until the next backward on it. A frame
+    gradients (means2d, conics, colors, depths, and with want.absgrad each Gaussian's Σ over pixels of |d means2d|),
+    in the workspace: valid until the next backward on it. A frame
     with `pairs` (forward(deterministic=True)) gets the fixed-order adjoint of pair_adjoint.py."""
     L = ws.launches
     kernel, block_dim = _blend_kernel(ws.device, s, want, backward=True, variant=backward_kernel)
@@ -266,13 +267,15 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
             features, frame.q_cut]
     tail = [frame.transmittance, frame.last, ws.dummy(float) if zacc is None else zacc] + list(upstream)
     depth_eps = 0.0 if zacc is None else DEPTH_EPS
+    # |d means2d| summed per Gaussian (want.absgrad): a field of its own, else a placeholder the kernel never writes
+    no_absgrad = [] if want.absgrad else [ws.dummy(wp.vec2)]
 
     def launch(key, first, count, targets):
         L.launch(key, kernel, count * s.tile_size**2,
-                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets, block_dim)
+                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets + no_absgrad, block_dim)
 
     fields = [("means2d", 2, wp.vec2), ("conics", 3, wp.vec3), OPACITIES, ("colors", 3, wp.vec3),
-              ("depths", 1, float), FEATURES]
+              ("depths", 1, float), FEATURES] + ([("means2d_abs", 2, wp.vec2)] if want.absgrad else [])
     projected = run_blend_adjoint(ws, s, "blend_bwd", fields, frame.n, adj_opacities, adj_features,
                                   num_features_rows, want.num_features, launch, frame.pairs, parts)
     _stage(None, "blend backward")
@@ -410,8 +413,8 @@ def blend_settings_key(s: Settings) -> tuple:
 
 
 def _params(ws: Workspace, s: Settings, want: Wanted, first: int, depth_eps: float = 0.0):
-    key = ("blend_params", *blend_settings_key(s), want.color, want.depth, want.inv_depth, want.num_features, first,
-           depth_eps)
+    key = ("blend_params", *blend_settings_key(s), want.color, want.depth, want.inv_depth, want.num_features,
+           want.absgrad, first, depth_eps)
     return ws.memo(key, lambda: blend_params(s, want, first, depth_eps))
 
 

@@ -164,6 +164,7 @@ def rasterize(
     alpha_max: float = DEFAULT_ALPHA_MAX,
     check_inputs: bool = True,
     track_means2d: bool = False,
+    absgrad: bool = False,
     deterministic: Optional[bool] = None,
     low_pass: float = DEFAULT_LOW_PASS,
     _means2d_probe: Optional[torch.Tensor] = None,
@@ -176,6 +177,9 @@ def rasterize(
     "features" is in `outputs`. Only the requested outputs are computed.
     track_means2d: also return `out.means2d` [N,2] (or [B,N,2]), the projected centres in pixels, a leaf
     whose `.grad` after backward is dL/dmeans2d (what 3DGS-style densification thresholds).
+    absgrad (with track_means2d): `out.means2d.absgrad` [N,2] (or [B,N,2]) after backward holds, per Gaussian, the
+    sum over pixels of each pixel's |dL/dmeans2d| per component (AbsGS; gsplat's absgrad): gradients of opposite
+    sign from different pixels add instead of cancelling. Differentiate the render once per call, as always.
     tile_size (speed only; None: 8, or 16 for GPU renders of 3D Gaussians autograd will not differentiate of at
     least 0.1 Gaussians a pixel; see render/defaults.py choose_tile_size).
     Accuracy knobs (defaults: the 3DGS rules, exact within them): `max_sigmas` > 0 truncates each footprint at
@@ -195,14 +199,16 @@ def rasterize(
                                       track_means2d=track_means2d, alpha_max=alpha_max, low_pass=low_pass)
     pipeline_checks = checks_before_render(check_inputs, _pipeline_checks, means, quats, scales, opacities, colors,
                                            features, viewmat, K, background)
+    if absgrad and not (track_means2d or _means2d_probe is not None):
+        raise ValueError("absgrad: needs track_means2d=True (it is read from out.means2d.absgrad)")
     if viewmat.dim() == 3:
-        probe = means.new_zeros(viewmat.shape[0], means.shape[0], 2, requires_grad=True) if track_means2d else None
+        probe = means2d_probe(means.new_zeros(viewmat.shape[0], means.shape[0], 2), absgrad) if track_means2d else None
         per_camera = [rasterize(means, quats, scales, opacities, colors, viewmat[b], K[b], width, height,
                                 sh_degree=sh_degree, features=features, background=background, outputs=outputs,
                                 near=near, far=far, tile_size=tile_size, max_sigmas=max_sigmas, alpha_min=alpha_min,
                                 transmittance_min=transmittance_min, alpha_max=alpha_max, check_inputs=False,
-                                deterministic=deterministic, low_pass=low_pass,
-                                _means2d_probe=None if probe is None else probe[b],
+                                absgrad=absgrad, deterministic=deterministic, low_pass=low_pass,
+                                _means2d_probe=None if probe is None else camera_probe(probe, b),
                                 _pipeline_checks=pipeline_checks)
                       for b in range(viewmat.shape[0])]
         out = _stack(per_camera)
@@ -210,14 +216,14 @@ def rasterize(
         return out
     probe = _means2d_probe
     if probe is None and track_means2d:
-        probe = means.new_zeros(means.shape[0], 2, requires_grad=True)
+        probe = means2d_probe(means.new_zeros(means.shape[0], 2), absgrad)
 
     n = means.shape[0]
     coeffs, feats = op_inputs(means, colors, features, outputs)
     settings = replace(raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,
                                        transmittance_min, alpha_max), low_pass=float(low_pass))
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
-                             num_features=feats.shape[1])
+                             num_features=feats.shape[1], absgrad=bool(absgrad))
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
         color, alpha, zacc, inv, fout, visible, count = run_op(
             FastRasterizeFunction, settings, wanted, options_for_call(deterministic), means, quats, scales, opacities,
@@ -233,6 +239,23 @@ def rasterize(
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible,
                        num_intersections=int(count), means2d=probe)
     return set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background, depth_normalized=True)
+
+
+def means2d_probe(zeros: torch.Tensor, absgrad: bool) -> torch.Tensor:
+    """The leaf whose .grad the 3D op's backward fills with dL/dmeans2d; with absgrad it also carries `.absgrad`,
+    a zeroed buffer of its shape the backward adds Σ|dL/dmeans2d| into."""
+    probe = zeros.requires_grad_(True)
+    if absgrad:
+        probe.absgrad = torch.zeros_like(zeros)
+    return probe
+
+
+def camera_probe(probe: torch.Tensor, b: int) -> torch.Tensor:
+    """Camera b's row of a batch's probe, with its row of the absgrad buffer when there is one."""
+    row = probe[b]
+    if hasattr(probe, "absgrad"):
+        row.absgrad = probe.absgrad[b]
+    return row
 
 
 def op_inputs(means, colors, features, outputs) -> tuple:

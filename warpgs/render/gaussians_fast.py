@@ -288,6 +288,7 @@ class FastRasterizeFunction(torch.autograd.Function):
         count = frame.total  # a plain int: autograd passes it through (no tensor to make and wrap each call)
         ctx.mark_non_differentiable(visible)
         if any_grad:
+            ctx.absgrad = getattr(means2d_probe, "absgrad", None) if wanted.absgrad else None
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
         ctx.device = device
@@ -319,6 +320,10 @@ class FastRasterizeFunction(torch.autograd.Function):
                                       (g_color, g_alpha, g_depth, g_inv, g_feat))
             projected = fast.blend_backward(ws, frame, settings, wanted, w_opac, w_feat, upstream,
                                             adj_opac, adj_feat, features.shape[0], options.backward_kernel, zacc=zacc)
+            if wanted.absgrad:  # Σ over pixels of |dL/dmeans2d|, into the probe's buffer (rasterize(absgrad=True))
+                absgrad = projected.pop()
+                if ctx.absgrad is not None:
+                    ctx.absgrad.add_(state.tensor(absgrad).view(-1, 2))
             if ctx.needs_input_grad[11]:  # dL/dmeans2d, read before the projection adjoint
                 probe_grad = state.tensor(projected[0]).view(-1, 2).clone()
             if any(needs[i] for i in (0, 1, 2, 4, 6, 7)):

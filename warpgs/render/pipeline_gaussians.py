@@ -80,6 +80,7 @@ class Wanted:
     depth: bool
     inv_depth: bool
     num_features: int
+    absgrad: bool = False  # 3D adjoints: also sum each pixel's |d means2d| per Gaussian (AbsGS densification)
 
 
 @dataclass
@@ -184,6 +185,7 @@ def blend_params(s: Settings, want: Wanted, first_tile: int = 0, depth_eps: floa
     bp.num_features = want.num_features
     bp.alpha_min, bp.t_min, bp.alpha_max = s.alpha_min, s.transmittance_min, s.alpha_max
     bp.depth_eps = float(depth_eps)
+    bp.want_absgrad = int(want.absgrad)
     return bp
 
 
@@ -261,12 +263,13 @@ def blend_backward(p: Projected, bins: Bins, opacities, features, s: Settings, w
     tail = [fwd.transmittance, fwd.last, unused, grad_color, grad_alpha, grad_depth, grad_inv_depth, grad_features]
     per_thread = _tile_launches(s, dev)
     buffers = _gradient_buffers(targets, len(per_thread))
+    no_absgrad = wp.zeros(1, dtype=wp.vec2, device=dev)  # this oracle path never asks for it
 
     def work(thread, chunks):
         for first, count in chunks:
             wp.launch(kernel, dim=count * s.tile_size**2,
-                      inputs=head + [blend_params(s, want, first)] + tail + buffers[thread], device=dev,
-                      block_dim=block_dim)
+                      inputs=head + [blend_params(s, want, first)] + tail + buffers[thread] + [no_absgrad],
+                      device=dev, block_dim=block_dim)
 
     run_threads(work, per_thread, kernels=[kernel], device=dev, block_dim=block_dim)
     _merge_gradient_buffers(buffers)
