@@ -72,3 +72,32 @@ def test_absgrad_needs_track_means2d():
     with pytest.raises(ValueError, match="absgrad: needs track_means2d"):
         rasterize(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], s["viewmat"], s["K"], s["width"],
                   s["height"], absgrad=True)
+
+
+def test_training_with_strategy_absgrad_densifies_from_the_absolute_sums(tmp_path, monkeypatch):
+    """strategy.absgrad: the densification statistic each view adds is the render's out.means2d.absgrad (not its
+    .grad); surfels are refused by name."""
+    from train_fixtures import quick_overrides
+    from warpgs.train import step as training_step
+    from warpgs.train.trainer import Trainer
+
+    seen = []
+    real = training_step.view_pass
+
+    def spy(trainer, view, step, **kw):
+        p = real(trainer, view, step, **kw)
+        if p.grad2d is not None:
+            seen.append(p.grad2d.min().item() >= 0.0)  # sums of absolute values only
+        return p
+
+    monkeypatch.setattr(training_step, "view_pass", spy)
+    t = Trainer(None, overrides=quick_overrides(tmp_path / "abs", steps=30, **{"strategy.absgrad": "true",
+                                                                                 "strategy.grad_threshold": 0.0008}),
+                quiet=True)
+    start = t.model.num_primitives
+    t.fit()
+    assert seen and all(seen)
+    assert t.model.num_primitives != start  # the strategy acted on them
+    with pytest.raises(ValueError, match="strategy.absgrad: 3D Gaussians"):
+        Trainer(None, overrides=quick_overrides(tmp_path / "s", steps=2, **{"strategy.absgrad": "true",
+                                                                            "model.kind": "surfels"}), quiet=True)

@@ -124,7 +124,9 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
     p = ViewPass(view=view, result=result, scalars=HostScalars(result, out.rgb, view.image))
     if densify:
         p.visible = out.visible
-        p.grad2d = out.means2d.grad if out.means2d is not None else None
+        p.grad2d = None
+        if out.means2d is not None:  # strategy.absgrad: the summed |dL/dmeans2d| (rasterize's absgrad) instead
+            p.grad2d = out.means2d.absgrad if trainer.config.strategy.absgrad else out.means2d.grad
         if own_means_grad:
             g = model.means.grad
             p.means_grad = g.clone() if before is None else g - before

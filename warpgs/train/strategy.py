@@ -108,10 +108,19 @@ class StrategyConfig:
     unpool_every: int = 0
     unpool_k: int = 3
     unpool_distance: float = 0.05
+    # AbsGS (gsplat's absgrad): the densification statistic sums each pixel's |dL/dmeans2d| per component instead of
+    # the signed gradient, so a large Gaussian whose pixels pull it different ways still grows; its scale is larger,
+    # so pair it with a larger grad_threshold (gsplat: 0.0008 against 0.0002). 3D Gaussians, one process or
+    # data-parallel.
+    absgrad: bool = False
 
     def __post_init__(self):
+        if not isinstance(self.absgrad, bool):
+            raise ValueError(f"absgrad: expected true or false, got {self.absgrad!r}")
         for f in fields(self):
             v = getattr(self, f.name)
+            if f.name == "absgrad":
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{f.name}: expected a finite non-negative number, got {v!r}")
         for name in ("refine_every", "max_primitives", "unpool_k"):

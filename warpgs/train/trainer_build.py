@@ -85,6 +85,9 @@ class TrainerBuild:
                 lambda: train_setup.build_model(self.scene, cfg, model_device), "building the initial model")
         if self.model.kind != cfg.model.kind:
             raise ValueError(f"model.kind: config says {cfg.model.kind!r} but the model is {self.model.kind!r}")
+        if cfg.strategy.absgrad and (self.model.kind != "gaussians" or self.model_parallel):
+            raise ValueError("strategy.absgrad: 3D Gaussians trained in one process or data-parallel only (surfels "
+                             "densify from means.grad; model-parallel renders keep their own probe)")
 
     def _set_up_extensions(self, cfg: Config, extensions: Iterable[Extension],
                            callbacks: Iterable[Callable]) -> None:
