@@ -272,8 +272,10 @@ def warp_sums_supported(tile_size: int) -> bool:
 
 
 @functools.lru_cache(maxsize=None)  # compiled once per block size and feature count
-def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: bool = False):
-    """deterministic: each warp's sums go to their own slot per sorted pair (pair_sums.py), not to the primitive."""
+def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: bool = False, absgrad: bool = False):
+    """deterministic: each warp's sums go to their own slot per sorted pair (pair_sums.py), not to the primitive.
+    absgrad: also sums each pixel's |d means2d| (AbsGS) into adj_means2d_abs; compiled in only when asked, so the
+    default kernel carries none of it."""
     if block_dim % WARP != 0:
         raise ValueError(f"per-warp sums need whole warps per block, got block_dim={block_dim}")
     FeatureVec = feature_vector_type(num_features)
@@ -366,7 +368,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
                         wp.atomic_add(adj_opacities, dest, o)
                         wp.atomic_add(adj_colors, dest, col)
                         wp.atomic_add(adj_depths, dest, d)
-                    if p.want_absgrad != 0:  # each pixel's |d means2d|, summed (AbsGS)
+                    if wp.static(absgrad):  # each pixel's |d means2d|, summed (AbsGS)
                         m_abs = lane_sum2(wp.vec2(wp.abs(row[0]), wp.abs(row[1])))
                         if lane == 0:
                             wp.atomic_add(adj_means2d_abs, dest, m_abs)

@@ -262,7 +262,7 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
     parts = 1
     if frame.pairs is not None:
         kernel, block_dim, parts = choose_kernel(blend_gpu, s.tile_size, backward_kernel, _block_dims(s)[1],
-                                                 want.num_features)
+                                                 want.num_features, absgrad=want.absgrad)
     head = [frame.tile_start, frame.sorted_ids, frame.means2d, frame.conics, opacities, frame.colors, frame.depths,
             features, frame.q_cut]
     tail = [frame.transmittance, frame.last, ws.dummy(float) if zacc is None else zacc] + list(upstream)
@@ -428,7 +428,7 @@ def _blend_kernel(dev, s: Settings, want: Wanted, backward: bool, variant: str =
         return blend_gpu.forward_kernel(fwd_block, want.num_features), fwd_block
     if variant == "warp_sums" and blend_gpu.warp_sums_supported(s.tile_size):
         block = min(s.tile_size**2, 256)
-        return blend_gpu.backward_kernel_warp_sums(block, want.num_features), block
+        return blend_gpu.backward_kernel_warp_sums(block, want.num_features, absgrad=want.absgrad), block
     return blend_gpu.backward_kernel(bwd_block, _block_reduce(), want.num_features), bwd_block
 
 

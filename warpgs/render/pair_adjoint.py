@@ -24,13 +24,15 @@ class PairOrder:
     ranges: wp.array  # [N] vec2i: each primitive's (first emitted slot, number of pairs)
 
 
-def choose_kernel(kernels, tile_size: int, variant: str, block: int, num_features: int):
+def choose_kernel(kernels, tile_size: int, variant: str, block: int, num_features: int, absgrad: bool = False):
     """(kernel, block_dim, parts): the deterministic twin of the GPU adjoint `variant` of kernels (blend_gpu or
-    surfel_blend_gpu), and how many summing groups each tile has. block: the "block" variant's block size."""
+    surfel_blend_gpu), and how many summing groups each tile has. block: the "block" variant's block size.
+    absgrad: the 3D per-warp kernel that also sums |d means2d| (blend_gpu only)."""
     per_tile = tile_size * tile_size
     if variant == "warp_sums" and per_tile % kernels.WARP == 0:
         block = min(per_tile, 256)
-        return kernels.backward_kernel_warp_sums(block, num_features, True), block, per_tile // kernels.WARP
+        extra = (True,) if absgrad else ()
+        return kernels.backward_kernel_warp_sums(block, num_features, True, *extra), block, per_tile // kernels.WARP
     return kernels.backward_kernel(block, True, num_features, True), block, per_tile // block
 
 
