@@ -159,7 +159,7 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "au
         prune_opa=s.prune_opacity, grow_grad2d=s.grad_threshold, grow_scale3d=s.dense_scale,
         prune_scale3d=s.prune_world_scale if s.prune_world_scale > 0 else float("inf"),
         refine_start_iter=s.refine_start, refine_stop_iter=s.refine_stop, refine_every=s.refine_every,
-        reset_every=s.reset_every if s.reset_every else steps + 1)
+        reset_every=s.reset_every if s.reset_every else steps + 1, absgrad=s.absgrad)  # strategy.absgrad: both
     strategy.check_sanity(params, optimizers)
     state = strategy.initialize_state(scene_scale=extent)
 
@@ -177,7 +177,7 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "au
                                          torch.sigmoid(params["opacities"]), colors, v.viewmat[None], v.K[None],
                                          v.width, v.height, sh_degree=deg, packed=False,
                                          backgrounds=background[None], near_plane=cfg.train.near,
-                                         far_plane=cfg.train.far)
+                                         far_plane=cfg.train.far, absgrad=s.absgrad)
         img = img[0]
         if env is not None:
             if v.name not in dirs:
@@ -261,14 +261,18 @@ class _ScreenMeans:
     def grad(self) -> torch.Tensor:
         return self.leaf.grad[None]
 
+    @property
+    def absgrad(self) -> torch.Tensor:  # gsplat's strategy with absgrad=True reads this
+        return self.leaf.absgrad[None]
+
 
 def warpgs_as_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
-                     packed=False, backgrounds=None, near_plane=0.01, far_plane=1e10):
+                     packed=False, backgrounds=None, near_plane=0.01, far_plane=1e10, absgrad=False):
     """gsplat's `rasterization` signature (one camera, packed=False) over warpgs.rasterize; the strategy counts a
     primitive as seen (its radii > 0) when it reaches a tile (`out.visible`)."""
     out = rasterize(means, quats, scales, opacities, colors, viewmats[0], Ks[0], width, height,
                     sh_degree=sh_degree, background=None if backgrounds is None else backgrounds[0],
-                    outputs=("rgb", "alpha"), near=near_plane, far=far_plane, track_means2d=True)
+                    outputs=("rgb", "alpha"), near=near_plane, far=far_plane, track_means2d=True, absgrad=absgrad)
     visible = out.visible.to(means.dtype)[None, :, None].expand(1, -1, 2)  # gsplat selects radii > 0
     info = {"means2d": _ScreenMeans(out.means2d), "radii": visible, "width": width, "height": height,
             "n_cameras": 1, "gaussian_ids": None}
