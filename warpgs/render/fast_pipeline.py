@@ -30,7 +30,7 @@ from warpgs.render.cpu_threads import run_threads
 from warpgs.render.defaults import DEPTH_EPS, current_raster_options
 from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
-                                              _tile_launches, blend_params)
+                                              _tile_launches, blend_params, projection_color_mode)
 from warpgs.render.workspace import LaunchSequence, Workspace
 
 Keep = Callable[[str, int, object], wp.array]  # (name, length, dtype) -> a per-call array
@@ -359,7 +359,7 @@ def project_backward(ws: Workspace, frame: Frame, s: Settings, inputs, input_gra
 def projection_args(s: Settings, inputs, outs) -> list:
     """The projection kernel's arguments: inputs (means, quats, scales, coeffs, viewmat, intrinsics), the settings,
     outs (means2d, conics, cov2d, depths, colors, valid)."""
-    color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
+    color_mode = projection_color_mode(s)
     return list(inputs) + [s.width, s.height, s.near, s.far, color_mode, max(s.sh_degree, 0), s.low_pass] + list(outs)
 
 
@@ -385,16 +385,15 @@ def launch_written_projection_adjoint(ws: Workspace, key: str, s: Settings, n: i
     coeffs; None where not wanted) accumulated into, as by the generated one."""
     want = 0
     grads = []
-    for bit, g, shape, dtype in zip((project_adjoint.WANT_MEANS, project_adjoint.WANT_QUATS,
+    for bit, g, dtype, ndim in zip((project_adjoint.WANT_MEANS, project_adjoint.WANT_QUATS,
                                      project_adjoint.WANT_SCALES, project_adjoint.WANT_COEFFS), input_grads[:4],
-                                    (1, 1, 1, (1, 1)), (wp.vec3, wp.vec4, wp.vec3, wp.vec3)):
+                                   (wp.vec3, wp.vec4, wp.vec3, wp.vec3), (1, 1, 1, 2)):
         if g is None:  # a placeholder the kernel never writes
-            g = ws.memo(("projection_adjoint_placeholder", bit),
-                        lambda: wp.zeros(shape, dtype=dtype, device=ws.device))  # made at once: no late binding
+            g = ws.dummy(dtype, ndim)
         else:
             want |= bit
         grads.append(g)
-    color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
+    color_mode = projection_color_mode(s)
     ws.launches.launch(key + "_written", project_adjoint.project_gaussians_adjoint, n,
                        list(inputs) + [s.width, s.height, s.near, color_mode, max(s.sh_degree, 0), s.low_pass]
                        + list(projected_grads) + [want] + grads)

@@ -105,7 +105,7 @@ def project_gaussians(means, quats, scales, opacities, coeffs, viewmat, intrinsi
         colors=wp.zeros(n, dtype=wp.vec3, device=dev, requires_grad=requires_grad),
         valid=wp.empty(n, dtype=wp.int32, device=dev),
     )
-    color_mode = project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
+    color_mode = projection_color_mode(s)
     wp.launch(
         project.project_gaussians,
         dim=n,
@@ -174,6 +174,11 @@ def sort_into_tiles(rects, counts, depths, q_cut, s: Settings) -> Bins:
 
 def _blend_inputs(p: Projected, bins: Bins, opacities, features):
     return [p.means2d, p.conics, opacities, p.colors, p.depths, features, bins.q_cut]
+
+
+def projection_color_mode(s: Settings) -> int:
+    """The projection kernels' colour mode: SH coefficients when the settings carry an SH degree, else plain colours."""
+    return project.COLOR_SH if s.sh_degree >= 0 else project.COLOR_DIRECT
 
 
 def blend_params(s: Settings, want: Wanted, first_tile: int = 0, depth_eps: float = 0.0) -> blend.BlendParams:
