@@ -307,7 +307,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
         adj_colors: wp.array(dtype=wp.vec3),
         adj_depths: wp.array(dtype=float),
         adj_features: wp.array(dtype=FeatureVec),
-        adj_means2d_abs: wp.array(dtype=wp.vec2),  # written when p.want_absgrad (a placeholder otherwise)
+        adj_means2d_abs: wp.array(dtype=wp.vec2),  # written when compiled with absgrad (a placeholder otherwise)
     ):
         tid = wp.tid()
         lane = tid % WARP

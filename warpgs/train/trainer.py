@@ -274,7 +274,7 @@ class Trainer(TrainerBuild):
                                 t.surfel_screen_sigma)
         out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,
                            background=self.background, inputs=self.render_inputs(batch, step, outputs),
-                           track_means2d=track_means2d, absgrad=track_means2d and self.config.strategy.absgrad,
+                           track_means2d=track_means2d, absgrad=self.config.strategy.absgrad,
                            check_inputs=not t.nan_guard,
                            deterministic=t.deterministic or None, **filters, **t.render_options())
         for ext in self.extensions:
