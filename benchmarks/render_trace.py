@@ -6,8 +6,11 @@ rest is the GPU waiting on the host), the host reads, and each kernel's time, fr
 
 The scene and the calls are benchmarks/raster.py's (the default `rasterize(...)` call, RGB + alpha + depth; gsplat's
 rasterization with RGB+ED). Each profiled call ends with a synchronisation, so a call's window holds only its own
-GPU work. "reads" counts the CUDA runtime's syncs and copies the profiler sees (torch's, gsplat's and the closing
-synchronisation); Warp's one read a call goes through the driver API, which it does not see.
+GPU work. "reads" counts the read-backs a call makes: the device-to-host copies on the GPU's side of the trace,
+whether issued through the runtime (torch's, gsplat's) or the driver (Warp's); "syncs" the runtime's
+synchronisations the profiler sees (a torch read-back's stream sync, the closing device sync; Warp's go through the
+driver and are not seen). Device-to-device and host-to-device copies (camera staging) do not stall the host; every
+copy is listed by direction in "copies_per_call".
 Writes benchmarks/results/render_trace_<device>[_<tag>].json ($OUT when set).
 """
 from __future__ import annotations
@@ -25,11 +28,19 @@ from common import print_table, standard_scenes_module, sync, time_call, write_j
 from raster import gsplat_calls, warpgs_calls
 from step_trace import GPU_CATEGORIES, READS, busy_time
 
+SYNCS = tuple(name for name in READS if "Synchronize" in name)  # runtime calls that wait for the GPU
+
 
 def call_windows(events) -> list:
     """[start, end) of each profiled call (the record_function ranges named 'call')."""
     return sorted((e["ts"], e["ts"] + e["dur"]) for e in events
                   if e.get("name") == "call" and e.get("cat") == "user_annotation")
+
+
+def copy_direction(name: str) -> str:
+    """DtoH, HtoD, DtoD, ... from a GPU memcpy event's name ("Memcpy DtoH (Device -> Pinned)")."""
+    parts = name.split()
+    return parts[1] if len(parts) > 1 and parts[0] == "Memcpy" else name
 
 
 def kernel_name(name: str, width: int = 90) -> str:
@@ -57,13 +68,16 @@ def per_call_breakdown(events, calls: int) -> dict:
         name = kernel_name(e["name"])
         kernels[name] += e["dur"]
         launches[name] += 1
-    reads = collections.Counter(e["name"] for e in events if e.get("cat") in ("cuda_runtime", "cuda_driver")
-                                and e.get("name") in READS and inside(e))
+    copies = collections.Counter(copy_direction(e["name"]) for e in gpu if e.get("cat") == "gpu_memcpy")
+    syncs = collections.Counter(e["name"] for e in events if e.get("cat") in ("cuda_runtime", "cuda_driver")
+                                and e.get("name") in SYNCS and inside(e))
     wall = [end - start for start, end in windows]
     return {"calls_seen": len(windows),
             "profiled_wall_us": sum(wall) / max(len(wall), 1),
             "gpu_busy_us": sum(busy) / max(len(busy), 1),
-            "host_reads_per_call": {k: v / calls for k, v in reads.items()},
+            "reads_per_call": copies.get("DtoH", 0) / calls,
+            "syncs_per_call": {k: v / calls for k, v in syncs.items()},
+            "copies_per_call": {k: v / calls for k, v in copies.items()},
             "kernels_us_per_call": {k: kernels[k] / calls for k in sorted(kernels, key=lambda k: -kernels[k])},
             "launches_per_call": {k: launches[k] / calls for k in launches}}
 
@@ -115,14 +129,16 @@ def main(argv=None) -> dict:
                 row = {"n": n, "system": system, "mode": mode, "plain_ms": plain_ms,
                        "profiled_wall_ms": found["profiled_wall_us"] / 1e3, "gpu_busy_ms": found["gpu_busy_us"] / 1e3,
                        "gpu_waits_ms": (found["profiled_wall_us"] - found["gpu_busy_us"]) / 1e3,
-                       "reads": sum(found["host_reads_per_call"].values()), "trace_s": time.perf_counter() - t0}
+                       "reads": found["reads_per_call"], "syncs": sum(found["syncs_per_call"].values()),
+                       "trace_s": time.perf_counter() - t0}
                 rows.append(row)
                 detail.append(dict(row, **found))
                 print_table([row], list(row))
                 top = list(found["kernels_us_per_call"].items())[:12]
                 for name, us in top:
                     print(f"    {us:8.1f} us x{found['launches_per_call'][name]:.0f}  {name}")
-    print_table(rows, ["n", "system", "mode", "plain_ms", "profiled_wall_ms", "gpu_busy_ms", "gpu_waits_ms", "reads"])
+    print_table(rows, ["n", "system", "mode", "plain_ms", "profiled_wall_ms", "gpu_busy_ms", "gpu_waits_ms", "reads",
+                       "syncs"])
     result = {"primitive": args.primitive, "resolution": args.resolution, "calls": args.calls,
               "gpu": torch.cuda.get_device_name(), "rows": detail}
     suffix = "" if args.primitive == "gaussians" else "_surfels"

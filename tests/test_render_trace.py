@@ -16,7 +16,22 @@ def test_only_what_happens_inside_the_calls_is_counted():
     found = render_trace.per_call_breakdown(calls + kernels + syncs, calls=2)
     assert found["calls_seen"] == 2 and found["profiled_wall_us"] == 50
     assert found["gpu_busy_us"] == 25 and found["kernels_us_per_call"] == {"blend": 25}
-    assert found["host_reads_per_call"] == {"cudaDeviceSynchronize": 1.0}
+    assert found["syncs_per_call"] == {"cudaDeviceSynchronize": 1.0} and found["reads_per_call"] == 0
+
+
+def test_reads_are_device_to_host_copies_whatever_api_issued_them():
+    """Warp reads its tile-pair count through the driver API, which the runtime rows never show; the copy itself is
+    on the GPU's side of the trace. Device-to-device staging copies are no read."""
+    calls = [{"cat": "user_annotation", "name": "call", "ts": t, "dur": 50} for t in (0, 100)]
+    per_call = (("Memcpy DtoH (Device -> Pinned)", 20), ("Memcpy DtoD (Device -> Device)", 5),
+                ("Memcpy DtoD (Device -> Device)", 6))
+    copies = [{"cat": "gpu_memcpy", "name": name, "ts": start + at, "dur": 2}
+              for start in (0, 100) for name, at in per_call]
+    runtime = [{"cat": "cuda_runtime", "name": "cudaMemcpyAsync", "ts": t, "dur": 1} for t in (4, 104)]
+    found = render_trace.per_call_breakdown(calls + copies + runtime, calls=2)
+    assert found["reads_per_call"] == 1.0
+    assert found["copies_per_call"] == {"DtoH": 1.0, "DtoD": 2.0}
+    assert found["syncs_per_call"] == {}
 
 
 def test_cub_kernels_are_told_apart_past_their_shared_prefix():
