@@ -2,7 +2,7 @@
 (on sampled pixels), Gaussian–pixel evaluation rate, and (with --gsplat, on CUDA) gsplat side by side.
 
 What is timed is the call as a user makes it: `rasterize(...)` with its defaults (input checks on, the op's own
-tile size: 16 for a GPU forward that autograd will not differentiate, else 8), outputs RGB + alpha + depth.
+tile size: render/defaults.py choose_tile_size), outputs RGB + alpha + depth.
 
     python benchmarks/raster.py                       # CPU table: N in {1k,10k,100k} at 256x256 and 800x600
     python benchmarks/raster.py --device cuda --gsplat --sizes 100000,1000000 --resolutions 1920x1080 --rounds 3

@@ -23,7 +23,7 @@ DEFAULT_TRANSMITTANCE_MIN = 1.0e-4  # a pixel stops blending before its transmit
 # every surfel seen from farther or at a lower resolution than training saw it.
 DEFAULT_SURFEL_SCREEN_SIGMA = 0.5 ** 0.5
 # 3D Gaussians: the low-pass (px²) added to every projected covariance (3DGS; gsplat's eps2d), scaled the same way by
-# the model renders (surfel_screen_sigma's twin, warpgs/model/rendering.py low_pass_for).
+# the model renders (surfel_screen_sigma's twin, warpgs/model/rendering.py gaussian_low_pass).
 DEFAULT_LOW_PASS = 0.3
 # The adjoint recovers each Gaussian's transmittance from the final one by division, so the final one must stay a
 # normal float32: a smaller transmittance_min (0 included) would let it underflow and corrupt the gradients.
