@@ -61,11 +61,14 @@ def profiler_activities(device: str) -> list:
     return activities
 
 
-def time_steps(trainer: Trainer, steps: int, device: str) -> float:
-    """Mean seconds per Trainer.train_step over `steps` steps."""
+def time_steps(trainer: Trainer, steps: int, device: str, before_step=None) -> float:
+    """Mean seconds per Trainer.train_step over `steps` steps; `before_step()`, when given, runs before each one
+    (inside the timing: step_slack.py queues GPU work there)."""
     sync(device)
     t0 = time.perf_counter()
     for _ in range(steps):
+        if before_step is not None:
+            before_step()
         trainer.train_step()
     sync(device)
     return (time.perf_counter() - t0) / steps

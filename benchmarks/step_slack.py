@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import time
 from pathlib import Path
 
 import torch
 
 from common import write_json
-from profile_train_step import capture_arguments, warmed_trainer
+from profile_train_step import capture_arguments, time_steps, warmed_trainer
 
 
 def sleep_cycles_per_us() -> float:
@@ -34,18 +33,6 @@ def sleep_cycles_per_us() -> float:
     end.record()
     end.synchronize()
     return cycles / (start.elapsed_time(end) * 1e3)
-
-
-def time_block(trainer, steps: int, sleep_cycles: int) -> float:
-    """Milliseconds per step of `steps` training steps, each after a GPU sleep of `sleep_cycles` (0: none)."""
-    torch.cuda.synchronize()
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        if sleep_cycles:
-            torch.cuda._sleep(sleep_cycles)
-        trainer.train_step()
-    torch.cuda.synchronize()
-    return (time.perf_counter() - t0) / steps * 1e3
 
 
 def slack_summary(curve: list) -> dict:
@@ -75,7 +62,8 @@ def main(argv=None) -> dict:
         first = trainer.num_primitives
         for _ in range(args.rounds):
             for us in sleeps:
-                blocks[us].append(time_block(trainer, args.steps, int(us * per_us)))
+                sleep = (lambda cycles=int(us * per_us): torch.cuda._sleep(cycles)) if us else None
+                blocks[us].append(1e3 * time_steps(trainer, args.steps, args.device, before_step=sleep))
         curve = [(us, sum(b) / len(b)) for us, b in blocks.items()]
     result = {"data": args.data, "warmup": args.warmup, "steps": args.steps, "rounds": args.rounds,
               "primitives": [first, trainer.num_primitives], "sleep_cycles_per_us": per_us,
