@@ -96,6 +96,8 @@ def run_warpgs(trainer, counts: list, eval_every: int) -> dict:
     final = {k: result.metrics[k] for k in ("psnr", "ssim", "num_primitives", "train_seconds", "steps")}
     if result.metrics.get("lpips") is not None:
         final["lpips"] = result.metrics["lpips"]
+    if "speculative_pairs" in result.metrics:  # renders sized from earlier counts, and the steps skipped for it
+        final["speculative_pairs"] = result.metrics["speculative_pairs"]
     out = {"system": "warpgs", "points": points, "wall_seconds": round(wall, 2), "final": final,
            "largest_drop": largest_drop(counts)}
     if "schedule" in result.metrics:  # train.steps=auto: its decisions and validation scores

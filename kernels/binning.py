@@ -273,3 +273,93 @@ def tile_ranges_dense(
     if k > 0:
         prev = keys[k - 1]
     write_tile_ranges(k, keys[k], prev, count, num_tiles, tile_start, tile_end)
+
+
+# --- Bounded binning: room for the tile pairs sized before their count is known ---------------------------------
+# A GPU render normally reads its tile-pair count back to size the pair sort, a host sync in every call. These
+# kernels take a room `capacity` fixed beforehand (from earlier calls, render/pair_room.py) and read the count from
+# the prefix sum on the device: slots past the count get a sentinel key (the tile count, after every real tile), and
+# pairs past the room are dropped, which the caller learns from `pair_overflow` and must treat as a failed render.
+
+
+@wp.func
+def bounded_total(offsets: wp.array(dtype=wp.int32), num_primitives: int, capacity: int) -> int:
+    """The pairs that fit: the inclusive prefix sum's last entry, clamped to the room."""
+    return wp.min(offsets[num_primitives - 1], capacity)
+
+
+@wp.kernel
+def pair_slot_table_bounded(
+    offsets: wp.array(dtype=wp.int32),
+    num_primitives: int,
+    capacity: int,
+    table: wp.array(dtype=wp.int32),  # [pair_table_length(capacity)]
+):
+    """`pair_slot_table` over the pairs that fit the room (all zeros when there are none)."""
+    b = wp.tid()
+    total = bounded_total(offsets, num_primitives, capacity)
+    if total == 0:
+        table[b] = 0
+        return
+    table[b] = pair_slot(offsets, num_primitives, wp.min(b * PAIR_TABLE_STRIDE, total - 1))
+
+
+@wp.kernel
+def emit_tile_keys_bounded(
+    rects: wp.array(dtype=wp.vec4i),
+    order: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32),
+    table: wp.array(dtype=wp.int32),  # pair_slot_table_bounded's
+    num_primitives: int,
+    capacity: int,
+    tiles_x: int,
+    num_tiles: int,
+    keys: wp.array(dtype=wp.int32),  # [capacity] at least
+    values: wp.array(dtype=wp.int32),
+):
+    """`emit_tile_keys_by_table` over `capacity` slots: a slot past the pairs gets the sentinel key num_tiles."""
+    k = wp.tid()
+    if k >= bounded_total(offsets, num_primitives, capacity):
+        keys[k] = num_tiles
+        values[k] = 0
+        return
+    b = k / PAIR_TABLE_STRIDE
+    slot = pair_slot_within(offsets, table[b], table[b + 1], k)
+    i = order[slot]
+    keys[k] = pair_tile(rects[i], k - (offsets[slot] - counts[i]), tiles_x)
+    values[k] = i
+
+
+@wp.kernel
+def tile_ranges_bounded(
+    keys: wp.array(dtype=wp.int32),  # sorted: the pairs that fit, then sentinels
+    offsets: wp.array(dtype=wp.int32),
+    num_primitives: int,
+    capacity: int,
+    num_tiles: int,
+    tile_start: wp.array(dtype=wp.int32),  # [num_tiles], every entry written
+    tile_end: wp.array(dtype=wp.int32),
+):
+    """`tile_ranges_dense` with the pair count read on the device; with no pairs, every tile is empty."""
+    k = wp.tid()
+    count = bounded_total(offsets, num_primitives, capacity)
+    if count == 0:
+        if k == 0:
+            for t in range(num_tiles):
+                tile_start[t] = 0
+                tile_end[t] = 0
+        return
+    if k >= count:
+        return
+    prev = int(-1)
+    if k > 0:
+        prev = keys[k - 1]
+    write_tile_ranges(k, keys[k], prev, count, num_tiles, tile_start, tile_end)
+
+
+@wp.kernel
+def pair_overflow(offsets: wp.array(dtype=wp.int32), num_primitives: int, capacity: int,
+                  overflowed: wp.array(dtype=wp.int32)):
+    """overflowed[0] = 1 when the pairs outnumber the room (the render dropped some), else 0."""
+    overflowed[0] = wp.where(offsets[num_primitives - 1] > capacity, 1, 0)

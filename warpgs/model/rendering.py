@@ -74,13 +74,15 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
                  tile_size: Optional[int] = None, max_sigmas: float = 0.0, alpha_min: float = DEFAULT_ALPHA_MIN,
                  transmittance_min: float = DEFAULT_TRANSMITTANCE_MIN, alpha_max: float = DEFAULT_ALPHA_MAX,
                  check_inputs: bool = True, deterministic: Optional[bool] = None,
-                 screen_sigma: Optional[float] = None, low_pass: Optional[float] = None) -> RenderOutput:
+                 screen_sigma: Optional[float] = None, low_pass: Optional[float] = None,
+                 speculative_pairs: bool = False) -> RenderOutput:
     """One camera. `inputs` (default: model.render_inputs()) may be edited by the caller, e.g. colours from
     an MLP; `features` [N, C] is rendered when "features" is in outputs. track_means2d (and absgrad, see
     `rasterize`) is honoured for 3D Gaussians only (surfels: `out.means2d` stays None and densification falls back
     to means.grad).
     deterministic: as in `rasterize` (None: the raster option's value). screen_sigma (surfels) and low_pass (3D
-    Gaussians): the ops' screen-space filter (None: the op's default; see surfel_screen_sigma, gaussian_low_pass)."""
+    Gaussians): the ops' screen-space filter (None: the op's default; see surfel_screen_sigma, gaussian_low_pass).
+    speculative_pairs: 3D Gaussians only (see `rasterize`); surfels always size their pairs exactly."""
     kind = model.kind
     if kind not in OUTPUTS_BY_KIND:
         raise ValueError(f"model.kind: expected one of {sorted(OUTPUTS_BY_KIND)}, got {kind!r}")
@@ -94,7 +96,8 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
     if kind == "gaussians":
         if low_pass is not None:
             kwargs["low_pass"] = low_pass
-        return rasterize(track_means2d=track_means2d, absgrad=absgrad and track_means2d, **kwargs)
+        return rasterize(track_means2d=track_means2d, absgrad=absgrad and track_means2d,
+                         speculative_pairs=speculative_pairs, **kwargs)
     if screen_sigma is not None:
         kwargs["screen_sigma"] = screen_sigma
     return rasterize_surfels(**kwargs)

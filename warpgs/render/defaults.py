@@ -81,6 +81,9 @@ class RasterOptions:
     deterministic: bool = os.environ.get("WARPGS_DETERMINISTIC", "0") == "1"
     pair_search: str = os.environ.get("WARPGS_PAIR_SEARCH", "table")  # both give the same keys (tests/test_binning.py)
     project_adjoint: str = os.environ.get("WARPGS_PROJECT_ADJOINT", "written")  # tests/test_project_adjoint.py
+    # GPU 3D renders size their tile-pair sort from earlier calls' counts instead of waiting for their own
+    # (render/pair_room.py); a render that did not fit says so in out.pairs_overflowed. Set per call (rasterize).
+    speculative_pairs: bool = False
 
     def __post_init__(self):
         for f in ("backward_kernel", "surfel_backward_kernel"):
@@ -91,8 +94,9 @@ class RasterOptions:
                              f"{self.project_adjoint!r}")
         if self.pair_search not in PAIR_SEARCHES:
             raise ValueError(f"raster option pair_search: expected one of {PAIR_SEARCHES}, got {self.pair_search!r}")
-        if not isinstance(self.deterministic, bool):
-            raise ValueError(f"raster option deterministic: expected True or False, got {self.deterministic!r}")
+        for f in ("deterministic", "speculative_pairs"):
+            if not isinstance(getattr(self, f), bool):
+                raise ValueError(f"raster option {f}: expected True or False, got {getattr(self, f)!r}")
 
 
 _options = [RasterOptions()]
@@ -117,9 +121,24 @@ def raster_options(**changes):
         _options.pop()
 
 
-def options_for_call(deterministic=None) -> RasterOptions:
-    """The raster options one render uses: the current ones, with a render's own `deterministic` (None: keep)."""
+def options_for_call(deterministic=None, speculative_pairs: bool = False) -> RasterOptions:
+    """The raster options one render uses: the current ones, with a render's own `deterministic` (None: keep) and
+    `speculative_pairs`."""
     options = current_raster_options()
-    if deterministic is None or deterministic == options.deterministic:
+    changes = {}
+    if deterministic is not None and deterministic != options.deterministic:
+        changes["deterministic"] = deterministic
+    if speculative_pairs != options.speculative_pairs:
+        changes["speculative_pairs"] = speculative_pairs
+    if not changes:
         return options
-    return replace(options, deterministic=deterministic)
+    key = (options, tuple(sorted(changes.items())))
+    made = _CALL_OPTIONS.get(key)
+    if made is None:  # a training loop asks for the same few every step: made once (replace validates anew)
+        if len(_CALL_OPTIONS) > 32:
+            _CALL_OPTIONS.clear()
+        made = _CALL_OPTIONS[key] = replace(options, **changes)
+    return made
+
+
+_CALL_OPTIONS: dict = {}

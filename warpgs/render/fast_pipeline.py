@@ -36,6 +36,9 @@ from warpgs.render.workspace import LaunchSequence, Workspace
 Keep = Callable[[str, int, object], wp.array]  # (name, length, dtype) -> a per-call array
 # Called with a stage name after each stage when set (benchmarks/profile_stages.py synchronises and times there).
 stage_hook: Optional[Callable[[str], None]] = None
+# Speculative binning (sort_into_tiles' `overflow`) saves a GPU's host sync; on the CPU, where reading the count
+# costs nothing, it runs only when tests set this (they check it against the exact path there).
+SPECULATE_ON_CPU = False
 
 
 @dataclass
@@ -84,7 +87,7 @@ def add_input_check(ws: Workspace, seq: LaunchSequence, n: int, check: InputChec
 
 def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, features, outputs, keep: Optional[Keep],
             on_stage: Optional[Callable[[str], None]] = None, check: Optional[InputCheck] = None,
-            deterministic: bool = False) -> Frame:
+            deterministic: bool = False, overflow=None) -> Frame:
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth accumulation, inv_depth, features, expected depth)
     arrays the blend writes (1-element dummies for outputs not asked for; features zeroed beforehand for the
@@ -92,7 +95,8 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     features in the layout of `feature_layout`. keep=None: everything in the workspace (no backward follows).
     on_stage(name), if given, is called after each stage (benchmarks/profile_stages.py times them).
     check: the input checks to run, whose error is raised at the tile-pair count's sync (before anything is sized
-    from the count). deterministic: keep what a fixed-order (run-to-run identical) GPU backward needs (pair_order)."""
+    from the count). deterministic: keep what a fixed-order (run-to-run identical) GPU backward needs (pair_order).
+    overflow: a 1-element int32 array to bin speculatively into (see sort_into_tiles), else None."""
     _stage(on_stage, "op prologue")  # the render call's host work up to here (checks, wrapping, allocation)
     n = int(inputs[0].shape[0])
     per_call = keep if keep is not None else ws  # both take (name, length, dtype)
@@ -110,12 +114,12 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
         add_input_check(ws, seq, n, check)
     _stage(on_stage, "project")
     return bin_and_blend(ws, s, want, (means2d, conics, cov2d, depths, colors, valid), opacities, features, outputs,
-                         keep, on_stage, seq, deterministic)
+                         keep, on_stage, seq, deterministic, overflow)
 
 
 def bin_and_blend(ws: Workspace, s: Settings, want: Wanted, projected, opacities, features, outputs,
                   keep: Optional[Keep], on_stage: Optional[Callable[[str], None]] = None,
-                  sequence: Optional[LaunchSequence] = None, deterministic: bool = False) -> Frame:
+                  sequence: Optional[LaunchSequence] = None, deterministic: bool = False, overflow=None) -> Frame:
     """The forward after the projection: bins, sorts and blends projected Gaussians. projected: (means2d, conics,
     cov2d, depths, colors, valid) arrays of n rows, from the projection kernel or from anywhere (render/splats.py);
     the rest as `forward` takes it. sequence: launches already queued (run with the binning, up to the sync)."""
@@ -126,7 +130,7 @@ def bin_and_blend(ws: Workspace, s: Settings, want: Wanted, projected, opacities
     per_call = keep if keep is not None else ws
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "footprints", binning.tile_footprints, [means2d, cov2d, opacities, valid], depths, s, per_call,
-        on_stage, sequence=sequence)
+        on_stage, sequence=sequence, overflow=None if deterministic else overflow)
     pairs = pair_order(ws, s, keep, n, total, sorted_ids) if deterministic else None
 
     npix = s.width * s.height
@@ -150,7 +154,8 @@ def bin_and_blend(ws: Workspace, s: Settings, want: Wanted, projected, opacities
 
 
 def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, depths, s: Settings, per_call,
-                   on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None):
+                   on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None,
+                   overflow=None):
     """Every primitive kind's binning: its footprint kernel (inputs `footprint_inputs`, then the image and blend
     settings, writing tile rectangles, tile counts and cut-offs) and `sort_into_tiles`. Returns (counts, q_cut,
     total, tile_start, tile_end, sorted_ids); counts lives in the workspace, q_cut comes from `per_call`.
@@ -164,14 +169,18 @@ def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, 
                list(footprint_inputs) + [s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
                                          rects, counts, q_cut])
     _stage(on_stage, key)
-    return (counts, q_cut) + sort_into_tiles(ws, rects, counts, depths, s, per_call, on_stage, seq)
+    return (counts, q_cut) + sort_into_tiles(ws, rects, counts, depths, s, per_call, on_stage, seq, overflow)
 
 
 def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
-                    on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None):
+                    on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None,
+                    overflow=None):
     """(total, tile_start, tile_end, sorted_ids): the (tile, primitive) pairs sorted by tile, then depth, then
     primitive index, and every tile's [start, end) range. tile_start and sorted_ids come from `per_call`.
-    sequence: launches queued ahead; everything up to the tile-pair count's read runs with them."""
+    sequence: launches queued ahead; everything up to the tile-pair count's read runs with them.
+    overflow: a 1-element int32 array, to bin speculatively: on a GPU whose workspace has seen a count (and with no
+    input checks queued), the pairs are sorted into the workspace's room (pair_room.py) without a host sync, total
+    comes back as -1 and overflow[0] says whether pairs were dropped; otherwise the exact path runs and writes 0."""
     dev = ws.device
     L = ws.launches
     n = int(counts.shape[0])
@@ -187,8 +196,16 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     seq.launch("counts_in_order", binning.counts_in_order, n, [order, counts, ordered])
     _stage(on_stage, "sort: depth sort")
     seq.scan(ordered, offsets)
+    room = ws.pair_room
+    if (overflow is not None and (dev.is_cuda or SPECULATE_ON_CPU) and room.capacity > 0
+            and not seq.has_checks()):
+        return sort_into_room(ws, rects, counts, s, per_call, seq, order, offsets, tile_start, tile_end, overflow,
+                              on_stage)
     at = seq.read_ints(offsets, n - 1)
     total = seq.run()[at]  # the one host sync: sizes the pair buffers (and raises for flagged input)
+    if overflow is not None:  # only speculative callers' counts size the room (not evaluation's or a viewer's)
+        room.observe(total)
+        L.launch("pair_overflow", binning.pair_overflow, 1, [offsets, n, total, overflow])
     _stage(on_stage, "sort: prefix sum + sync")
     sorted_ids = per_call("sorted_ids", 2 * max(total, 1), wp.int32)  # radix sorts need 2x room
     if total == 0:
@@ -214,6 +231,31 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     L.launch("ranges", binning.tile_ranges_dense, total, [keys, total, s.num_tiles, tile_start, tile_end])
     _stage(on_stage, "sort: tile ranges")
     return total, tile_start, tile_end, sorted_ids
+
+
+def sort_into_room(ws: Workspace, rects, counts, s: Settings, per_call, seq: LaunchSequence, order, offsets,
+                   tile_start, tile_end, overflow, on_stage=None):
+    """sort_into_tiles' speculative path: the pairs emitted, sorted and ranged within the workspace's room, all in
+    the launch sequence (one CUDA graph), the count copied back unwaited (pair_room.py settles it next call)."""
+    room = ws.pair_room
+    room.settle()  # before the sequence rewrites the pinned count
+    capacity = room.capacity
+    n = int(counts.shape[0])
+    keys = ws.array("tile_keys", 2 * capacity, wp.int32)
+    sorted_ids = per_call("sorted_ids", 2 * capacity, wp.int32)  # radix sorts need 2x room
+    table = ws.array("pair_table", binning.pair_table_length(capacity), wp.int32)
+    seq.launch("pair_table_bounded", binning.pair_slot_table_bounded, table.shape[0], [offsets, n, capacity, table])
+    seq.launch("emit_bounded", binning.emit_tile_keys_bounded, capacity,
+               [rects, order, offsets, counts, table, n, capacity, s.tiles_x, s.num_tiles, keys, sorted_ids])
+    seq.sort_pairs(keys, sorted_ids, capacity, 0, max(1, s.num_tiles.bit_length()))  # the sentinel num_tiles too
+    seq.launch("ranges_bounded", binning.tile_ranges_bounded, capacity,
+               [keys, offsets, n, capacity, s.num_tiles, tile_start, tile_end])
+    seq.read_ints(offsets, n - 1)
+    seq.run_unwaited(room.host_buffer(ws.device))
+    room.issued(ws.device.stream if ws.device.is_cuda else None, capacity)
+    ws.launches.launch("pair_overflow", binning.pair_overflow, 1, [offsets, n, capacity, overflow])
+    _stage(on_stage, "sort: speculative room")
+    return -1, tile_start, tile_end, sorted_ids
 
 
 def pair_order(ws: Workspace, s: Settings, keep: Optional[Keep], n: int, total: int,

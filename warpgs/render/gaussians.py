@@ -38,7 +38,9 @@ class RenderOutput:
     distortion: Optional[torch.Tensor] = None  # surfels only: the 2DGS depth-distortion term
     visible: Optional[torch.Tensor] = None  # [N] (or [B, N]) bool: touched at least one tile
     means2d: Optional[torch.Tensor] = None  # with track_means2d: projected centres; .grad = dL/dmeans2d
-    num_intersections: int = 0  # Gaussian-tile pairs (summed over a batch)
+    num_intersections: int = 0  # Gaussian-tile pairs (summed over a batch; -1: not read, speculative_pairs)
+    # speculative_pairs: a 0-d int32 device tensor, 1 when the render dropped tile pairs (its result is wrong)
+    pairs_overflowed: Optional[torch.Tensor] = None
     sent: Optional[torch.Tensor] = None  # render_sharded with track_means2d: [R, N] this rank's splats sent per camera
     seen: Optional[torch.Tensor] = None  # ... and [R, N] those each camera's blend binned (its `visible`)
 
@@ -167,6 +169,7 @@ def rasterize(
     absgrad: bool = False,
     deterministic: Optional[bool] = None,
     low_pass: float = DEFAULT_LOW_PASS,
+    speculative_pairs: bool = False,
     _means2d_probe: Optional[torch.Tensor] = None,
     _pipeline_checks: bool = False,
 ) -> RenderOutput:
@@ -192,6 +195,13 @@ def rasterize(
     WARPGS_DETERMINISTIC=1 or raster_options(deterministic=True)). The CPU's gradients are deterministic anyway.
     low_pass: px² added to every projected covariance (3DGS's 0.3 by default, gsplat's eps2d); renders of a trained
     model scale it with the image (warpgs.model.rendering.gaussian_low_pass).
+    speculative_pairs (one camera, GPU): size the tile-pair sort from this thread's earlier such calls instead of
+    waiting for this call's own count, so the call returns without a host sync and the host can queue the loss and
+    backward while the GPU projects. A call whose pairs did not fit renders wrongly (some pairs dropped) and says so
+    on the device: `out.pairs_overflowed` (0-d int32, 1 then; 0 otherwise, also where the exact path ran: the first
+    call, the CPU, input checks, deterministic); the next call's room grows (render/pair_room.py). Meant for loops
+    that can discard a step on the device without reading it (the trainer passes it to fused Adam's found_inf);
+    `out.num_intersections` is then -1.
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, False,
@@ -224,10 +234,11 @@ def rasterize(
                                        transmittance_min, alpha_max), low_pass=float(low_pass))
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1], absgrad=bool(absgrad))
+    overflowed = None
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
-        color, alpha, zacc, inv, fout, visible, count = run_op(
-            FastRasterizeFunction, settings, wanted, options_for_call(deterministic), means, quats, scales, opacities,
-            coeffs, feats, viewmat, _intrinsics_vector(K), probe,
+        color, alpha, zacc, inv, fout, visible, count, overflowed = run_op(
+            FastRasterizeFunction, settings, wanted, options_for_call(deterministic, speculative_pairs), means, quats,
+            scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K), probe,
             (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width
@@ -236,8 +247,9 @@ def rasterize(
         color, alpha, zacc, inv, fout = EmptySceneFunction.apply(shapes, means, quats, scales, opacities, coeffs,
                                                                  feats, viewmat, K, probe)
         visible, count = torch.zeros(0, dtype=torch.bool, device=means.device), 0
+        overflowed = means.new_zeros((), dtype=torch.int32) if speculative_pairs else None
     out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible,
-                       num_intersections=int(count), means2d=probe)
+                       num_intersections=int(count), means2d=probe, pairs_overflowed=overflowed)
     return set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background, depth_normalized=True)
 
 

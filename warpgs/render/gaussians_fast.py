@@ -278,25 +278,30 @@ class FastRasterizeFunction(torch.autograd.Function):
         alive = []
         checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), view,
                                                         check, alive)
+        # speculative_pairs: 1 here when the pairs did not fit the room sized from earlier calls (pair_room.py)
+        overflowed = means.new_empty((), dtype=torch.int32) if options.speculative_pairs else None
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, check=checks,
-                                 deterministic=options.deterministic)
+                                 deterministic=options.deterministic,
+                                 overflow=None if overflowed is None else state.desc(overflowed.view(1), wp.int32))
             visible = state.tensor(frame.counts) > 0
             if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
                 means2d_probe.data.copy_(state.tensor(frame.means2d).view(-1, 2))
             fast._stage(None, "outputs (torch)")
-        count = frame.total  # a plain int: autograd passes it through (no tensor to make and wrap each call)
+        count = frame.total  # a plain int (-1: not read, speculative): autograd passes it through
         ctx.mark_non_differentiable(visible)
+        if overflowed is not None:
+            ctx.mark_non_differentiable(overflowed)
         if any_grad:
             ctx.absgrad = getattr(means2d_probe, "absgrad", None) if wanted.absgrad else None
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
         ctx.device = device
-        return color, alpha, depth, inv_depth, feats, visible, count
+        return color, alpha, depth, inv_depth, feats, visible, count, overflowed
 
     @staticmethod
     @differentiable_once("the 3D render (rasterize)")
-    def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count):
+    def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count, _g_overflowed):
         fast._stage(None, "between (loss, autograd)")
         frame, keep, zacc, settings, wanted, options, needs, layout = take_backward_state(ctx)
         means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors

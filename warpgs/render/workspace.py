@@ -26,6 +26,8 @@ from typing import Dict, Tuple
 
 import warp as wp
 
+from warpgs.render.pair_room import PairRoom
+
 GROWTH = 1.25  # capacity grows to this multiple of the first size that does not fit
 # Recording a launch loads the kernel's module on first use. Two threads loading a module at once crashed Warp 1.19
 # on the CPU (reproduced with two threads each recording a launch of one kernel for the first time), so recording is
@@ -181,6 +183,7 @@ class Workspace(Buffers):
         self._free_frames: list = []
         self._host_views: Dict[int, tuple] = {}
         self.graphs = GraphCache(self.device)
+        self.pair_room = PairRoom()  # renders with speculative_pairs size their pair sort from it (pair_room.py)
 
     def sequence(self, immediate: bool = False) -> "LaunchSequence":
         """An empty launch sequence on this workspace (see LaunchSequence)."""
@@ -345,12 +348,30 @@ class LaunchSequence:
         self._read_size += count
         return self._read_size - count
 
+    def has_checks(self) -> bool:
+        return bool(self._checks)
+
     def on_values(self, check) -> None:
         """check(values) runs on the values read, before `run` returns them (e.g. raises for flagged input)."""
         self._checks.append(check)
 
     def run(self) -> list:
         """Issues the sequence and returns the ints asked for (one host sync when there are any)."""
+        return self._run(None)
+
+    def run_unwaited(self, host) -> None:
+        """Issues the sequence with its reads copied into the int buffer `host` (pinned, on a GPU), without waiting
+        for them: the caller records an event after and reads `host` once it has passed (on the CPU they are there
+        on return). Sequences with checks cannot: the checks read the values."""
+        if self._checks:
+            raise ValueError("LaunchSequence.run_unwaited: a sequence with checks needs its values now")
+        if self.ws.device.is_cpu:
+            values = self._run(None)
+            host.numpy()[: len(values)] = values
+            return
+        self._run(host)
+
+    def _run(self, host) -> list:
         ws = self.ws
         if ws.device.is_cpu:
             self._issue()
@@ -358,11 +379,13 @@ class LaunchSequence:
             for a, index, count, _ in self.reads:  # zero-copy views of host memory
                 values.extend(ws.host_view(a)[index: index + count].tolist())
         else:
-            self._host, host_np = ws.pinned_ints(self._read_size)
+            self._host, host_np = ws.pinned_ints(self._read_size) if host is None else (host, None)
             if not self.immediate and ws.graphs.enabled():
                 ws.graphs.run(*self._key(), self._issue)
             else:
                 self._issue()
+            if host is not None:
+                return []
             if self.reads:
                 wp.synchronize_stream(ws.device.stream)
             values = host_np[: self._read_size].tolist()  # Python ints

@@ -61,6 +61,7 @@ class ViewPass:
     visible: Optional[torch.Tensor] = None  # [N] bool, when densifying
     grad2d: Optional[torch.Tensor] = None  # [N,2] dL/dmeans2d of this view's share of the batch loss
     means_grad: Optional[torch.Tensor] = None  # its share of dL/dmeans, when the op gives no means2d (surfels)
+    pairs_overflowed: Optional[torch.Tensor] = None  # its render's flag (speculative_pairs): skip the step when 1
 
     @property
     def loss(self) -> float:

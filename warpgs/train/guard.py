@@ -148,12 +148,26 @@ class StepGuard:
         self.guard = guard
         self.pending: Optional[PendingCheck] = None
 
-    def before_optimizers(self, step: int, result, optimizers: Sequence, *, defer: bool) -> None:
+    @staticmethod
+    def can_defer(optimizers: Sequence) -> bool:
+        """Whether a deferred check can skip a step on the device: every optimizer is fused Adam."""
+        return all(_fused_adam(o) for o in optimizers)
+
+    def before_optimizers(self, step: int, result, optimizers: Sequence, *, defer: bool,
+                          dropped: Sequence[torch.Tensor] = ()) -> None:
+        """dropped: the step's renders' `pairs_overflowed` flags (speculative_pairs); a step with one set is skipped
+        like a non-finite one, without an error (its renders were incomplete, not wrong in the model)."""
         self.settle()
-        pending = self.guard.flag(step, result) if defer and all(_fused_adam(o) for o in optimizers) else None
+        pending = self.guard.flag(step, result) if defer and self.can_defer(optimizers) else None
         if pending is None:
             self.guard.check(step, result)
+            if dropped and any(bool(d) for d in dropped):  # read here: no deferred skip to ride on
+                for opt in optimizers:
+                    opt.zero_grad(set_to_none=True)
             return
+        if dropped:
+            with torch.no_grad():
+                pending.found_inf = torch.stack([pending.found_inf] + [d.float() for d in dropped]).amax()
         for opt in optimizers:
             opt.found_inf = pending.found_inf  # Adam.step passes it to the fused kernel, which skips the update
         self.pending = pending

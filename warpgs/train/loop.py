@@ -15,6 +15,7 @@ import torch
 
 from warpgs.metrics.image import psnr
 from warpgs.metrics.views import write_json
+from warpgs.render.device_state import device_state
 from warpgs.train import setup as train_setup
 from warpgs.train.distributed import DistributedError
 from warpgs.train.evaluation import scores_over_ranks
@@ -86,6 +87,7 @@ class TrainingLoop:
                 train_setup.warn_pose_jumps(tr.scene, self.say)
         else:
             self.say(f"warpgs: resuming at step {tr.step} from {tr.checkpoint_path}")
+        self._pairs_at_start = speculative_pair_stats(tr)
         t0 = time.perf_counter()
         with tr.clock.stage("load_views"):
             loaded = tr.views.load_all()  # outside the steps' clock, as gsplat's and 3DGS's loaders do
@@ -265,6 +267,9 @@ class TrainingLoop:
             metrics["phases"] = tr.ranks.all_gather_object(tr.phases.summary(), what="gathering the phase times")
         if tr.device.type == "cuda":  # rank 0's peak (with train.parallel=model: one share's)
             metrics["peak_gpu_memory_bytes"] = int(torch.cuda.max_memory_allocated(tr.device))
+        pairs = speculative_pair_stats(tr)
+        if pairs["renders"] > self._pairs_at_start["renders"]:  # train.speculative_pairs ran: steps it skipped
+            metrics["speculative_pairs"] = {k: pairs[k] - self._pairs_at_start[k] for k in ("renders", "skipped")}
         metrics.update({"num_primitives": tr.num_primitives, "steps": tr.step,
                         "train_seconds": round(tr.train_seconds, 3), "num_views": m["num_views"],
                         "model_kind": tr.model.kind, "device": str(tr.device), "scene": str(tr.scene.root),
@@ -306,3 +311,12 @@ class StopOnSigint:
         if self._previous is not None:
             signal.signal(signal.SIGINT, self._previous)
         return False
+
+
+def speculative_pair_stats(trainer) -> dict:
+    """This thread's speculative renders on the trainer's device so far and those whose pairs overflowed (each a
+    skipped step; render/pair_room.py)."""
+    if trainer.device.type != "cuda":
+        return {"renders": 0, "skipped": 0}
+    stats = device_state(trainer.device).ws.pair_room.stats()
+    return {"renders": stats["speculative_calls"], "skipped": stats["overflows"]}

@@ -49,7 +49,9 @@ def train_step(trainer) -> dict:
     else:  # the batch's means on the device: no host read before the optimizer
         result, summary = device_batch_result(passes, len(drawn)), BatchScalars(passes, names, len(drawn))
     if cfg.train.nan_guard:  # before the optimizer step, so nothing non-finite is ever applied (train/guard.py)
-        trainer.step_guard.before_optimizers(step, result, trainer.optimizers, defer=not trainer.ranks.enabled)
+        trainer.step_guard.before_optimizers(step, result, trainer.optimizers, defer=not trainer.ranks.enabled,
+                                             dropped=[p.pairs_overflowed for p in passes
+                                                      if p.pairs_overflowed is not None])
     for opt in trainer.optimizers:
         opt.step()
     trainer.step_guard.after_optimizers(trainer.optimizers)
@@ -110,7 +112,8 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
     strategy checks the model before the first backward)."""
     model = trainer.model
     batch = trainer.make_batch(view, step)
-    out = trainer.render(view, trainer.outputs_at(step), batch, track_means2d=densify, step=step)
+    out = trainer.render(view, trainer.outputs_at(step), batch, track_means2d=densify, step=step,
+                         speculative_pairs=speculative_pairs(trainer))
     result = trainer.loss_set(out, batch, model, step, trainer.max_steps)
     if first:
         trainer.strategy.step_pre_backward(model, step)
@@ -121,7 +124,8 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
     (result.total if views_in_loss == 1 else result.total / views_in_loss).backward()
     result = without_graph(result)
     # The scalars for the log and the progress line: one device-to-host copy, read when the info is (a step later).
-    p = ViewPass(view=view, result=result, scalars=HostScalars(result, out.rgb, view.image))
+    p = ViewPass(view=view, result=result, scalars=HostScalars(result, out.rgb, view.image),
+                 pairs_overflowed=out.pairs_overflowed)
     if densify:
         p.visible = out.visible
         p.grad2d = None
@@ -131,3 +135,13 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
             g = model.means.grad
             p.means_grad = g.clone() if before is None else g - before
     return p
+
+
+def speculative_pairs(trainer) -> bool:
+    """Whether the step's renders may size their tile pairs from earlier renders (train.speculative_pairs): only
+    where a render that did not fit can be skipped on the device, i.e. where the NaN guard defers (fused Adam on one
+    process, train/guard.py), on a GPU, for 3D Gaussians, and not in deterministic runs."""
+    t = trainer.config.train
+    return (t.speculative_pairs and t.nan_guard and not t.deterministic and trainer.device.type == "cuda"
+            and trainer.model.kind == "gaussians" and not trainer.ranks.enabled
+            and trainer.step_guard.can_defer(trainer.optimizers))

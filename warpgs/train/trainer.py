@@ -260,7 +260,7 @@ class Trainer(TrainerBuild):
         return inputs
 
     def render(self, view, outputs: Sequence[str] = ("rgb",), batch: Optional[dict] = None, *,
-               track_means2d: bool = False, step: Optional[int] = None):
+               track_means2d: bool = False, step: Optional[int] = None, speculative_pairs: bool = False):
         step = self.step if step is None else step
         batch = self.make_batch(view, step) if batch is None else batch
         t = self.config.train
@@ -276,7 +276,8 @@ class Trainer(TrainerBuild):
                            background=self.background, inputs=self.render_inputs(batch, step, outputs),
                            track_means2d=track_means2d, absgrad=self.config.strategy.absgrad,
                            check_inputs=not t.nan_guard,
-                           deterministic=t.deterministic or None, **filters, **t.render_options())
+                           deterministic=t.deterministic or None, speculative_pairs=speculative_pairs, **filters,
+                           **t.render_options())
         for ext in self.extensions:
             out = ext.after_render(self, out, batch, step)
         return out

@@ -1,0 +1,136 @@
+"""Speculative binning (rasterize(speculative_pairs=True), render/pair_room.py): a render sized from earlier calls'
+tile-pair counts gives the exact path's bits when its pairs fit, flags itself when they do not (and stays finite),
+and the trainer skips such a step on the device without an error. The path saves a GPU's host sync; on the CPU it
+runs here through fast_pipeline.SPECULATE_ON_CPU, the same kernels."""
+import math
+
+import pytest
+import torch
+
+from random_scenes import random_scene
+from raster_helpers import DEVICE
+from warpgs import rasterize
+from warpgs.losses.registry import LossResult
+from warpgs.render import fast_pipeline
+from warpgs.render.device_state import device_state
+from warpgs.render.pair_room import MIN_ROOM, SIZES_PER_DOUBLING, PairRoom, room_size
+from warpgs.train.guard import NonFiniteError, NonFiniteGuard, StepGuard
+
+LEAVES = ("means", "quats", "scales", "opacities", "colors", "features")
+OUTPUTS = ("rgb", "alpha", "depth", "features")
+
+
+@pytest.fixture
+def speculate(monkeypatch):
+    monkeypatch.setattr(fast_pipeline, "SPECULATE_ON_CPU", True)
+    ws = device_state(torch.device(DEVICE)).ws
+    ws.pair_room.settle()
+    monkeypatch.setattr(ws, "pair_room", PairRoom())  # each test starts with no count seen
+    return ws.pair_room
+
+
+def _render(scene, speculative, outputs=OUTPUTS):
+    leaves = {k: scene[k].detach().float().to(DEVICE).requires_grad_(True) for k in LEAVES if scene[k] is not None}
+    out = rasterize(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
+                    scene["viewmat"].float().to(DEVICE), scene["K"].float().to(DEVICE), scene["width"],
+                    scene["height"], sh_degree=scene["sh_degree"], features=leaves.get("features"), outputs=outputs,
+                    track_means2d=True, speculative_pairs=speculative)
+    g = torch.Generator().manual_seed(1)
+    loss = sum((getattr(out, o) * torch.randn(getattr(out, o).shape, generator=g).to(DEVICE)).sum() for o in outputs)
+    loss.backward()
+    grads = {k: v.grad for k, v in leaves.items()}
+    grads["means2d"] = out.means2d.grad
+    return out, grads
+
+
+def _same(a, b, exact):
+    return torch.equal(a, b) if exact else torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("tile", [8, 16])
+def test_a_render_that_fits_its_room_matches_the_exact_path(speculate, tile):
+    scene = random_scene(n=300, width=64, height=48, sh_degree=1, num_features=2, seed=tile)
+    exact, exact_grads = _render(scene, False)
+    assert exact.pairs_overflowed is None and exact.num_intersections > 0
+    first, _ = _render(scene, True)  # the room's first count: sized exactly, with its sync
+    assert first.num_intersections == exact.num_intersections and int(first.pairs_overflowed) == 0
+    calls = speculate.speculative_calls
+    out, grads = _render(scene, True)
+    assert speculate.speculative_calls == calls + 1 and out.num_intersections == -1
+    assert int(out.pairs_overflowed) == 0
+    assert speculate.capacity >= exact.num_intersections
+    on_cpu = DEVICE == "cpu"  # GPU atomics sum in another order from run to run
+    for name in OUTPUTS:
+        assert torch.equal(getattr(out, name), getattr(exact, name)), name
+    for name, g in exact_grads.items():
+        assert _same(grads[name], g, on_cpu), name
+
+
+def test_a_render_that_overflows_is_flagged_stays_finite_and_grows_the_room(speculate):
+    scene = random_scene(n=300, width=64, height=48, seed=3)
+    exact, _ = _render(scene, False, ("rgb", "alpha"))
+    _render(scene, True, ("rgb", "alpha"))  # the exact sizing that seeds the room
+    speculate.settle()
+    speculate.capacity = exact.num_intersections // 3  # too small: some pairs are dropped
+    overflows = speculate.overflows
+    out, grads = _render(scene, True, ("rgb", "alpha"))
+    assert int(out.pairs_overflowed) == 1
+    assert all(torch.isfinite(t).all() for t in (out.rgb, out.alpha, *grads.values()))
+    assert not torch.equal(out.rgb, exact.rgb)
+    again, _ = _render(scene, True, ("rgb", "alpha"))  # settles the overflow first: the room has grown
+    assert speculate.overflows == overflows + 1
+    assert speculate.capacity >= exact.num_intersections
+    assert int(again.pairs_overflowed) == 0 and torch.equal(again.rgb, exact.rgb)
+
+
+def test_a_scene_with_no_pairs_renders_the_background(speculate):
+    scene = random_scene(n=20, width=32, height=24, seed=5)
+    _render(scene, True, ("rgb", "alpha"))
+    scene["means"] = scene["means"] + torch.tensor([0.0, 0.0, -50.0], dtype=torch.float64)  # all behind the camera
+    out, grads = _render(scene, True, ("rgb", "alpha"))
+    assert out.num_intersections == -1 and int(out.pairs_overflowed) == 0
+    assert torch.count_nonzero(out.alpha) == 0 and torch.count_nonzero(grads["means"]) == 0
+
+
+def test_room_sizes_hold_what_is_asked_and_change_seldom():
+    sizes = [room_size(x) for x in range(1, 200000, 997)]
+    assert all(s >= max(x, MIN_ROOM) for s, x in zip(sizes, range(1, 200000, 997)))
+    assert all(s <= 1.1 * max(x, MIN_ROOM) + 1 for s, x in zip(sizes, range(1, 200000, 997)))
+    doublings = math.log2(200000 / MIN_ROOM)
+    assert len(set(sizes)) <= SIZES_PER_DOUBLING * doublings + 1  # a few sizes per doubling: few graphs
+    room = PairRoom()
+    for total in (5000, 9000, 7000):
+        room.observe(total)
+    assert room.capacity == room_size(9000 * 1.3)  # the recent largest with headroom
+
+
+def test_the_trainer_skips_a_step_whose_render_overflowed_without_an_error():
+    w = torch.nn.Parameter(torch.ones(3))
+    opt = torch.optim.Adam([w], lr=0.1, fused=True)
+    step_guard = StepGuard(NonFiniteGuard(lambda: [("w", w)]))
+    ok = LossResult(torch.tensor(1.0), {"l1": torch.tensor(1.0)}, {"l1": 1.0})
+    w.grad = torch.ones(3)
+    step_guard.before_optimizers(0, ok, [opt], defer=True, dropped=[torch.tensor(1, dtype=torch.int32)])
+    opt.step()
+    step_guard.after_optimizers([opt])
+    assert torch.equal(w.detach(), torch.ones(3)) and opt.state[w]["step"].item() == 0  # skipped on the device
+    w.grad = torch.ones(3)
+    step_guard.before_optimizers(1, ok, [opt], defer=True, dropped=[torch.tensor(0, dtype=torch.int32)])  # no error
+    opt.step()
+    step_guard.after_optimizers([opt])
+    assert torch.allclose(w.detach(), torch.full((3,), 0.9))
+    w.grad = torch.tensor([1.0, float("nan"), 1.0])  # a non-finite step still raises, with its own step
+    step_guard.before_optimizers(2, ok, [opt], defer=True, dropped=[torch.tensor(0, dtype=torch.int32)])
+    with pytest.raises(NonFiniteError, match="step 2"):
+        step_guard.settle()
+
+
+def test_without_a_deferred_check_an_overflowed_step_is_dropped_at_once():
+    w = torch.nn.Parameter(torch.ones(2))
+    opt = torch.optim.Adam([w], lr=0.1, foreach=True)  # cannot skip on the device
+    step_guard = StepGuard(NonFiniteGuard(lambda: [("w", w)]))
+    w.grad = torch.ones(2)
+    step_guard.before_optimizers(0, None, [opt], defer=True, dropped=[torch.tensor(1, dtype=torch.int32)])
+    assert w.grad is None
+    opt.step()
+    assert torch.equal(w.detach(), torch.ones(2))

@@ -1,0 +1,87 @@
+"""Room for a GPU render's tile pairs, sized from earlier calls' counts (torch-free).
+
+A render learns how many (tile, primitive) pairs it has only after the projection and the prefix sum; reading that
+count back to size the pair sort is a host sync in every call, and in a training step it leaves the GPU idle while
+the host queues the rest of the step. A render with `speculative_pairs` sorts into a room fixed beforehand instead
+(kernels/binning.py's bounded kernels) and reads its count back without waiting: the next such call settles it,
+by then long done, and grows the room when it was too small. A call whose pairs did not fit drops some of them,
+which its overflow flag says on the device (the trainer skips that step through fused Adam's found_inf, as it does
+a non-finite one).
+
+The room is the largest count of the last WINDOW calls times HEADROOM, rounded up to one of a few sizes per
+doubling, so it changes seldom (each size is another CUDA graph of the pre-blend launches).
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Optional
+
+import warp as wp
+
+HEADROOM = 1.3  # views of one scene differ in pairs; densification grows them between visits
+WINDOW = 64  # calls remembered
+SIZES_PER_DOUBLING = 8  # room sizes are 2^(k/8): at most 9% above what the rule asks for
+MIN_ROOM = 1024
+
+
+def room_size(needed: float) -> int:
+    """The smallest size 2^(k / SIZES_PER_DOUBLING) (k an integer) that holds `needed` pairs, at least MIN_ROOM."""
+    needed = max(float(needed), MIN_ROOM)
+    k = math.ceil(SIZES_PER_DOUBLING * math.log2(needed) - 1e-9)
+    return int(math.ceil(2.0 ** (k / SIZES_PER_DOUBLING)))
+
+
+class PairRoom:
+    """One workspace's room for tile pairs and the one count read still in flight. `capacity` is 0 until a count has
+    been seen (the first call then sizes exactly, with its sync). `overflows` / `speculative_calls` count the calls
+    whose pairs did not fit and all calls sized from the room, for benchmarks and the trainer's report."""
+
+    def __init__(self):
+        self.capacity = 0
+        self.recent: deque = deque(maxlen=WINDOW)
+        self.overflows = 0
+        self.speculative_calls = 0
+        self._pending: Optional[tuple] = None  # (event, pinned host ints, index, the room that call had)
+        self._event = None
+        self._host = None
+
+    def observe(self, total: int) -> None:
+        """A call's exact pair count: the room follows the recent largest."""
+        self.recent.append(int(total))
+        self.capacity = room_size(max(self.recent) * HEADROOM)
+
+    def settle(self) -> None:
+        """Reads the last speculative call's count (waiting on its event, normally long passed) and notes an
+        overflow. Call before another call may write the pinned buffer."""
+        pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        event, host, capacity = pending
+        if event is not None:
+            wp.synchronize_event(event)
+        total = int(host[0])
+        if total > capacity:
+            self.overflows += 1
+        self.observe(total)
+
+    def host_buffer(self, device):
+        """The pinned int buffer speculative calls copy their count into (one per room: exact calls' reads use the
+        workspace's own, so neither overwrites a count the other has not read)."""
+        if self._host is None:
+            cuda = wp.get_device(device).is_cuda
+            self._host = wp.empty(16, dtype=wp.int32, device="cpu", pinned=cuda)
+            self._event = wp.Event(device) if cuda else None
+        return self._host
+
+    def issued(self, stream, capacity: int) -> None:
+        """The speculative call's count copy is queued on `stream` (None on the CPU, where it is written already):
+        record the event settle waits on."""
+        if stream is not None:
+            stream.record_event(self._event)
+        self._pending = (self._event, self._host.numpy(), capacity)
+        self.speculative_calls += 1
+
+    def stats(self) -> dict:
+        self.settle()
+        return {"capacity": self.capacity, "speculative_calls": self.speculative_calls, "overflows": self.overflows}
