@@ -26,6 +26,18 @@ def passes_clamp(x: float, lo: float, hi: float) -> float:
 
 
 @wp.func
+def finite_or_zero3(v: wp.vec3) -> wp.vec3:
+    return wp.vec3(wp.where(wp.isfinite(v[0]), v[0], 0.0), wp.where(wp.isfinite(v[1]), v[1], 0.0),
+                   wp.where(wp.isfinite(v[2]), v[2], 0.0))
+
+
+@wp.func
+def finite_or_zero4(v: wp.vec4) -> wp.vec4:
+    return wp.vec4(wp.where(wp.isfinite(v[0]), v[0], 0.0), wp.where(wp.isfinite(v[1]), v[1], 0.0),
+                   wp.where(wp.isfinite(v[2]), v[2], 0.0), wp.where(wp.isfinite(v[3]), v[3], 0.0))
+
+
+@wp.func
 def quat_rotation_adjoint(q: wp.vec4, g: wp.mat33) -> wp.vec4:
     """Gradient of quat_wxyz_to_rotation(q) (normalised inside, guarded at 0) given the rotation's gradient g."""
     n2 = wp.dot(q, q)
@@ -259,6 +271,12 @@ def project_gaussians_adjoint(
     elif (want & WANT_COEFFS) != 0:
         adj_coeffs[i, 0] = adj_coeffs[i, 0] + gc
 
+    # A huge, nearly flat Gaussian at the near plane (scale ~1e7 at z = near) has gradients beyond float32: the chain
+    # above overflows to inf and inf * 0 makes NaN. With a finite upstream such a gradient is dropped (0), never NaN;
+    # a NaN upstream still propagates (the guard's signal).
+    upstream_finite = wp.isfinite(gm) and wp.isfinite(gk) and wp.isfinite(gc) and wp.isfinite(gz)
+    if upstream_finite:
+        g_mu = finite_or_zero3(g_mu)
     if (want & WANT_MEANS) != 0:
         adj_means[i] = adj_means[i] + g_mu
     if (want & WANT_SCALES) != 0:
@@ -270,8 +288,13 @@ def project_gaussians_adjoint(
                                                                                                MAX_SCALE),
             (g_M[0, 2] * Rq[0, 2] + g_M[1, 2] * Rq[1, 2] + g_M[2, 2] * Rq[2, 2]) * passes_clamp(s[2], -MAX_SCALE,
                                                                                                MAX_SCALE))
+        if upstream_finite:
+            g_s = finite_or_zero3(g_s)
         adj_scales[i] = adj_scales[i] + g_s
     if (want & WANT_QUATS) != 0:
         g_Rq = g_M * wp.diag(wp.vec3(sx, sy, sz))
-        adj_quats[i] = adj_quats[i] + quat_rotation_adjoint(q, g_Rq)
+        g_q = quat_rotation_adjoint(q, g_Rq)
+        if upstream_finite:
+            g_q = finite_or_zero4(g_q)
+        adj_quats[i] = adj_quats[i] + g_q
 

@@ -130,3 +130,26 @@ def test_the_op_with_the_written_adjoint_matches_the_float64_reference(sh_degree
         cosine = torch.nn.functional.cosine_similarity(a, b, dim=0).item()
         rel = ((a - b).norm() / b.norm()).item()
         assert cosine >= 0.999 and rel <= 1e-3, f"{name}: cosine {cosine:.6f}, relative L2 {rel:.2e}"
+
+
+def test_a_gradient_beyond_float32_is_dropped_not_made_nan():
+    """A flat Gaussian 1e7 long at the near plane (a case the stress test drew): its exact gradient overflows float32
+    in the written adjoint's chain, where inf * 0 used to give NaN. With a finite upstream it is now 0."""
+    import torch
+
+    from warpgs import rasterize
+
+    view = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.9787233414018174, 0.20518435855411005, 0.0],
+                         [0.0, -0.20518435855411005, 0.9787233414018174, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    leaves = dict(means=torch.tensor([[0.3906983949401768, -0.0387488684181143, 0.01]]), quats=torch.zeros(1, 4),
+                  scales=torch.tensor([[0.0, 0.0, 11674787.0]]), opacities=torch.tensor([0.33050397752616]),
+                  colors=torch.tensor([[0.006398980984146485, 0.21518027277130025, 0.471673078714696]]))
+    leaves = {k: v.requires_grad_(True) for k, v in leaves.items()}
+    outputs = ("rgb", "alpha", "depth", "inv_depth")
+    out = rasterize(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"], view,
+                    torch.tensor([[22.0, 0.0, 1.0], [0.0, 22.0, 11.0], [0.0, 0.0, 1.0]]), 2, 22, outputs=outputs,
+                    background=torch.tensor([0.2, 0.4, 0.6]))
+    sum((getattr(out, o) * (i + 1)).sum() for i, o in enumerate(outputs)).backward()
+    assert out.num_intersections > 0 and float(out.alpha.sum()) > 0  # it is rendered and receives a gradient
+    for name, leaf in leaves.items():
+        assert torch.isfinite(leaf.grad).all(), name

@@ -138,3 +138,51 @@ def test_without_a_deferred_check_an_overflowed_step_is_dropped_at_once():
     assert w.grad is None
     opt.step()
     assert torch.equal(w.detach(), torch.ones(2))
+
+
+def test_a_training_run_through_the_speculative_path_skips_only_its_overflowed_step(monkeypatch, tmp_path):
+    from warpgs.config.loader import load_config
+    from warpgs.train import loop, step
+    from warpgs.train.trainer import Trainer
+
+    monkeypatch.setattr(fast_pipeline, "SPECULATE_ON_CPU", True)
+    monkeypatch.setattr(step, "speculative_pairs", lambda trainer: True)  # the GPU's rule, on the CPU
+    cfg = load_config(None, ["steps=5", "train.device=cpu", "eval.every=0", "optim.adam_kernel=fused",
+                             "data.width=32", "data.height=24", f"output.dir={tmp_path}", "train.progress=false"])
+    trainer = Trainer(cfg, quiet=True)
+    room = PairRoom()
+    monkeypatch.setattr(device_state(trainer.device).ws, "pair_room", room)
+    trainer.train_step()  # sized exactly: seeds the room
+    trainer.train_step()
+    assert room.speculative_calls == 1
+    room.settle()
+    room.capacity = room.recent[-1] // 4  # the next render cannot fit
+    before = {n: p.detach().clone() for n, p in trainer.named_parameters()}
+    trainer.train_step()
+    trainer.step_guard.settle()  # no error for it
+    assert all(torch.equal(before[n], p.detach()) for n, p in trainer.named_parameters())  # skipped on the device
+    trainer.train_step()  # the room has grown: this one applies
+    assert room.overflows == 1 and room.speculative_calls == 3
+    assert any(not torch.equal(before[n], p.detach()) for n, p in trainer.named_parameters())
+    assert loop.speculative_pair_stats(trainer) == {"renders": 3, "skipped": 1}
+
+
+@pytest.mark.parametrize("change,expected", [({}, True), ({"speculative_pairs": False}, False),
+                                             ({"nan_guard": False}, False), ({"deterministic": True}, False),
+                                             ({"device": "cpu"}, False), ({"kind": "surfels"}, False),
+                                             ({"ranks": True}, False), ({"fused": False}, False)])
+def test_the_trainer_speculates_only_where_a_step_can_be_skipped_on_the_device(change, expected):
+    from types import SimpleNamespace
+
+    from warpgs.train import step
+
+    o = {"speculative_pairs": True, "nan_guard": True, "deterministic": False, "device": "cuda",
+         "kind": "gaussians", "ranks": False, "fused": True, **change}
+    w = torch.nn.Parameter(torch.ones(1))
+    opt = torch.optim.Adam([w], fused=o["fused"], foreach=None if o["fused"] else True)
+    trainer = SimpleNamespace(
+        config=SimpleNamespace(train=SimpleNamespace(speculative_pairs=o["speculative_pairs"], nan_guard=o["nan_guard"],
+                                                     deterministic=o["deterministic"])),
+        device=torch.device(o["device"]), model=SimpleNamespace(kind=o["kind"]),
+        ranks=SimpleNamespace(enabled=o["ranks"]), step_guard=StepGuard(NonFiniteGuard(lambda: [])), optimizers=[opt])
+    assert step.speculative_pairs(trainer) is expected

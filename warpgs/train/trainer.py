@@ -278,8 +278,11 @@ class Trainer(TrainerBuild):
                            check_inputs=not t.nan_guard,
                            deterministic=t.deterministic or None, speculative_pairs=speculative_pairs, **filters,
                            **t.render_options())
+        overflowed = out.pairs_overflowed  # an extension's own RenderOutput must not lose it (the step's skip)
         for ext in self.extensions:
             out = ext.after_render(self, out, batch, step)
+        if overflowed is not None and getattr(out, "pairs_overflowed", None) is None:
+            out.pairs_overflowed = overflowed
         return out
 
     def outputs_at(self, step: int) -> tuple:
