@@ -185,6 +185,19 @@ def pair_slot_table(
     table[b] = pair_slot(offsets, num_primitives, wp.min(b * PAIR_TABLE_STRIDE, total - 1))
 
 
+@wp.func
+def emit_pair_by_table(k: int, rects: wp.array(dtype=wp.vec4i), order: wp.array(dtype=wp.int32),
+                       offsets: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32),
+                       table: wp.array(dtype=wp.int32), tiles_x: int, keys: wp.array(dtype=wp.int32),
+                       values: wp.array(dtype=wp.int32)):
+    """Pair k's tile key and primitive, its slot searched between the coarse table's two entries around it."""
+    b = k / PAIR_TABLE_STRIDE
+    slot = pair_slot_within(offsets, table[b], table[b + 1], k)
+    i = order[slot]
+    keys[k] = pair_tile(rects[i], k - (offsets[slot] - counts[i]), tiles_x)
+    values[k] = i
+
+
 @wp.kernel
 def emit_tile_keys_by_table(
     rects: wp.array(dtype=wp.vec4i),
@@ -197,12 +210,7 @@ def emit_tile_keys_by_table(
     values: wp.array(dtype=wp.int32),
 ):
     """`emit_tile_keys_per_pair` with each pair's search narrowed by the coarse table."""
-    k = wp.tid()
-    b = k / PAIR_TABLE_STRIDE
-    slot = pair_slot_within(offsets, table[b], table[b + 1], k)
-    i = order[slot]
-    keys[k] = pair_tile(rects[i], k - (offsets[slot] - counts[i]), tiles_x)
-    values[k] = i
+    emit_pair_by_table(wp.tid(), rects, order, offsets, counts, table, tiles_x, keys, values)
 
 
 @wp.kernel
@@ -324,11 +332,7 @@ def emit_tile_keys_bounded(
         keys[k] = num_tiles
         values[k] = 0
         return
-    b = k / PAIR_TABLE_STRIDE
-    slot = pair_slot_within(offsets, table[b], table[b + 1], k)
-    i = order[slot]
-    keys[k] = pair_tile(rects[i], k - (offsets[slot] - counts[i]), tiles_x)
-    values[k] = i
+    emit_pair_by_table(k, rects, order, offsets, counts, table, tiles_x, keys, values)
 
 
 @wp.kernel
