@@ -13,7 +13,7 @@ from warpgs import rasterize
 from warpgs.losses.registry import LossResult
 from warpgs.render import fast_pipeline
 from warpgs.render.device_state import device_state
-from warpgs.render.pair_room import MIN_ROOM, SIZES_PER_DOUBLING, PairRoom, room_size
+from warpgs.render.pair_room import MIN_ROOM, SIZES_PER_DOUBLING, PairRoom, PairRooms, room_size
 from warpgs.train.guard import NonFiniteError, NonFiniteGuard, StepGuard
 
 LEAVES = ("means", "quats", "scales", "opacities", "colors", "features")
@@ -22,21 +22,22 @@ OUTPUTS = ("rgb", "alpha", "depth", "features")
 
 @pytest.fixture
 def speculate(monkeypatch):
+    """The room of the tests' 64x48 renders at tile 8, in a workspace that has seen no count yet."""
     monkeypatch.setattr(fast_pipeline, "SPECULATE_ON_CPU", True)
     ws = device_state(torch.device(DEVICE)).ws
-    ws.pair_room.settle()
-    monkeypatch.setattr(ws, "pair_room", PairRoom())  # each test starts with no count seen
-    return ws.pair_room
+    ws.pair_rooms.stats()  # settles what earlier tests left in flight
+    monkeypatch.setattr(ws, "pair_rooms", PairRooms())
+    return ws.pair_rooms.room((64, 48, 8))
 
 
-def _render(scene, speculative, outputs=OUTPUTS):
+def _render(scene, speculative, outputs=OUTPUTS, tile=8):
     """A render and its gradients; speculative renders skip the input checks, as the trainer's do (on a GPU the
     checks' flags are read at the pair count's sync, which the speculative path has not)."""
     leaves = {k: scene[k].detach().float().to(DEVICE).requires_grad_(True) for k in LEAVES if scene[k] is not None}
     out = rasterize(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
                     scene["viewmat"].float().to(DEVICE), scene["K"].float().to(DEVICE), scene["width"],
                     scene["height"], sh_degree=scene["sh_degree"], features=leaves.get("features"), outputs=outputs,
-                    track_means2d=True, speculative_pairs=speculative, check_inputs=not speculative)
+                    track_means2d=True, speculative_pairs=speculative, check_inputs=not speculative, tile_size=tile)
     g = torch.Generator().manual_seed(1)
     loss = sum((getattr(out, o) * torch.randn(getattr(out, o).shape, generator=g).to(DEVICE)).sum() for o in outputs)
     loss.backward()
@@ -54,15 +55,15 @@ def _same(a, b, exact):
 @pytest.mark.parametrize("tile", [8, 16])
 def test_a_render_that_fits_its_room_matches_the_exact_path(speculate, tile):
     scene = random_scene(n=300, width=64, height=48, sh_degree=1, num_features=2, seed=tile)
-    exact, exact_grads = _render(scene, False)
+    room = device_state(torch.device(DEVICE)).ws.pair_rooms.room((64, 48, tile))
+    exact, exact_grads = _render(scene, False, tile=tile)
     assert exact.pairs_overflowed is None and exact.num_intersections > 0
-    first, _ = _render(scene, True)  # the room's first count: sized exactly, with its sync
+    first, _ = _render(scene, True, tile=tile)  # the room's first count: sized exactly, with its sync
     assert first.num_intersections == exact.num_intersections and int(first.pairs_overflowed) == 0
-    calls = speculate.speculative_calls
-    out, grads = _render(scene, True)
-    assert speculate.speculative_calls == calls + 1 and out.num_intersections == -1
+    out, grads = _render(scene, True, tile=tile)
+    assert room.speculative_calls == 1 and out.num_intersections == -1
     assert int(out.pairs_overflowed) == 0
-    assert speculate.capacity >= exact.num_intersections
+    assert room.capacity >= exact.num_intersections
     on_cpu = DEVICE == "cpu"  # GPU atomics sum in another order from run to run
     for name in OUTPUTS:
         assert torch.equal(getattr(out, name), getattr(exact, name)), name
@@ -150,9 +151,10 @@ def test_a_training_run_through_the_speculative_path_skips_only_its_overflowed_s
     cfg = load_config(None, ["steps=5", "train.device=cpu", "eval.every=0", "optim.adam_kernel=fused",
                              "data.width=32", "data.height=24", f"output.dir={tmp_path}", "train.progress=false"])
     trainer = Trainer(cfg, quiet=True)
-    room = PairRoom()
-    monkeypatch.setattr(device_state(trainer.device).ws, "pair_room", room)
+    rooms = PairRooms()
+    monkeypatch.setattr(device_state(trainer.device).ws, "pair_rooms", rooms)
     trainer.train_step()  # sized exactly: seeds the room
+    (room,) = rooms.rooms.values()
     trainer.train_step()
     assert room.speculative_calls == 1
     room.settle()
@@ -186,3 +188,17 @@ def test_the_trainer_speculates_only_where_a_step_can_be_skipped_on_the_device(c
         device=torch.device(o["device"]), model=SimpleNamespace(kind=o["kind"]),
         ranks=SimpleNamespace(enabled=o["ranks"]), step_guard=StepGuard(NonFiniteGuard(lambda: [])), optimizers=[opt])
     assert step.speculative_pairs(trainer) is expected
+
+
+def test_each_image_size_has_its_own_room(speculate):
+    """Counts scale with the pixels: the first render at a new size is sized exactly, not squeezed into the room of
+    a smaller image (a resolution schedule would otherwise skip a step at each change)."""
+    small = random_scene(n=300, width=16, height=12, seed=7)
+    large = random_scene(n=300, width=64, height=48, seed=7)
+    for _ in range(2):
+        _render(small, True, ("rgb", "alpha"))
+    out, _ = _render(large, True, ("rgb", "alpha"))
+    assert out.num_intersections > 0 and int(out.pairs_overflowed) == 0  # exact: this size's first count
+    rooms = device_state(torch.device(DEVICE)).ws.pair_rooms
+    assert rooms.stats() == {"speculative_calls": 1, "overflows": 0}
+    assert speculate is rooms.room((64, 48, 8)) and speculate.capacity >= out.num_intersections

@@ -178,9 +178,10 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     """(total, tile_start, tile_end, sorted_ids): the (tile, primitive) pairs sorted by tile, then depth, then
     primitive index, and every tile's [start, end) range. tile_start and sorted_ids come from `per_call`.
     sequence: launches queued ahead; everything up to the tile-pair count's read runs with them.
-    overflow: a 1-element int32 array, to bin speculatively: on a GPU whose workspace has seen a count (and with no
-    input checks queued), the pairs are sorted into the workspace's room (pair_room.py) without a host sync, total
-    comes back as -1 and overflow[0] says whether pairs were dropped; otherwise the exact path runs and writes 0."""
+    overflow: a 1-element int32 array, to bin speculatively: on a GPU whose workspace has seen a count at this image
+    and tile size (and with no input checks queued), the pairs are sorted into that size's room (pair_room.py)
+    without a host sync, total comes back as -1 and overflow[0] says whether pairs were dropped; otherwise the exact
+    path runs and writes 0."""
     dev = ws.device
     L = ws.launches
     n = int(counts.shape[0])
@@ -196,14 +197,13 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     seq.launch("counts_in_order", binning.counts_in_order, n, [order, counts, ordered])
     _stage(on_stage, "sort: depth sort")
     seq.scan(ordered, offsets)
-    room = ws.pair_room
-    if (overflow is not None and (dev.is_cuda or SPECULATE_ON_CPU) and room.capacity > 0
-            and not seq.has_checks()):
-        return sort_into_room(ws, rects, counts, s, per_call, seq, order, offsets, tile_start, tile_end, overflow,
-                              on_stage)
+    room = ws.pair_rooms.room((s.width, s.height, s.tile_size)) if overflow is not None else None
+    if room is not None and (dev.is_cuda or SPECULATE_ON_CPU) and room.capacity > 0 and not seq.has_checks():
+        return sort_into_room(ws, room, rects, counts, s, per_call, seq, order, offsets, tile_start, tile_end,
+                              overflow, on_stage)
     at = seq.read_ints(offsets, n - 1)
     total = seq.run()[at]  # the one host sync: sizes the pair buffers (and raises for flagged input)
-    if overflow is not None:  # only speculative callers' counts size the room (not evaluation's or a viewer's)
+    if room is not None:  # only speculative callers' counts size the room (not evaluation's or a viewer's)
         room.observe(total)
         L.launch("pair_overflow", binning.pair_overflow, 1, [offsets, n, total, overflow])
     _stage(on_stage, "sort: prefix sum + sync")
@@ -233,11 +233,10 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     return total, tile_start, tile_end, sorted_ids
 
 
-def sort_into_room(ws: Workspace, rects, counts, s: Settings, per_call, seq: LaunchSequence, order, offsets,
+def sort_into_room(ws: Workspace, room, rects, counts, s: Settings, per_call, seq: LaunchSequence, order, offsets,
                    tile_start, tile_end, overflow, on_stage=None):
-    """sort_into_tiles' speculative path: the pairs emitted, sorted and ranged within the workspace's room, all in
+    """sort_into_tiles' speculative path: the pairs emitted, sorted and ranged within `room` (a PairRoom), all in
     the launch sequence (one CUDA graph), the count copied back unwaited (pair_room.py settles it next call)."""
-    room = ws.pair_room
     room.settle()  # before the sequence rewrites the pinned count
     capacity = room.capacity
     n = int(counts.shape[0])

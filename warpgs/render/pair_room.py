@@ -9,7 +9,9 @@ which its overflow flag says on the device (the trainer skips that step through 
 a non-finite one).
 
 The room is the largest count of the last WINDOW calls times HEADROOM, rounded up to one of a few sizes per
-doubling, so it changes seldom (each size is another CUDA graph of the pre-blend launches).
+doubling, so it changes seldom (each size is another CUDA graph of the pre-blend launches). A workspace keeps one
+room per image and tile size (`PairRooms`): counts scale with the pixels, so a run whose views change size
+(train.resolution_schedule, captures of mixed sizes) starts each size with an exact count instead of overflowing.
 """
 from __future__ import annotations
 
@@ -85,3 +87,25 @@ class PairRoom:
     def stats(self) -> dict:
         self.settle()
         return {"capacity": self.capacity, "speculative_calls": self.speculative_calls, "overflows": self.overflows}
+
+
+class PairRooms:
+    """A workspace's rooms, one per (width, height, tile size)."""
+
+    def __init__(self):
+        self.rooms: dict = {}
+
+    def room(self, key: tuple) -> PairRoom:
+        room = self.rooms.get(key)
+        if room is None:
+            room = self.rooms[key] = PairRoom()
+        return room
+
+    def stats(self) -> dict:
+        """Speculative calls and overflows summed over the rooms (each room's count read settled first)."""
+        total = {"speculative_calls": 0, "overflows": 0}
+        for room in self.rooms.values():
+            stats = room.stats()
+            for k in total:
+                total[k] += stats[k]
+        return total

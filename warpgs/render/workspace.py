@@ -26,7 +26,7 @@ from typing import Dict, Tuple
 
 import warp as wp
 
-from warpgs.render.pair_room import PairRoom
+from warpgs.render.pair_room import PairRooms
 
 GROWTH = 1.25  # capacity grows to this multiple of the first size that does not fit
 # Recording a launch loads the kernel's module on first use. Two threads loading a module at once crashed Warp 1.19
@@ -183,7 +183,7 @@ class Workspace(Buffers):
         self._free_frames: list = []
         self._host_views: Dict[int, tuple] = {}
         self.graphs = GraphCache(self.device)
-        self.pair_room = PairRoom()  # renders with speculative_pairs size their pair sort from it (pair_room.py)
+        self.pair_rooms = PairRooms()  # where renders with speculative_pairs size their pair sort (pair_room.py)
 
     def sequence(self, immediate: bool = False) -> "LaunchSequence":
         """An empty launch sequence on this workspace (see LaunchSequence)."""
