@@ -35,7 +35,7 @@ def room_size(needed: float) -> int:
 
 
 class PairRoom:
-    """One workspace's room for tile pairs and the one count read still in flight. `capacity` is 0 until a count has
+    """The room for one image size's tile pairs and the one count read still in flight. `capacity` is 0 until a count has
     been seen (the first call then sizes exactly, with its sync). `overflows` / `speculative_calls` count the calls
     whose pairs did not fit and all calls sized from the room, for benchmarks and the trainer's report."""
 
@@ -44,7 +44,7 @@ class PairRoom:
         self.recent: deque = deque(maxlen=WINDOW)
         self.overflows = 0
         self.speculative_calls = 0
-        self._pending: Optional[tuple] = None  # (event, pinned host ints, index, the room that call had)
+        self._pending: Optional[tuple] = None  # (event, the host buffer's numpy view, the room that call had)
         self._event = None
         self._host = None
 
