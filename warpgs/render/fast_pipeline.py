@@ -9,9 +9,12 @@ Same kernels, same maths, same results (the tests compare it bit for bit with a 
   pending backward needs, and steady training reuses one set;
 - every launch is a recorded `wp.Launch` replayed with only its changed parameters (`LaunchCache`);
 - one host synchronisation per call (the number of tile pairs sizes the sort), through a pinned buffer; the
-  input checks' flags (`InputCheck`) are read at that same sync, so checking costs no sync of its own;
+  input checks' flags (`InputCheck`) are read at that same sync, so checking costs no sync of its own; a
+  speculative call (`overflow` given: the trainer's) has none: it sorts into a room sized from earlier counts
+  (`sort_into_room`, pair_room.py);
 - on GPUs, the launches up to that sync (projection, checks, footprints, depth sort, prefix sum, the reads) are
-  one CUDA graph, replayed while the arrays and sizes stay the same (workspace.LaunchSequence);
+  one CUDA graph, replayed while the arrays and sizes stay the same (workspace.LaunchSequence); a speculative
+  call's graph also holds the pair emission, sort and tile ranges;
 - no wp.Tape: the backward launches the blend adjoint and then the projection's generated adjoint itself.
 
 Torch-free: arrays come in as Warp arrays or array descriptors (`wp.from_torch(..., return_ctype=True)`).
