@@ -202,3 +202,27 @@ def test_each_image_size_has_its_own_room(speculate):
     rooms = device_state(torch.device(DEVICE)).ws.pair_rooms
     assert rooms.stats() == {"speculative_calls": 1, "overflows": 0}
     assert speculate is rooms.room((64, 48, 8)) and speculate.capacity >= out.num_intersections
+
+
+def test_a_batch_of_views_skips_the_step_when_any_view_overflowed(monkeypatch, tmp_path):
+    from warpgs.config.loader import load_config
+    from warpgs.train import step
+    from warpgs.train.trainer import Trainer
+
+    monkeypatch.setattr(fast_pipeline, "SPECULATE_ON_CPU", True)
+    monkeypatch.setattr(step, "speculative_pairs", lambda trainer: True)
+    cfg = load_config(None, ["steps=4", "train.device=cpu", "eval.every=0", "optim.adam_kernel=fused",
+                             "train.batch_size=2", "data.width=32", "data.height=24", f"output.dir={tmp_path}",
+                             "train.progress=false"])
+    trainer = Trainer(cfg, quiet=True)
+    rooms = PairRooms()
+    monkeypatch.setattr(device_state(trainer.device).ws, "pair_rooms", rooms)
+    trainer.train_step()  # the first view sizes exactly, the second speculates
+    (room,) = rooms.rooms.values()
+    room.settle()
+    room.capacity = min(room.recent) // 4  # the next step's first view overflows; its second, sized after, fits
+    before = {n: p.detach().clone() for n, p in trainer.named_parameters()}
+    trainer.train_step()
+    trainer.step_guard.settle()
+    assert room.stats()["overflows"] == 1  # one view of two: the whole step is skipped
+    assert all(torch.equal(before[n], p.detach()) for n, p in trainer.named_parameters())
