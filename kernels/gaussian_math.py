@@ -28,15 +28,26 @@ def clamp_scale(s: float) -> float:
 
 
 @wp.func
-def symmetric2_inverse(a: float, b: float, c: float) -> wp.vec3:
-    """Inverse of [[a, b], [b, c]] (positive definite) as (a', b', c'), scaled to avoid float32 overflow."""
+def covariance_det_scaled(t0: wp.vec3, t1: wp.vec3, low_pass: float, s: float) -> float:
+    """det([[t0.t0 + lp, t0.t1], [t0.t1, t1.t1 + lp]]) / s^2, written as the Lagrange identity |t0 x t1|^2 +
+    lp (|t0|^2 + |t1|^2) + lp^2 on the rows scaled by 1/sqrt(s): no cancellation, where a c - b^2 of a long, thin
+    footprint (a needle seen side on: 3e7 px^2 along it, the 0.3 px^2 low-pass across) is float32 noise."""
+    r = 1.0 / wp.sqrt(s)
+    u0 = t0 * r
+    u1 = t1 * r
+    lp = low_pass / s
+    x = wp.cross(u0, u1)
+    return wp.dot(x, x) + lp * (wp.dot(u0, u0) + wp.dot(u1, u1)) + lp * lp
+
+
+@wp.func
+def covariance_inverse(t0: wp.vec3, t1: wp.vec3, low_pass: float, a: float, b: float, c: float) -> wp.vec3:
+    """Inverse of the 2D covariance [[a, b], [b, c]] = T T^T + low_pass I (t0, t1: T's rows) as (a', b', c'),
+    scaled to avoid float32 overflow, its determinant from covariance_det_scaled."""
     s = wp.max(wp.max(a, c), 1.0e-12)
-    an = a / s
-    bn = b / s
-    cn = c / s
-    det = wp.max(an * cn - bn * bn, 1.0e-30)
+    det = wp.max(covariance_det_scaled(t0, t1, low_pass, s), 1.0e-30)
     k = 1.0 / (det * s)
-    return wp.vec3(cn * k, -bn * k, an * k)
+    return wp.vec3(c / s * k, -b / s * k, a / s * k)
 
 
 @wp.func

@@ -5,7 +5,7 @@ finite values (they receive a zero adjoint because they never reach a tile).
 """
 import warp as wp
 
-from .gaussian_math import (clamp_scale, nonzero2, nonzero3, quat_wxyz_to_rotation, rotation_of, symmetric2_inverse,
+from .gaussian_math import (clamp_scale, covariance_inverse, nonzero2, nonzero3, quat_wxyz_to_rotation, rotation_of,
                             translation_of)
 from .sh import colour_from_sh, eval_sh
 
@@ -74,13 +74,14 @@ def project_one(
     Rq = quat_wxyz_to_rotation(quats[i])
     M = Rq * wp.diag(wp.vec3(clamp_scale(s[0]), clamp_scale(s[1]), clamp_scale(s[2])))
     T = J * R * M
-    cov = T * wp.transpose(T)
-    a = cov[0, 0] + low_pass
-    b = cov[0, 1]
-    c = cov[1, 1] + low_pass
+    t0 = wp.vec3(T[0, 0], T[0, 1], T[0, 2])
+    t1 = wp.vec3(T[1, 0], T[1, 1], T[1, 2])
+    a = wp.dot(t0, t0) + low_pass
+    b = wp.dot(t0, t1)
+    c = wp.dot(t1, t1) + low_pass
 
     means2d[i] = wp.vec2(fx * p[0] / zs + cx, fy * p[1] / zs + cy)
-    conics[i] = symmetric2_inverse(a, b, c)
+    conics[i] = covariance_inverse(t0, t1, low_pass, a, b, c)
     cov2d[i] = wp.vec3(a, b, c)
     depths[i] = zs
 

@@ -7,7 +7,7 @@ forward picked), so the two agree on every input, culled and clamped Gaussians i
 """
 import warp as wp
 
-from .gaussian_math import MAX_SCALE, quat_wxyz_to_rotation, rotation_of, translation_of
+from .gaussian_math import MAX_SCALE, covariance_det_scaled, quat_wxyz_to_rotation, rotation_of, translation_of
 from .project import COLOR_SH, view_bounds
 from .sh import (SH_C0, SH_C1, eval_sh, SH_C2_0, SH_C2_1, SH_C2_2, SH_C2_3, SH_C2_4, SH_C3_0, SH_C3_1, SH_C3_2, SH_C3_3,
                  SH_C3_4, SH_C3_5, SH_C3_6)
@@ -61,14 +61,17 @@ def quat_rotation_adjoint(q: wp.vec4, g: wp.mat33) -> wp.vec4:
 
 
 @wp.func
-def conic_adjoint(a: float, b: float, c: float, g: wp.vec3) -> wp.vec3:
-    """Gradient of symmetric2_inverse(a, b, c) (gaussian_math.py, scaled and guarded) given its output's g."""
+def conic_adjoint(t0: wp.vec3, t1: wp.vec3, low_pass: float, a: float, b: float, c: float, g: wp.vec3) -> wp.vec3:
+    """Gradient with respect to (a, b, c) of covariance_inverse(t0, t1, low_pass, a, b, c) (gaussian_math.py) given
+    its output's g. Unclamped, the inverse C's own closed form, dA -> -C dA C: written through the large k = 1 / det
+    it would subtract nearly equal terms for a long, thin footprint (the forward's determinant avoids the same
+    cancellation). Where a guard holds (a tiny covariance or determinant), the guarded chain as Warp would run it."""
     m = wp.max(a, c)
     s = wp.max(m, 1.0e-12)
     an = a / s
     bn = b / s
     cn = c / s
-    dn = an * cn - bn * bn
+    dn = covariance_det_scaled(t0, t1, low_pass, s)
     det = wp.max(dn, 1.0e-30)
     k = 1.0 / (det * s)
     g_cn = g[0] * k
@@ -78,7 +81,7 @@ def conic_adjoint(a: float, b: float, c: float, g: wp.vec3) -> wp.vec3:
     g_denom = -g_k * k * k
     g_det = g_denom * s
     g_s = g_denom * det
-    if dn > 1.0e-30:
+    if dn > 1.0e-30:  # the determinant's own derivative, as d(an cn - bn^2), which it equals
         g_an += g_det * cn
         g_cn += g_det * an
         g_bn += -2.0 * bn * g_det
@@ -233,7 +236,7 @@ def project_gaussians_adjoint(
     c = wp.dot(t1, t1) + low_pass
 
     # Backwards: conic -> 2D covariance -> T = J W -> (J, W) -> (camera point, rotation, scales).
-    g_abc = conic_adjoint(a, b, c, gk)
+    g_abc = conic_adjoint(t0, t1, low_pass, a, b, c, gk)
     g_t0 = t0 * (2.0 * g_abc[0]) + t1 * g_abc[1]
     g_t1 = t0 * g_abc[1] + t1 * (2.0 * g_abc[2])
     g_T = wp.mat33(g_t0[0], g_t0[1], g_t0[2], g_t1[0], g_t1[1], g_t1[2], 0.0, 0.0, 0.0)

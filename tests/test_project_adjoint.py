@@ -132,9 +132,10 @@ def test_the_op_with_the_written_adjoint_matches_the_float64_reference(sh_degree
         assert cosine >= 0.999 and rel <= 1e-3, f"{name}: cosine {cosine:.6f}, relative L2 {rel:.2e}"
 
 
-def test_a_gradient_beyond_float32_is_dropped_not_made_nan():
-    """A flat Gaussian 1e7 long at the near plane (a case the stress test drew): its exact gradient overflows float32
-    in the written adjoint's chain, where inf * 0 used to give NaN. With a finite upstream it is now 0."""
+def test_a_flat_gaussian_1e7_long_at_the_near_plane_gets_finite_gradients():
+    """A case the stress test drew: with its conic computed through a c - b^2 (float32 noise here) the written
+    adjoint's chain overflowed and inf * 0 made NaN. The conic is exact now (next test), and a gradient that still
+    overflowed float32 with a finite upstream would be dropped (0), never NaN."""
     import torch
 
     from warpgs import rasterize
@@ -150,6 +151,31 @@ def test_a_gradient_beyond_float32_is_dropped_not_made_nan():
                     torch.tensor([[22.0, 0.0, 1.0], [0.0, 22.0, 11.0], [0.0, 0.0, 1.0]]), 2, 22, outputs=outputs,
                     background=torch.tensor([0.2, 0.4, 0.6]))
     sum((getattr(out, o) * (i + 1)).sum() for i, o in enumerate(outputs)).backward()
-    assert out.num_intersections > 0 and float(out.alpha.sum()) > 0  # it is rendered and receives a gradient
+    assert out.num_intersections > 0  # it reaches the image's tiles
     for name, leaf in leaves.items():
         assert torch.isfinite(leaf.grad).all(), name
+
+
+@pytest.mark.parametrize("rows", [((0.0, 0.0, 2.6e10), (0.0, 0.0, 1.3e10)),  # a needle seen side on (rank 1)
+                                  ((3.0e3, 1.0, -2.0e3), (6.0e3, 2.5, -4.0e3)),  # nearly parallel rows
+                                  ((1.5, -0.2, 0.7), (0.3, 2.0, -0.1))])  # an ordinary footprint
+def test_the_conic_is_the_exact_inverse_of_a_thin_footprint(rows):
+    """covariance_inverse against the inverse in float64 with its determinant written without cancellation
+    (|t0 x t1|^2 + lp (|t0|^2 + |t1|^2) + lp^2): a c - b^2 of a needle seen side on is float32 (even float64)
+    noise, and the conic came out wrong by orders of magnitude."""
+    from warpgs.kernels import gaussian_math
+
+    @wp.kernel
+    def conic(t0: wp.array(dtype=wp.vec3), t1: wp.array(dtype=wp.vec3), lp: float, out: wp.array(dtype=wp.vec3)):
+        a = wp.dot(t0[0], t0[0]) + lp
+        b = wp.dot(t0[0], t1[0])
+        c = wp.dot(t1[0], t1[0]) + lp
+        out[0] = gaussian_math.covariance_inverse(t0[0], t1[0], lp, a, b, c)
+
+    t0, t1 = (np.array(r, np.float32) for r in rows)
+    out = wp.zeros(1, dtype=wp.vec3, device="cpu")
+    wp.launch(conic, 1, inputs=[cpu(t0[None], wp.vec3), cpu(t1[None], wp.vec3), LOW_PASS, out], device="cpu")
+    u0, u1 = t0.astype(np.float64), t1.astype(np.float64)
+    det = np.dot(np.cross(u0, u1), np.cross(u0, u1)) + LOW_PASS * (u0 @ u0 + u1 @ u1) + LOW_PASS**2
+    want = np.array([u1 @ u1 + LOW_PASS, -(u0 @ u1), u0 @ u0 + LOW_PASS]) / det
+    np.testing.assert_allclose(out.numpy()[0], want, rtol=1e-5, atol=1e-6 * np.abs(want).max())
