@@ -6,7 +6,7 @@ for one or several renderer variants side by side (benchmarks/variants.py).
     python benchmarks/profile_stages.py --device cuda --primitive surfels --variants fast+sbwd=block,fast+sbwd=warp_sums
 
 Variants are timed through the real op (forward and backward through autograd) with a synchronisation after each
-stage (fast_pipeline.stage_hook); surfels drop the scene's third scale. Stage times include the host work of the
+stage (tile_binning.stage_hook); surfels drop the scene's third scale. Stage times include the host work of the
 stage. Then the whole op, forward and forward+backward, without the hooks, and
 on CUDA the per-kernel GPU times of one call (Warp's activity timing; the radix sorts are CUB calls it may not see).
 Prints tables and writes benchmarks/results/profile_stages_<device>.json ($OUT when set).
@@ -23,7 +23,7 @@ import warp as wp
 from common import print_table, standard_scenes_module, sync, time_call, write_json
 from variants import describe, variant
 from warpgs import rasterize, rasterize_surfels
-from warpgs.render import fast_pipeline
+from warpgs.render import tile_binning
 from warpgs.render.defaults import DEFAULT_TILE_SIZE
 
 OUTPUTS = ("rgb", "alpha", "depth")
@@ -54,14 +54,14 @@ def profile_fast(scene, W, H, device, tile, render=rasterize):
     means, quats, scales, opacities, colors, viewmat, K = scene
     leaves = [x.detach().requires_grad_(True) for x in (means, quats, scales, opacities, colors)]
     clock = StageClock(device)
-    fast_pipeline.stage_hook = clock
+    tile_binning.stage_hook = clock
     try:
         clock.mark()
         out = render(*leaves, viewmat, K, W, H, outputs=OUTPUTS, tile_size=tile, check_inputs=False)
         (out.rgb.sum() + out.depth.sum()).backward()
         clock("end (grads to autograd)")
     finally:
-        fast_pipeline.stage_hook = None
+        tile_binning.stage_hook = None
     return clock.table, out.num_intersections
 
 

@@ -121,9 +121,9 @@ def _reference_pairs(rects, counts, depths, tiles_x):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_lean_path_sorts_match_the_reference(seed):
-    """render/fast_pipeline.sort_into_tiles: same pairs, same order, and every tile's range
+    """render/tile_binning.sort_into_tiles: same pairs, same order, and every tile's range
     written (no zero-fill beforehand: the workspace buffers start with garbage here)."""
-    from warpgs.render import fast_pipeline
+    from warpgs.render import tile_binning
     from warpgs.render.workspace import Workspace
 
     tiles_x, tiles_y = 13, 9
@@ -134,7 +134,7 @@ def test_lean_path_sorts_match_the_reference(seed):
     ws.array("tile_end", s.num_tiles, wp.int32).fill_(-7)
     pairs = _reference_pairs(rects, counts, depths, tiles_x)
     for _ in range(2):  # the second call reuses every buffer
-        total, start, end, ids = fast_pipeline.sort_into_tiles(ws, cpu(rects, wp.vec4i), cpu(counts, wp.int32),
+        total, start, end, ids = tile_binning.sort_into_tiles(ws, cpu(rects, wp.vec4i), cpu(counts, wp.int32),
                                                                cpu(depths, wp.float32), s, ws.array)
         assert total == len(pairs)
         np.testing.assert_array_equal(ids.numpy()[:total], [p[2] for p in pairs])

@@ -1,7 +1,7 @@
 """Speculative binning (rasterize(speculative_pairs=True), render/pair_room.py): a render sized from earlier calls'
 tile-pair counts gives the exact path's bits when its pairs fit, flags itself when they do not (and stays finite),
 and the trainer skips such a step on the device without an error. The path saves a GPU's host sync; on the CPU it
-runs here through fast_pipeline.SPECULATE_ON_CPU, the same kernels."""
+runs here through tile_binning.SPECULATE_ON_CPU, the same kernels."""
 import math
 
 import pytest
@@ -11,7 +11,7 @@ from random_scenes import random_scene
 from raster_helpers import DEVICE
 from warpgs import rasterize
 from warpgs.losses.registry import LossResult
-from warpgs.render import fast_pipeline
+from warpgs.render import tile_binning
 from warpgs.render.device_state import device_state
 from warpgs.render.pair_room import MIN_ROOM, SIZES_PER_DOUBLING, PairRoom, PairRooms, room_size
 from warpgs.train.guard import NonFiniteError, NonFiniteGuard, StepGuard
@@ -23,7 +23,7 @@ OUTPUTS = ("rgb", "alpha", "depth", "features")
 @pytest.fixture
 def speculate(monkeypatch):
     """The room of the tests' 64x48 renders at tile 8, in a workspace that has seen no count yet."""
-    monkeypatch.setattr(fast_pipeline, "SPECULATE_ON_CPU", True)
+    monkeypatch.setattr(tile_binning, "SPECULATE_ON_CPU", True)
     ws = device_state(torch.device(DEVICE)).ws
     ws.pair_rooms.stats()  # settles what earlier tests left in flight
     monkeypatch.setattr(ws, "pair_rooms", PairRooms())
@@ -146,7 +146,7 @@ def test_a_training_run_through_the_speculative_path_skips_only_its_overflowed_s
     from warpgs.train import loop, step
     from warpgs.train.trainer import Trainer
 
-    monkeypatch.setattr(fast_pipeline, "SPECULATE_ON_CPU", True)
+    monkeypatch.setattr(tile_binning, "SPECULATE_ON_CPU", True)
     monkeypatch.setattr(step, "speculative_pairs", lambda trainer: True)  # the GPU's rule, on the CPU
     cfg = load_config(None, ["steps=5", "train.device=cpu", "eval.every=0", "optim.adam_kernel=fused",
                              "data.width=32", "data.height=24", f"output.dir={tmp_path}", "train.progress=false"])
@@ -209,7 +209,7 @@ def test_a_batch_of_views_skips_the_step_when_any_view_overflowed(monkeypatch, t
     from warpgs.train import step
     from warpgs.train.trainer import Trainer
 
-    monkeypatch.setattr(fast_pipeline, "SPECULATE_ON_CPU", True)
+    monkeypatch.setattr(tile_binning, "SPECULATE_ON_CPU", True)
     monkeypatch.setattr(step, "speculative_pairs", lambda trainer: True)
     cfg = load_config(None, ["steps=4", "train.device=cpu", "eval.every=0", "optim.adam_kernel=fused",
                              "train.batch_size=2", "data.width=32", "data.height=24", f"output.dir={tmp_path}",

@@ -16,12 +16,12 @@ from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project, surfe
 from warpgs.kernels.blend_gpu import warp_sums_supported
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.defaults import DEPTH_EPS
-from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, InputCheck, Keep, TileFrame, _stage, add_input_check,
-                                         bin_into_tiles, blend_settings_key, launch_sequence, pair_order,
-                                         run_blend_adjoint)
+from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, InputCheck, TileFrame, add_input_check,
+                                         blend_settings_key, run_blend_adjoint)
 from warpgs.render.pair_adjoint import choose_kernel
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
+from warpgs.render.tile_binning import Keep, _stage, bin_into_tiles, launch_sequence, pair_order
 from warpgs.render.workspace import Workspace
 
 # Blended images in the order the torch ops return them (and take their gradients): (name, channels, Warp dtype).
@@ -79,7 +79,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     beforehand for the per-thread CPU kernel; the expected depth is the accumulation over alpha). keep=None:
     everything in the workspace (no backward follows). check: the input checks, raised at the tile-pair count's sync
     (fast_pipeline.InputCheck). deterministic: keep what a fixed-order GPU
-    backward needs (fast_pipeline.pair_order)."""
+    backward needs (tile_binning.pair_order)."""
     L = ws.launches
     n = int(inputs[0].shape[0])
 

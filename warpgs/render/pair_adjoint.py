@@ -18,7 +18,7 @@ from warpgs.render.workspace import Workspace
 
 @dataclass
 class PairOrder:
-    """What the forward keeps for a deterministic backward (fast_pipeline.pair_order)."""
+    """What the forward keeps for a deterministic backward (tile_binning.pair_order)."""
     total: int  # tile pairs
     positions: wp.array  # [total]: emitted slot -> sorted position
     ranges: wp.array  # [N] vec2i: each primitive's (first emitted slot, number of pairs)

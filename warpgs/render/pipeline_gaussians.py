@@ -123,7 +123,7 @@ def bin_gaussians(p: Projected, opacities, s: Settings) -> Bins:
 
 
 def bin_into_tiles(footprint_kernel, footprint_inputs, depths, s: Settings) -> Bins:
-    """Every primitive kind's binning, per call (fast_pipeline.bin_into_tiles is the workspace twin): its footprint
+    """Every primitive kind's binning, per call (tile_binning.bin_into_tiles is the workspace twin): its footprint
     kernel (inputs `footprint_inputs`, then the image and blend settings; it writes every primitive's tile
     rectangle, tile count and cut-off), then `sort_into_tiles`."""
     n = depths.shape[0]

@@ -313,7 +313,7 @@ class LaunchSequence:
     the workspace's LaunchCache) on the CPU, or as one CUDA graph when the same sequence came before (GraphCache).
     Ends with host reads of a few device ints (`read_ints`), made with one synchronisation by `run`.
 
-    immediate=True issues each op as it is added (no graph), for stage timing (fast_pipeline.stage_hook)."""
+    immediate=True issues each op as it is added (no graph), for stage timing (tile_binning.stage_hook)."""
 
     def __init__(self, ws: Workspace, immediate: bool = False):
         self.ws = ws
