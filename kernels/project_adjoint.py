@@ -63,9 +63,9 @@ def quat_rotation_adjoint(q: wp.vec4, g: wp.mat33) -> wp.vec4:
 @wp.func
 def conic_adjoint(t0: wp.vec3, t1: wp.vec3, low_pass: float, a: float, b: float, c: float, g: wp.vec3) -> wp.vec3:
     """Gradient with respect to (a, b, c) of covariance_inverse(t0, t1, low_pass, a, b, c) (gaussian_math.py) given
-    its output's g. Unclamped, the inverse C's own closed form, dA -> -C dA C: written through the large k = 1 / det
-    it would subtract nearly equal terms for a long, thin footprint (the forward's determinant avoids the same
-    cancellation). Where a guard holds (a tiny covariance or determinant), the guarded chain as Warp would run it."""
+    its output's g, along the guarded chain Warp's generated adjoint runs; the determinant is the forward's
+    (covariance_det_scaled), differentiated as an cn - bn^2, which it equals. For a long, thin footprint the chain
+    still subtracts nearly equal terms: finite, but float32-conditioned (docs/performance.md, numerical stability)."""
     m = wp.max(a, c)
     s = wp.max(m, 1.0e-12)
     an = a / s
@@ -274,9 +274,9 @@ def project_gaussians_adjoint(
     elif (want & WANT_COEFFS) != 0:
         adj_coeffs[i, 0] = adj_coeffs[i, 0] + gc
 
-    # A huge, nearly flat Gaussian at the near plane (scale ~1e7 at z = near) has gradients beyond float32: the chain
-    # above overflows to inf and inf * 0 makes NaN. With a finite upstream such a gradient is dropped (0), never NaN;
-    # a NaN upstream still propagates (the guard's signal).
+    # A gradient beyond float32 (the chain above overflowing to inf, and inf * 0 making NaN; found on a 1e7-long
+    # flat Gaussian at the near plane, before its conic was exact) is dropped (0) when the upstream is finite, never
+    # NaN; a NaN upstream still propagates (the guard's signal).
     upstream_finite = wp.isfinite(gm) and wp.isfinite(gk) and wp.isfinite(gc) and wp.isfinite(gz)
     if upstream_finite:
         g_mu = finite_or_zero3(g_mu)
