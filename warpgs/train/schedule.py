@@ -20,7 +20,8 @@ out; the test views are never read), scored every `schedule.val_every` steps. Wh
 held-out PSNR peaks at 2–7k steps and falls by 0.5–3 dB by 30k while densification grows the model (phone64,
 beer; docs/real_captures.md), while a large capture (bonsai800) still improves at 30k; a fixed length is right for
 one kind only. The rule, with patience P, settle S and min_gain g (dB):
-  1. densify as the 30k schedule does (schedule.max_steps); each validation score more than g above the best so
+  1. densify as a fixed run of schedule.max_steps steps does (to refine_stop_fraction of it: 10k of the preset's
+     20k); each validation score more than g above the best so
      far is the new best;
   2. stop densifying when the best is P steps old, except within S steps after an opacity reset (the reset's
      dip is not a plateau) and while the latest score rose by more than g since the one before
@@ -35,7 +36,7 @@ one kind only. The rule, with patience P, settle S and min_gain g (dB):
   5. polish: the validation views go back into the training views for `schedule.polish` steps (no densification,
      no more validation), so the final model has seen every training view; then the run ends.
   The run never exceeds schedule.max_steps (polish included). Until densification stops the position learning
-  rate follows the bounded run's decay (gsplat's 30k curve at the same step); from there it anneals log-linearly to
+  rate follows the bounded run's decay (a fixed run of max_steps at the same step); from there it anneals log-linearly to
   its final value over P + polish steps from the later of that stop and the newest best (`anneal_follows_best`),
   the earliest the run can end, as a fixed run anneals over its own length
   (on beer's half, CPU, a fixed 3000-step run still gained 1.4 dB in its annealed last half while the auto run's
