@@ -57,7 +57,9 @@ DENSIFY, TRAIN, POLISH, DONE = "densify", "train", "polish", "done"
 @dataclass
 class ScheduleConfig:
     """The `schedule` section: the rule of `train.steps=auto` (module doc)."""
-    max_steps: int = 30_000  # never more steps than this (polish included); the position lr decays over it
+    # never more steps than this (polish included); the position lr decays over it. The gaussians preset: 20k, with
+    # refine_stop_fraction 0.5 (densifying to 10k) and a 5000-step polish, as measured (docs/real_captures.md)
+    max_steps: int = 30_000
     val_nth: int = 8  # every this-many-th training view is held out for validation (at least one)
     val_every: int = 500  # score the validation views every this many steps
     patience: int = 2000  # steps without a new best before densification (then training) stops
