@@ -1,4 +1,4 @@
-"""Speculative binning (rasterize(speculative_pairs=True), render/pair_room.py): a render sized from earlier calls'
+"""Speculative binning (rasterize / rasterize_surfels(speculative_pairs=True), render/pair_room.py): a render sized from earlier calls'
 tile-pair counts gives the exact path's bits when its pairs fit, flags itself when they do not (and stays finite),
 and the trainer skips such a step on the device without an error. The path saves a GPU's host sync; on the CPU it
 runs here through tile_binning.SPECULATE_ON_CPU, the same kernels."""
@@ -9,7 +9,7 @@ import torch
 
 from random_scenes import random_scene
 from raster_helpers import DEVICE
-from warpgs import rasterize
+from warpgs import rasterize, rasterize_surfels
 from warpgs.losses.registry import LossResult
 from warpgs.render import tile_binning
 from warpgs.render.device_state import device_state
@@ -27,7 +27,7 @@ def speculate(monkeypatch):
     ws = device_state(torch.device(DEVICE)).ws
     ws.pair_rooms.stats()  # settles what earlier tests left in flight
     monkeypatch.setattr(ws, "pair_rooms", PairRooms())
-    return ws.pair_rooms.room((64, 48, 8))
+    return ws.pair_rooms.room(("footprints", 64, 48, 8))
 
 
 def _render(scene, speculative, outputs=OUTPUTS, tile=8):
@@ -55,7 +55,7 @@ def _same(a, b, exact):
 @pytest.mark.parametrize("tile", [8, 16])
 def test_a_render_that_fits_its_room_matches_the_exact_path(speculate, tile):
     scene = random_scene(n=300, width=64, height=48, sh_degree=1, num_features=2, seed=tile)
-    room = device_state(torch.device(DEVICE)).ws.pair_rooms.room((64, 48, tile))
+    room = device_state(torch.device(DEVICE)).ws.pair_rooms.room(("footprints", 64, 48, tile))
     exact, exact_grads = _render(scene, False, tile=tile)
     assert exact.pairs_overflowed is None and exact.num_intersections > 0
     first, _ = _render(scene, True, tile=tile)  # the room's first count: sized exactly, with its sync
@@ -95,6 +95,53 @@ def test_a_scene_with_no_pairs_renders_the_background(speculate):
     out, grads = _render(scene, True, ("rgb", "alpha"))
     assert out.num_intersections == -1 and int(out.pairs_overflowed) == 0
     assert torch.count_nonzero(out.alpha) == 0 and torch.count_nonzero(grads["means"]) == 0
+
+
+SURFEL_OUTPUTS = ("rgb", "alpha", "depth", "normal", "median_depth", "features")
+
+
+def _render_surfels(scene, speculative, outputs=SURFEL_OUTPUTS):
+    """As _render, for surfels (the scene's first two scales)."""
+    leaves = {k: scene[k].detach().float().to(DEVICE).requires_grad_(True) for k in LEAVES if scene[k] is not None}
+    leaves["scales"] = leaves["scales"].detach()[:, :2].contiguous().requires_grad_(True)
+    out = rasterize_surfels(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
+                            scene["viewmat"].float().to(DEVICE), scene["K"].float().to(DEVICE), scene["width"],
+                            scene["height"], sh_degree=scene["sh_degree"], features=leaves.get("features"),
+                            outputs=outputs, speculative_pairs=speculative, check_inputs=not speculative)
+    g = torch.Generator().manual_seed(1)
+    loss = sum((getattr(out, o) * torch.randn(getattr(out, o).shape, generator=g).to(DEVICE)).sum() for o in outputs)
+    loss.backward()
+    return out, {k: v.grad for k, v in leaves.items()}
+
+
+def test_a_surfel_render_that_fits_its_room_matches_the_exact_path(speculate):
+    scene = random_scene(n=300, width=64, height=48, sh_degree=1, num_features=2, seed=11)
+    room = device_state(torch.device(DEVICE)).ws.pair_rooms.room(("surfel_footprints", 64, 48, 8))
+    exact, exact_grads = _render_surfels(scene, False)
+    assert exact.pairs_overflowed is None and exact.num_intersections > 0
+    first, _ = _render_surfels(scene, True)  # the room's first count: sized exactly, with its sync
+    assert first.num_intersections == exact.num_intersections and int(first.pairs_overflowed) == 0
+    out, grads = _render_surfels(scene, True)
+    assert room.speculative_calls == 1 and out.num_intersections == -1 and int(out.pairs_overflowed) == 0
+    assert speculate.speculative_calls == 0  # the 3D Gaussians' room of the same size is another
+    for name in SURFEL_OUTPUTS:
+        assert torch.equal(getattr(out, name), getattr(exact, name)), name
+    for name, g in exact_grads.items():
+        assert _same(grads[name], g, DEVICE == "cpu"), name
+
+
+def test_a_surfel_render_that_overflows_is_flagged_and_stays_finite(speculate):
+    scene = random_scene(n=300, width=64, height=48, seed=12)
+    room = device_state(torch.device(DEVICE)).ws.pair_rooms.room(("surfel_footprints", 64, 48, 8))
+    exact, _ = _render_surfels(scene, False, ("rgb", "alpha", "depth"))
+    _render_surfels(scene, True, ("rgb", "alpha", "depth"))
+    room.settle()
+    room.capacity = exact.num_intersections // 3
+    out, grads = _render_surfels(scene, True, ("rgb", "alpha", "depth"))
+    assert int(out.pairs_overflowed) == 1
+    assert all(torch.isfinite(t).all() for t in (out.rgb, out.alpha, out.depth, *grads.values()))
+    again, _ = _render_surfels(scene, True, ("rgb", "alpha", "depth"))
+    assert room.overflows == 1 and int(again.pairs_overflowed) == 0 and torch.equal(again.rgb, exact.rgb)
 
 
 def test_room_sizes_hold_what_is_asked_and_change_seldom():
@@ -141,7 +188,8 @@ def test_without_a_deferred_check_an_overflowed_step_is_dropped_at_once():
     assert torch.equal(w.detach(), torch.ones(2))
 
 
-def test_a_training_run_through_the_speculative_path_skips_only_its_overflowed_step(monkeypatch, tmp_path):
+@pytest.mark.parametrize("kind", ["gaussians", "surfels"])
+def test_a_training_run_through_the_speculative_path_skips_only_its_overflowed_step(monkeypatch, tmp_path, kind):
     from warpgs.config.loader import load_config
     from warpgs.train import loop, step
     from warpgs.train.trainer import Trainer
@@ -149,7 +197,8 @@ def test_a_training_run_through_the_speculative_path_skips_only_its_overflowed_s
     monkeypatch.setattr(tile_binning, "SPECULATE_ON_CPU", True)
     monkeypatch.setattr(step, "speculative_pairs", lambda trainer: True)  # the GPU's rule, on the CPU
     cfg = load_config(None, ["steps=5", "train.device=cpu", "eval.every=0", "optim.adam_kernel=fused",
-                             "data.width=32", "data.height=24", f"output.dir={tmp_path}", "train.progress=false"])
+                             "data.width=32", "data.height=24", f"output.dir={tmp_path}", "train.progress=false",
+                             f"model.kind={kind}"])
     trainer = Trainer(cfg, quiet=True)
     rooms = PairRooms()
     monkeypatch.setattr(device_state(trainer.device).ws, "pair_rooms", rooms)
@@ -171,7 +220,7 @@ def test_a_training_run_through_the_speculative_path_skips_only_its_overflowed_s
 
 @pytest.mark.parametrize("change,expected", [({}, True), ({"speculative_pairs": False}, False),
                                              ({"nan_guard": False}, False), ({"deterministic": True}, False),
-                                             ({"device": "cpu"}, False), ({"kind": "surfels"}, False),
+                                             ({"device": "cpu"}, False), ({"kind": "surfels"}, True),
                                              ({"ranks": True}, False), ({"fused": False}, False)])
 def test_the_trainer_speculates_only_where_a_step_can_be_skipped_on_the_device(change, expected):
     from types import SimpleNamespace
@@ -201,7 +250,7 @@ def test_each_image_size_has_its_own_room(speculate):
     assert out.num_intersections > 0 and int(out.pairs_overflowed) == 0  # exact: this size's first count
     rooms = device_state(torch.device(DEVICE)).ws.pair_rooms
     assert rooms.stats() == {"speculative_calls": 1, "overflows": 0}
-    assert speculate is rooms.room((64, 48, 8)) and speculate.capacity >= out.num_intersections
+    assert speculate is rooms.room(("footprints", 64, 48, 8)) and speculate.capacity >= out.num_intersections
 
 
 def test_a_batch_of_views_skips_the_step_when_any_view_overflowed(monkeypatch, tmp_path):

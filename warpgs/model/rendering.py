@@ -82,7 +82,7 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
     to means.grad).
     deterministic: as in `rasterize` (None: the raster option's value). screen_sigma (surfels) and low_pass (3D
     Gaussians): the ops' screen-space filter (None: the op's default; see surfel_screen_sigma, gaussian_low_pass).
-    speculative_pairs: 3D Gaussians only (see `rasterize`); surfels always size their pairs exactly."""
+    speculative_pairs: see `rasterize` (both kinds)."""
     kind = model.kind
     if kind not in OUTPUTS_BY_KIND:
         raise ValueError(f"model.kind: expected one of {sorted(OUTPUTS_BY_KIND)}, got {kind!r}")
@@ -100,4 +100,4 @@ def render_model(model, viewmat: torch.Tensor, K: torch.Tensor, width: int, heig
                          speculative_pairs=speculative_pairs, **kwargs)
     if screen_sigma is not None:
         kwargs["screen_sigma"] = screen_sigma
-    return rasterize_surfels(**kwargs)
+    return rasterize_surfels(speculative_pairs=speculative_pairs, **kwargs)

@@ -72,14 +72,16 @@ class SurfelFrame(TileFrame):
 
 
 def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, features, outputs,
-            keep: Optional[Keep], check: Optional[InputCheck] = None, deterministic: bool = False) -> SurfelFrame:
+            keep: Optional[Keep], check: Optional[InputCheck] = None, deterministic: bool = False,
+            overflow=None) -> SurfelFrame:
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth accumulation, inv_depth, normal, median, distortion,
     features, expected depth) arrays the blend writes (1-element dummies for outputs not asked for; features zeroed
     beforehand for the per-thread CPU kernel; the expected depth is the accumulation over alpha). keep=None:
     everything in the workspace (no backward follows). check: the input checks, raised at the tile-pair count's sync
     (fast_pipeline.InputCheck). deterministic: keep what a fixed-order GPU
-    backward needs (tile_binning.pair_order)."""
+    backward needs (tile_binning.pair_order). overflow: a 1-element int32 array to bin speculatively into
+    (tile_binning.sort_into_tiles), else None."""
     L = ws.launches
     n = int(inputs[0].shape[0])
 
@@ -100,7 +102,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "surfel_footprints", surfel_project.surfel_footprints,
         [transforms, means2d, opacities, valid, 1.0 / (s.screen_sigma * s.screen_sigma)], depths,
-        s, per_call, sequence=seq)
+        s, per_call, sequence=seq, overflow=None if deterministic else overflow)
     pairs = pair_order(ws, s, keep, n, total, sorted_ids) if deterministic else None
 
     npix = s.width * s.height

@@ -10,8 +10,9 @@ a non-finite one).
 
 The room is the largest count of the last WINDOW calls times HEADROOM, rounded up to one of a few sizes per
 doubling, so it changes seldom (each size is another CUDA graph of the pre-blend launches). A workspace keeps one
-room per image and tile size (`PairRooms`): counts scale with the pixels, so a run whose views change size
-(train.resolution_schedule, captures of mixed sizes) starts each size with an exact count instead of overflowing.
+room per primitive kind, image and tile size (`PairRooms`): counts scale with the pixels, so a run whose views change
+size (train.resolution_schedule, captures of mixed sizes) starts each size with an exact count instead of overflowing,
+and a surfel's footprint covers other tiles than a 3D Gaussian's.
 """
 from __future__ import annotations
 
@@ -90,7 +91,7 @@ class PairRoom:
 
 
 class PairRooms:
-    """A workspace's rooms, one per (width, height, tile size)."""
+    """A workspace's rooms, one per (primitive kind, width, height, tile size)."""
 
     def __init__(self):
         self.rooms: dict = {}

@@ -61,6 +61,7 @@ def rasterize_surfels(
     check_inputs: bool = True,
     deterministic: Optional[bool] = None,
     screen_sigma: float = DEFAULT_SURFEL_SCREEN_SIGMA,
+    speculative_pairs: bool = False,
     _pipeline_checks: bool = False,
 ) -> RenderOutput:
     """Render N 2D Gaussian surfels from one camera (viewmat [4,4], K [3,3]) or a batch ([B,4,4], [B,3,3]).
@@ -72,7 +73,8 @@ def rasterize_surfels(
     Only the requested outputs are computed. tile_size, max_sigmas / alpha_min / transmittance_min / alpha_max,
     deterministic: as in `rasterize`. screen_sigma: the standard deviation in pixels of the screen-space Gaussian
     that stands in for a surfel seen edge-on or smaller than a pixel (2DGS's 1/sqrt(2) by default; renders of a
-    trained model scale it with the image, warpgs.model.rendering.surfel_screen_sigma).
+    trained model scale it with the image, warpgs.model.rendering.surfel_screen_sigma). speculative_pairs (one
+    camera, GPU): as in `rasterize` (`out.pairs_overflowed`).
     """
     outputs, tile_size = checked_call(OUTPUTS, outputs, means, quats, scales, opacities, colors, viewmat, K, width,
                                       height, sh_degree, features, background, near, far, tile_size, False,
@@ -101,9 +103,10 @@ def rasterize_surfels(
         normal="normal" in outputs, median="median_depth" in outputs, distortion="distortion" in outputs,
         num_features=feats.shape[1], distortion_scale=DISTORTION_SCALE)
     if n > 0:  # returns the expected depth itself (the division runs in a kernel)
-        color, alpha, zacc, inv, normal, median, distortion, fout, visible, count = run_op(
-            FastSurfelsFunction, settings, wanted, options_for_call(deterministic), means, quats, scales, opacities,
-            coeffs, feats, viewmat, _intrinsics_vector(K), (features, K, background) if pipeline_checks else None)
+        color, alpha, zacc, inv, normal, median, distortion, fout, visible, count, overflowed = run_op(
+            FastSurfelsFunction, settings, wanted, options_for_call(deterministic, speculative_pairs), means, quats,
+            scales, opacities, coeffs, feats, viewmat, _intrinsics_vector(K),
+            (features, K, background) if pipeline_checks else None)
     else:
         H, W = settings.height, settings.width
         shapes = [(H, W, c) if image_wanted(wanted, name) else (0,) for name, c, _ in IMAGES]
@@ -111,7 +114,9 @@ def rasterize_surfels(
         color, alpha, zacc, inv, normal, median, distortion, fout = EmptySceneFunction.apply(
             shapes, means, quats, scales, opacities, coeffs, feats, viewmat, K)
         visible, count = torch.zeros(0, dtype=torch.bool, device=means.device), 0
-    out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible, num_intersections=int(count))
+        overflowed = means.new_zeros((), dtype=torch.int32) if speculative_pairs else None
+    out = RenderOutput(alpha=alpha if "alpha" in outputs else None, visible=visible, num_intersections=int(count),
+                       pairs_overflowed=overflowed)
     set_image_outputs(out, wanted, color, alpha, zacc, inv, fout, background, depth_normalized=True)
     if wanted.normal:
         out.normal = normal

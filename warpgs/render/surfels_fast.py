@@ -58,22 +58,27 @@ class FastSurfelsFunction(torch.autograd.Function):
         alive = []
         checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), view,
                                                         check, alive)
+        # speculative_pairs: 1 here when the pairs did not fit the room sized from earlier calls (pair_room.py)
+        overflowed = means.new_empty((), dtype=torch.int32) if options.speculative_pairs else None
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
                                  _features_arg(features, nf, layout, state), outputs, keep, checks,
-                                 options.deterministic)
+                                 options.deterministic,
+                                 None if overflowed is None else state.desc(overflowed.view(1), wp.int32))
             visible = state.tensor(frame.counts) > 0
-        count = frame.total  # a plain int: autograd passes it through (no tensor to make and wrap each call)
+        count = frame.total  # a plain int (-1: not read, speculative): autograd passes it through
         ctx.mark_non_differentiable(visible)
+        if overflowed is not None:
+            ctx.mark_non_differentiable(overflowed)
         if any_grad:
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
         ctx.device = means.device
-        return tuple(images) + (feats, visible, count)
+        return tuple(images) + (feats, visible, count, overflowed)
 
     @staticmethod
     @differentiable_once("the surfel render (rasterize_surfels)")
-    def backward(ctx, *upstream):
+    def backward(ctx, *upstream):  # the images', then features', visible's, count's and the overflow flag's
         frame, keep, zacc, settings, wanted, options, needs, layout = take_backward_state(ctx)
         means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors
         state = device_state(ctx.device)

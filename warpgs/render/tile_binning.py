@@ -43,17 +43,18 @@ def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, 
                list(footprint_inputs) + [s.width, s.height, s.tile_size, s.max_sigmas, s.alpha_min,
                                          rects, counts, q_cut])
     _stage(on_stage, key)
-    return (counts, q_cut) + sort_into_tiles(ws, rects, counts, depths, s, per_call, on_stage, seq, overflow)
+    return (counts, q_cut) + sort_into_tiles(ws, rects, counts, depths, s, per_call, on_stage, seq, overflow,
+                                             kind=key)
 
 
 def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
                     on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None,
-                    overflow=None):
+                    overflow=None, kind: str = "footprints"):
     """(total, tile_start, tile_end, sorted_ids): the (tile, primitive) pairs sorted by tile, then depth, then
     primitive index, and every tile's [start, end) range. tile_start and sorted_ids come from `per_call`.
     sequence: launches queued ahead; everything up to the tile-pair count's read runs with them.
-    overflow: a 1-element int32 array, to bin speculatively: on a GPU whose workspace has seen a count at this image
-    and tile size (and with no input checks queued), the pairs are sorted into that size's room (pair_room.py)
+    overflow: a 1-element int32 array, to bin speculatively: on a GPU whose workspace has seen a count of this
+    primitive kind (`kind`, its footprint kernel's key) at this image and tile size (and with no input checks queued), the pairs are sorted into that size's room (pair_room.py)
     without a host sync, total comes back as -1 and overflow[0] says whether pairs were dropped; otherwise the exact
     path runs and writes 0."""
     dev = ws.device
@@ -71,7 +72,7 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     seq.launch("counts_in_order", binning.counts_in_order, n, [order, counts, ordered])
     _stage(on_stage, "sort: depth sort")
     seq.scan(ordered, offsets)
-    room = ws.pair_rooms.room((s.width, s.height, s.tile_size)) if overflow is not None else None
+    room = ws.pair_rooms.room((kind, s.width, s.height, s.tile_size)) if overflow is not None else None
     if room is not None and (dev.is_cuda or SPECULATE_ON_CPU) and room.capacity > 0 and not seq.has_checks():
         return sort_into_room(ws, room, rects, counts, s, per_call, seq, order, offsets, tile_start, tile_end,
                               overflow, on_stage)

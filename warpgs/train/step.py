@@ -140,8 +140,8 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
 def speculative_pairs(trainer) -> bool:
     """Whether the step's renders may size their tile pairs from earlier renders (train.speculative_pairs): only
     where a render that did not fit can be skipped on the device, i.e. where the NaN guard defers (fused Adam on one
-    process, train/guard.py), on a GPU, for 3D Gaussians, and not in deterministic runs."""
+    process, train/guard.py), on a GPU, and not in deterministic runs."""
     t = trainer.config.train
     return (t.speculative_pairs and t.nan_guard and not t.deterministic and trainer.device.type == "cuda"
-            and trainer.model.kind == "gaussians" and not trainer.ranks.enabled
+            and not trainer.ranks.enabled
             and trainer.step_guard.can_defer(trainer.optimizers))
