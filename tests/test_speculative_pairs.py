@@ -144,6 +144,18 @@ def test_a_surfel_render_that_overflows_is_flagged_and_stays_finite(speculate):
     assert room.overflows == 1 and int(again.pairs_overflowed) == 0 and torch.equal(again.rgb, exact.rgb)
 
 
+@pytest.mark.parametrize("kind", ["gaussians", "surfels"])
+def test_a_deterministic_render_asked_to_speculate_sizes_exactly_and_flags_nothing(speculate, kind):
+    scene = random_scene(n=300, width=64, height=48, seed=13)
+    render = _render if kind == "gaussians" else _render_surfels
+    render(scene, True, ("rgb", "alpha"))  # seeds the room: the next call could speculate
+    from warpgs.render.defaults import raster_options
+    with raster_options(deterministic=True):
+        for _ in range(3):
+            out, _ = render(scene, True, ("rgb", "alpha"))
+            assert out.num_intersections > 0 and int(out.pairs_overflowed) == 0
+
+
 def test_room_sizes_hold_what_is_asked_and_change_seldom():
     sizes = [room_size(x) for x in range(1, 200000, 997)]
     assert all(s >= max(x, MIN_ROOM) for s, x in zip(sizes, range(1, 200000, 997)))

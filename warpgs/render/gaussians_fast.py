@@ -279,7 +279,9 @@ class FastRasterizeFunction(torch.autograd.Function):
         checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), view,
                                                         check, alive)
         # speculative_pairs: 1 here when the pairs did not fit the room sized from earlier calls (pair_room.py)
-        overflowed = means.new_empty((), dtype=torch.int32) if options.speculative_pairs else None
+        # (zeroed here when deterministic: that path sizes exactly and never writes it)
+        overflowed = ((means.new_zeros if options.deterministic else means.new_empty)((), dtype=torch.int32)
+                      if options.speculative_pairs else None)
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, check=checks,
                                  deterministic=options.deterministic,
