@@ -249,11 +249,15 @@ def depth_sort_init(
 
 
 @wp.func
-def write_tile_ranges(k: int, tile: int, prev: int, count: int, num_tiles: int,
+def write_tile_ranges(k: int, keys: wp.array(dtype=wp.int32), count: int, num_tiles: int,
                       tile_start: wp.array(dtype=wp.int32), tile_end: wp.array(dtype=wp.int32)):
-    """Entry k of the sorted keys is in `tile`, entry k-1 in `prev` (-1 for k = 0): k starts `tile` and ends `prev`;
-    the empty tiles in between start and end at k; the last entry ends its tile and empties the tiles after it.
-    So every tile is written exactly once."""
+    """Entry k of the `count` sorted keys is in `tile`, entry k-1 in `prev` (-1 for k = 0): k starts `tile` and ends
+    `prev`; the empty tiles in between start and end at k; the last entry ends its tile and empties the tiles after
+    it. So every tile is written exactly once."""
+    tile = keys[k]
+    prev = int(-1)
+    if k > 0:
+        prev = keys[k - 1]
     if tile != prev:
         for t in range(prev + 1, tile + 1):
             tile_start[t] = k
@@ -276,11 +280,7 @@ def tile_ranges_dense(
     tile_start: wp.array(dtype=wp.int32),  # [num_tiles], every entry written
     tile_end: wp.array(dtype=wp.int32),
 ):
-    k = wp.tid()
-    prev = int(-1)
-    if k > 0:
-        prev = keys[k - 1]
-    write_tile_ranges(k, keys[k], prev, count, num_tiles, tile_start, tile_end)
+    write_tile_ranges(wp.tid(), keys, count, num_tiles, tile_start, tile_end)
 
 
 # --- Bounded binning: room for the tile pairs sized before their count is known ---------------------------------
@@ -356,10 +356,7 @@ def tile_ranges_bounded(
         return
     if k >= count:
         return
-    prev = int(-1)
-    if k > 0:
-        prev = keys[k - 1]
-    write_tile_ranges(k, keys[k], prev, count, num_tiles, tile_start, tile_end)
+    write_tile_ranges(k, keys, count, num_tiles, tile_start, tile_end)
 
 
 @wp.kernel

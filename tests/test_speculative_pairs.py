@@ -1,7 +1,7 @@
-"""Speculative binning (rasterize / rasterize_surfels(speculative_pairs=True), render/pair_room.py): a render sized from earlier calls'
-tile-pair counts gives the exact path's bits when its pairs fit, flags itself when they do not (and stays finite),
-and the trainer skips such a step on the device without an error. The path saves a GPU's host sync; on the CPU it
-runs here through tile_binning.SPECULATE_ON_CPU, the same kernels."""
+"""Speculative binning (rasterize / rasterize_surfels(speculative_pairs=True), render/pair_room.py): a render sized
+from earlier calls' tile-pair counts gives the exact path's bits when its pairs fit, flags itself when they do not
+(and stays finite), and the trainer skips such a step on the device without an error. The path saves a GPU's host
+sync; on the CPU it runs here through tile_binning.SPECULATE_ON_CPU, the same kernels."""
 import math
 
 import pytest

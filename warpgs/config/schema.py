@@ -114,9 +114,9 @@ class TrainConfig:
     # against 1.00 at 800x534), torch on the CPU (where one Warp launch uses one core and torch's filters all).
     fused_ssim: Union[bool, str] = "auto"
     # GPU training (3D Gaussians and surfels): each render sizes its tile-pair sort from the earlier renders' counts
-    # instead of waiting for its own (render/pair_room.py), so the host queues the step while the GPU projects; a render whose
-    # pairs did not fit has its step skipped on the device, as a non-finite one is. Needs the deferred NaN guard
-    # (nan_guard on, fused Adam, one process) and not `deterministic`; elsewhere renders size exactly.
+    # instead of waiting for its own (render/pair_room.py), so the host queues the step while the GPU projects; a
+    # render whose pairs did not fit has its step skipped on the device, as a non-finite one is. Needs the deferred
+    # NaN guard (nan_guard on, fused Adam, one process) and not `deterministic`; elsewhere renders size exactly.
     speculative_pairs: bool = True
     # Coarse-to-fine: [[step, factor], ...], training views at 1/factor of their resolution from each step on (e.g.
     # [[0, 4], [1000, 2], [3000, 1]]); evaluation and outputs stay at full resolution (train/resolution.py).

@@ -81,8 +81,9 @@ class RasterOptions:
     deterministic: bool = os.environ.get("WARPGS_DETERMINISTIC", "0") == "1"
     pair_search: str = os.environ.get("WARPGS_PAIR_SEARCH", "table")  # both give the same keys (tests/test_binning.py)
     project_adjoint: str = os.environ.get("WARPGS_PROJECT_ADJOINT", "written")  # tests/test_project_adjoint.py
-    # GPU 3D renders size their tile-pair sort from earlier calls' counts instead of waiting for their own
-    # (render/pair_room.py); a render that did not fit says so in out.pairs_overflowed. Set per call (rasterize).
+    # GPU renders size their tile-pair sort from earlier calls' counts instead of waiting for their own
+    # (render/pair_room.py); a render that did not fit says so in out.pairs_overflowed. Set per call (rasterize,
+    # rasterize_surfels).
     speculative_pairs: bool = False
 
     def __post_init__(self):

@@ -36,8 +36,8 @@ def room_size(needed: float) -> int:
 
 
 class PairRoom:
-    """The room for one image size's tile pairs and the one count read still in flight. `capacity` is 0 until a count has
-    been seen (the first call then sizes exactly, with its sync). `overflows` / `speculative_calls` count the calls
+    """The room for one image size's tile pairs and the one count read still in flight. `capacity` is 0 until a count
+    has been seen (the first call then sizes exactly, with its sync). `overflows` / `speculative_calls` count the calls
     whose pairs did not fit and all calls sized from the room, for benchmarks and the trainer's report."""
 
     def __init__(self):

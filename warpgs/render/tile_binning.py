@@ -54,9 +54,9 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     primitive index, and every tile's [start, end) range. tile_start and sorted_ids come from `per_call`.
     sequence: launches queued ahead; everything up to the tile-pair count's read runs with them.
     overflow: a 1-element int32 array, to bin speculatively: on a GPU whose workspace has seen a count of this
-    primitive kind (`kind`, its footprint kernel's key) at this image and tile size (and with no input checks queued), the pairs are sorted into that size's room (pair_room.py)
-    without a host sync, total comes back as -1 and overflow[0] says whether pairs were dropped; otherwise the exact
-    path runs and writes 0."""
+    primitive kind (`kind`, its footprint kernel's key) at this image and tile size (and with no input checks
+    queued), the pairs are sorted into that room (pair_room.py) without a host sync, total comes back as -1 and
+    overflow[0] says whether pairs were dropped; otherwise the exact path runs and writes 0."""
     dev = ws.device
     L = ws.launches
     n = int(counts.shape[0])

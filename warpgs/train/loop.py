@@ -315,6 +315,6 @@ class StopOnSigint:
 
 def speculative_pair_stats(trainer) -> dict:
     """This thread's speculative renders on the trainer's device so far and those whose pairs overflowed (each a
-    skipped step; render/pair_room.py). None on the CPU unless tests force the path there."""
+    skipped step; render/pair_room.py). Zero on the CPU unless tests force the path there."""
     stats = device_state(trainer.device).ws.pair_rooms.stats()
     return {"renders": stats["speculative_calls"], "skipped": stats["overflows"]}
