@@ -89,6 +89,16 @@ _PROJECTION_DTYPES = (wp.vec3, wp.vec4, None, wp.vec3, wp.mat44, wp.vec4)  # sca
 _CAMERA_VIEWS = (None, None, None, None, (1, 4, 4), (1, 4))
 
 
+def overflow_flag(state: "DeviceState", options, like: torch.Tensor) -> tuple:
+    """(overflowed, overflow) for a render with the speculative_pairs option: the 0-d int32 tensor the render sets to 1
+    when its pairs did not fit the room sized from earlier calls (pair_room.py; zeroed here when deterministic: that
+    path sizes exactly and never writes it) and its array for the pipeline; (None, None) without the option."""
+    if not options.speculative_pairs:
+        return None, None
+    overflowed = (like.new_zeros if options.deterministic else like.new_empty)((), dtype=torch.int32)
+    return overflowed, state.desc(overflowed.view(1), wp.int32)
+
+
 def projection_inputs(state: "DeviceState", tensors, scale_dtype) -> list:
     """Descriptors of (means, quats, scales, coeffs, viewmat [1,4,4], intrinsics [1,4]), contiguous tensors, as the
     projection kernels take them."""
@@ -278,14 +288,10 @@ class FastRasterizeFunction(torch.autograd.Function):
         alive = []
         checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), view,
                                                         check, alive)
-        # speculative_pairs: 1 here when the pairs did not fit the room sized from earlier calls (pair_room.py)
-        # (zeroed here when deterministic: that path sizes exactly and never writes it)
-        overflowed = ((means.new_zeros if options.deterministic else means.new_empty)((), dtype=torch.int32)
-                      if options.speculative_pairs else None)
+        overflowed, overflow = overflow_flag(state, options, means)
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, check=checks,
-                                 deterministic=options.deterministic,
-                                 overflow=None if overflowed is None else state.desc(overflowed.view(1), wp.int32))
+                                 deterministic=options.deterministic, overflow=overflow)
             visible = state.tensor(frame.counts) > 0
             if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
                 means2d_probe.data.copy_(state.tensor(frame.means2d).view(-1, 2))

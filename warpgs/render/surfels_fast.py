@@ -12,8 +12,8 @@ from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.fast_pipeline import feature_layout
 from warpgs.render.device_state import device_state
 from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, feature_gradient_arg,
-                                          gradient_buffers, input_check, projection_adjoint, projection_inputs,
-                                          staged_camera, take_backward_state,
+                                          gradient_buffers, input_check, overflow_flag, projection_adjoint,
+                                          projection_inputs, staged_camera, take_backward_state,
                                           upstream_features, upstream_gradient)
 
 ALPHA, DEPTH = (next(i for i, (name, _, _) in enumerate(IMAGES) if name == n) for n in ("alpha", "depth"))
@@ -58,15 +58,11 @@ class FastSurfelsFunction(torch.autograd.Function):
         alive = []
         checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), view,
                                                         check, alive)
-        # speculative_pairs: 1 here when the pairs did not fit the room sized from earlier calls (pair_room.py)
-        # (zeroed here when deterministic: that path sizes exactly and never writes it)
-        overflowed = ((means.new_zeros if options.deterministic else means.new_empty)((), dtype=torch.int32)
-                      if options.speculative_pairs else None)
+        overflowed, overflow = overflow_flag(state, options, means)
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
                                  _features_arg(features, nf, layout, state), outputs, keep, checks,
-                                 options.deterministic,
-                                 None if overflowed is None else state.desc(overflowed.view(1), wp.int32))
+                                 options.deterministic, overflow)
             visible = state.tensor(frame.counts) > 0
         count = frame.total  # a plain int (-1: not read, speculative): autograd passes it through
         ctx.mark_non_differentiable(visible)

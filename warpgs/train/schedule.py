@@ -37,8 +37,8 @@ one kind only. The rule, with patience P, settle S and min_gain g (dB):
      no more validation), so the final model has seen every training view; then the run ends.
   The run never exceeds schedule.max_steps (polish included). Until densification stops the position learning
   rate follows the bounded run's decay (a fixed run of max_steps at the same step); from there it anneals
-  log-linearly to its final value over P + polish steps from the later of that stop and the newest best (`anneal_follows_best`),
-  the earliest the run can end, as a fixed run anneals over its own length
+  log-linearly to its final value over P + polish steps from the later of that stop and the newest best
+  (`anneal_follows_best`), the earliest the run can end, as a fixed run anneals over its own length
   (on beer's half, CPU, a fixed 3000-step run still gained 1.4 dB in its annealed last half while the auto run's
   lr, still on the bounded decay, gained nothing: docs/real_captures.md). The best state is kept (step 4): on
   phone64 the test PSNR fell 0.65-0.92 dB after the best validation score and did not come back by the stop.
