@@ -7,7 +7,8 @@ learning rates and losses (benchmarks/train_compare.py).
 
 DIR is any scene warpgs-train reads (COLMAP, transforms.json, LLFF poses_bounds.npy); the held-out views are
 the every-8th LLFF split. Each --steps value is an evaluation point of one run to the largest (with the override
-train.steps=auto warpgs stops by its own rule, bounded by the largest; the gsplat loop runs to it). Prints a table
+train.steps=auto warpgs stops by its own rule within the preset's bound, schedule.max_steps, cut to the largest; the
+gsplat loop runs to it). Prints a table
 and writes benchmarks/results/real_capture_<name>_<device>[_gsplat].json (every evaluation point, time per step
 of each system and their ratio, the largest one-step drop in primitive count) and a PNG plot next to it.
 """
@@ -57,10 +58,11 @@ def evaluation_period(eval_every: int, marks: list) -> int:
 
 
 def auto_bound(configured: int, overrides: list, marks: list) -> int:
-    """schedule.max_steps of a train.steps=auto run: the largest mark, or a smaller bound the overrides name (the run
-    is still scored at every mark it reaches)."""
+    """schedule.max_steps of a train.steps=auto run: the config's bound (the preset's, so that the run is the default a
+    user gets), cut to the largest mark; a bound the overrides name must not exceed that mark (the run is still scored
+    at every mark it reaches)."""
     if not any(o.split("=", 1)[0].strip() == "schedule.max_steps" for o in overrides):
-        return marks[-1]
+        return min(int(configured), marks[-1])
     if configured > marks[-1]:
         raise SystemExit(f"schedule.max_steps={configured}: the bound of train.steps=auto cannot exceed the largest "
                          f"--steps mark ({marks[-1]}); raise --steps")
@@ -73,8 +75,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--config", default="gaussians", help="preset or YAML (default: gaussians, the 3DGS recipe)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--steps", default="7000", help="comma-separated evaluation steps; the run goes to the largest "
-                                                    "(with train.steps=auto it is schedule.max_steps unless an override "
-                                                    "sets a smaller one)")
+                                                    "(with train.steps=auto warpgs's bound is the config's "
+                                                    "schedule.max_steps, cut to the largest)")
     ap.add_argument("--eval-every", type=int, default=1000,
                     help="evaluation period; the run scores every gcd(this, each --steps mark) steps, so every mark "
                          "is scored")

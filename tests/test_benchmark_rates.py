@@ -45,6 +45,7 @@ def test_marks_without_a_useful_common_period_are_refused(tmp_path):
 def test_an_auto_run_keeps_the_bound_an_override_names():
     marks = [7000, 30000]
     assert real_capture.auto_bound(30000, ["data.downscale=2"], marks) == 30000
+    assert real_capture.auto_bound(20000, [], marks) == 20000  # the preset's bound: the default a user gets
     assert real_capture.auto_bound(30000, [], [7000]) == 7000
     assert real_capture.auto_bound(20000, ["schedule.max_steps=20000"], marks) == 20000
     with pytest.raises(SystemExit, match="schedule.max_steps=40000.*largest --steps mark"):
