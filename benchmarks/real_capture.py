@@ -8,9 +8,9 @@ learning rates and losses (benchmarks/train_compare.py).
 DIR is any scene warpgs-train reads (COLMAP, transforms.json, LLFF poses_bounds.npy); the held-out views are
 the every-8th LLFF split. Each --steps value is an evaluation point of one run to the largest (with the override
 train.steps=auto warpgs stops by its own rule within the preset's bound, schedule.max_steps, cut to the largest; the
-gsplat loop runs to it). Prints a table
-and writes benchmarks/results/real_capture_<name>_<device>[_gsplat].json (every evaluation point, time per step
-of each system and their ratio, the largest one-step drop in primitive count) and a PNG plot next to it.
+gsplat loop runs to it). Prints a table and writes benchmarks/results/real_capture_<name>_<device>[_gsplat].json
+(every evaluation point, time per step of each system and their ratio, the largest one-step drop in primitive count)
+and a PNG plot next to it.
 """
 from __future__ import annotations
 
