@@ -17,7 +17,9 @@ tile size: render/defaults.py choose_tile_size), outputs RGB + alpha + depth.
                                                           # input checks (check_inputs) and CUDA graphs
                                                           # (warpgs.render.workspace) each way, one row each
 
-Prints a table and writes benchmarks/results/raster_<device>.json (or $OUT/raster_<device>.json).
+Prints a table and writes benchmarks/results/raster_<device>.json (or $OUT/raster_<device>.json). With --gsplat and
+--rounds > 1 each row also holds gsplat's times per round and the standard error of the per-round ratios
+(ratio_fwd_se, ratio_fwd_bwd_se): a ratio within about two of them of 1.0 is a tie.
 """
 from __future__ import annotations
 
@@ -165,6 +167,13 @@ def warpgs_times(scene, width, height, device, repeats, surfels, tile_size, chec
     return time_call(fwd, device, warmup=warm, repeats=repeats), time_call(fwd_bwd, device, warmup=warm, repeats=repeats)
 
 
+def round_ratio_se(ours: list, theirs: list) -> float:
+    """Standard error of the mean of the per-round ratios ours[r] / theirs[r]: the rounds interleave the two systems,
+    so each round's pair shares the machine's state of that moment."""
+    ratios = [a / b for a, b in zip(ours, theirs)]
+    return statistics.stdev(ratios) / len(ratios) ** 0.5 if len(ratios) > 1 else float("nan")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
@@ -250,6 +259,11 @@ def main():
                         g_fwd, g_fb = g_times
                         row.update(gsplat_fwd_ms=g_fwd, gsplat_fwd_bwd_ms=g_fb, ratio_fwd=fwd_ms / g_fwd,
                                    ratio_fwd_bwd=fb_ms / g_fb)
+                        if args.rounds > 1:
+                            row.update(gsplat_fwd_ms_rounds=times["gsplat"][0],
+                                       gsplat_fwd_bwd_ms_rounds=times["gsplat"][1],
+                                       ratio_fwd_se=round_ratio_se(times[spec][0], times["gsplat"][0]),
+                                       ratio_fwd_bwd_se=round_ratio_se(times[spec][1], times["gsplat"][1]))
                     rows.append(row)
                     print_table([row], [c for c in row if not c.endswith("_rounds")])  # progress, one row at a time
                 sync(device)
@@ -258,6 +272,7 @@ def main():
                "max_err", "evals_per_s"]
     columns += ["frac_of_core_peak"] if peak else []
     columns += ["gsplat_fwd_ms", "gsplat_fwd_bwd_ms", "ratio_fwd", "ratio_fwd_bwd"] if args.gsplat else []
+    columns += ["ratio_fwd_se", "ratio_fwd_bwd_se"] if args.gsplat and args.rounds > 1 else []
     print_table(rows, columns)
     meta = dict(device=device, gpu=torch.cuda.get_device_name() if device.startswith("cuda") else None,
                 cpu=platform.processor() or platform.machine(), torch=torch.__version__, warp=wp.__version__,

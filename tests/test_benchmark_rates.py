@@ -1,5 +1,7 @@
-"""Figures the GPU benchmarks derive from their runs: the distributed benchmark's rate after start-up and the
-real-capture benchmark's evaluation period (both computed on the CPU from stored numbers)."""
+"""Figures the GPU benchmarks derive from their runs: the distributed benchmark's rate after start-up, the
+real-capture benchmark's evaluation period and the raster benchmark's spread of its ratios to gsplat (all computed on
+the CPU from stored numbers)."""
+import math
 import sys
 from pathlib import Path
 
@@ -8,6 +10,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import distributed  # noqa: E402
+import raster  # noqa: E402
 import real_capture  # noqa: E402
 import train_compare  # noqa: E402
 
@@ -63,3 +66,11 @@ def test_each_evaluation_is_echoed_once_as_it_happens(capsys):
     echo(trainer, 1001, {})
     assert capsys.readouterr().out == ("warpgs evaluated at step 1000: 23.457 dB held-out, 8674 primitives, "
                                        "12.3 s of training\n")
+
+
+def test_the_raster_ratio_spread_pairs_the_rounds():
+    # Round by round 1.1 and 0.9 of gsplat's time: mean 1.0, standard error 0.1 (sd 0.1414 over 2 rounds).
+    assert abs(raster.round_ratio_se([1.1, 1.8], [1.0, 2.0]) - 0.1) < 1e-12
+    # A slow moment that hits both systems alike leaves no spread in the ratio.
+    assert raster.round_ratio_se([1.0, 3.0, 2.0], [0.5, 1.5, 1.0]) == 0.0
+    assert math.isnan(raster.round_ratio_se([1.0], [1.0]))
