@@ -105,7 +105,8 @@ def main(argv=None) -> int:
         for screen in (float(s) for s in args.screen.split(",")):
             scan = [(float(r), *alpha_errors(shell(r, sigma, args.overlap), cams, coverages, screen)) for r in radii]
             best = min(scan, key=lambda row: row[1])
-            at_true = alpha_errors(shell(RADIUS, sigma, args.overlap), cams, coverages, screen)
+            at_true = next((row[1:] for row in scan if row[0] == RADIUS), None) or \
+                alpha_errors(shell(RADIUS, sigma, args.overlap), cams, coverages, screen)  # not in the scan
             row = {"sigma": sigma, "screen_sigma": screen, "best_radius": best[0], "offset": best[0] - RADIUS,
                    "dilation_px_at_true_radius": at_true[1] / perimeter_px,
                    "scan": [{"radius": r, "abs_error": e, "surplus_px": s} for r, e, s in scan]}
