@@ -19,7 +19,7 @@ import functools
 import warp as wp
 
 from .pair_sums import pair_part_index
-from .warp_ops import lane_any, lane_max, lane_sum, lane_sum2, lane_sum3
+from .warp_ops import Lanes16, lane_any, lane_max, lane_scatter_sum, lane_sum, lane_sum2, lane_sum3
 
 from .blend import (
     ROW_USED,
@@ -267,17 +267,42 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deter
 WARP = 32
 
 
+# Where the scatter adjoint adds a GradRow's entries (opacity, entry 5, goes to its own array): one flat float block
+# holding means2d [N,2], conics [N,3], colors [N,3] and depths [N] one after another (fast_pipeline.blend_backward's
+# fields, in that order); entry k of primitive g lands at offset * N + stride * g + component, SCATTER_LAYOUT[k].
+SCATTER_LAYOUT = ((0, 2, 0), (0, 2, 1), (2, 3, 0), (2, 3, 1), (2, 3, 2), None, (5, 3, 0), (5, 3, 1), (5, 3, 2),
+                  (8, 1, 0))
+
+
+@wp.func
+def scatter_slot(k: int, g: int, n: int) -> int:
+    """SCATTER_LAYOUT's place of entry k (not 5) of primitive g, of n."""
+    if k < 2:
+        return 2 * g + k
+    if k < 5:
+        return 2 * n + 3 * g + k - 2
+    if k < 9:
+        return 5 * n + 3 * g + k - 6
+    return 8 * n + g
+
+
 def warp_sums_supported(tile_size: int) -> bool:
     return (tile_size * tile_size) % WARP == 0
 
 
 @functools.lru_cache(maxsize=None)  # compiled once per block size and feature count
-def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: bool = False, absgrad: bool = False):
+def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: bool = False, absgrad: bool = False,
+                              scatter: bool = False):
     """deterministic: each warp's sums go to their own slot per sorted pair (pair_sums.py), not to the primitive.
     absgrad: also sums each pixel's |d means2d| (AbsGS) into adj_means2d_abs; compiled in only when asked, so the
-    default kernel carries none of it."""
+    default kernel carries none of it.
+    scatter: the ten gradient sums of a Gaussian by one reduce-scatter (warp_ops.lane_scatter_sum), written by ten
+    lanes at once into `adj_block` (laid out as SCATTER_LAYOUT says) and adj_opacities, instead of ten butterfly
+    sums written by lane 0 (not with deterministic or absgrad)."""
     if block_dim % WARP != 0:
         raise ValueError(f"per-warp sums need whole warps per block, got block_dim={block_dim}")
+    if scatter and (deterministic or absgrad):
+        raise ValueError("the scatter sums write to the primitives' gradients: not with deterministic or absgrad")
     FeatureVec = feature_vector_type(num_features)
     has_features = num_features > 0
 
@@ -308,6 +333,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
         adj_depths: wp.array(dtype=float),
         adj_features: wp.array(dtype=FeatureVec),
         adj_means2d_abs: wp.array(dtype=wp.vec2),  # written when compiled with absgrad (a placeholder otherwise)
+        adj_block: wp.array(dtype=float),  # written when compiled with scatter (a placeholder otherwise)
     ):
         tid = wp.tid()
         lane = tid % WARP
@@ -354,24 +380,34 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
                         suffix = row[ROW_SUFFIX]
                         if wp.static(has_features):
                             f_part = row[ROW_WEIGHT] * up_features
-                    m = lane_sum2(wp.vec2(row[0], row[1]))
-                    c = lane_sum3(wp.vec3(row[2], row[3], row[4]))
-                    o = lane_sum(row[5])
-                    col = lane_sum3(wp.vec3(row[6], row[7], row[8]))
-                    d = lane_sum(row[9])
                     dest = g  # deterministic: this warp's slot for the pair instead (pair_sums.py)
                     if wp.static(deterministic):
                         dest = pair_part_index(lo + j, tid, p.tile_size, WARP)
-                    if lane == 0:  # one set of atomics per warp and Gaussian
-                        wp.atomic_add(adj_means2d, dest, m)
-                        wp.atomic_add(adj_conics, dest, c)
-                        wp.atomic_add(adj_opacities, dest, o)
-                        wp.atomic_add(adj_colors, dest, col)
-                        wp.atomic_add(adj_depths, dest, d)
-                    if wp.static(absgrad):  # each pixel's |d means2d|, summed (AbsGS)
-                        m_abs = lane_sum2(wp.vec2(wp.abs(row[0]), wp.abs(row[1])))
-                        if lane == 0:
-                            wp.atomic_add(adj_means2d_abs, dest, m_abs)
+                    if wp.static(scatter):  # sum k of the row in lanes 2k and 2k + 1; the even ones write it
+                        total = lane_scatter_sum(Lanes16(row[0], row[1], row[2], row[3], row[4], row[5], row[6],
+                                                         row[7], row[8], row[9], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), lane)
+                        k = (lane >> 1) & 15
+                        if (lane & 1) == 0 and k < 10:
+                            if k == 5:
+                                wp.atomic_add(adj_opacities, g, total)
+                            else:
+                                wp.atomic_add(adj_block, scatter_slot(k, g, adj_opacities.shape[0]), total)
+                    else:
+                        m = lane_sum2(wp.vec2(row[0], row[1]))
+                        c = lane_sum3(wp.vec3(row[2], row[3], row[4]))
+                        o = lane_sum(row[5])
+                        col = lane_sum3(wp.vec3(row[6], row[7], row[8]))
+                        d = lane_sum(row[9])
+                        if lane == 0:  # one set of atomics per warp and Gaussian
+                            wp.atomic_add(adj_means2d, dest, m)
+                            wp.atomic_add(adj_conics, dest, c)
+                            wp.atomic_add(adj_opacities, dest, o)
+                            wp.atomic_add(adj_colors, dest, col)
+                            wp.atomic_add(adj_depths, dest, d)
+                        if wp.static(absgrad):  # each pixel's |d means2d|, summed (AbsGS)
+                            m_abs = lane_sum2(wp.vec2(wp.abs(row[0]), wp.abs(row[1])))
+                            if lane == 0:
+                                wp.atomic_add(adj_means2d_abs, dest, m_abs)
                     if wp.static(has_features):
                         f_sum = FeatureVec()
                         for ch in range(wp.static(num_features)):

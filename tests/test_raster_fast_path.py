@@ -61,7 +61,7 @@ def _run(scene, outputs, options=None, op=rasterize, track_means2d=False, **kw):
     return out, grads
 
 
-PATHS = [dict(backward_kernel="warp_sums"), dict(backward_kernel="block")]
+PATHS = [dict(backward_kernel="scatter"), dict(backward_kernel="warp_sums"), dict(backward_kernel="block")]
 
 
 @pytest.mark.parametrize("options", PATHS, ids=lambda o: o["backward_kernel"])

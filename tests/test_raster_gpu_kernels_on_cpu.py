@@ -1,7 +1,7 @@
 """The block-cooperative GPU kernels (kernels/blend_gpu.py), run on the CPU through Warp's CPU blocks, must
 pass the same forward and gradient checks: CI has no GPU, and these are the kernels GPUs run. Every GPU adjoint
-(`backward_kernel_warp_sums`, the default, `backward_kernel` with and without its block sums, and the
-deterministic mode's twins) is checked against the float64 reference, and the op against its per-call oracle (tests/legacy_raster.py)."""
+(`backward_kernel_warp_sums` with its reduce-scatter sums, the default, and with lane 0's sums, `backward_kernel` with
+and without its block sums, and the deterministic mode's twins) is checked against the float64 reference, and the op against its per-call oracle (tests/legacy_raster.py)."""
 import os
 import subprocess
 import sys
@@ -12,11 +12,16 @@ import pytest
 HERE = Path(__file__).parent
 
 VARIANTS = {  # name: (environment, test files)
+    # the default (the per-warp adjoint with reduce-scatter sums) and, below, its lane-0 twin and the block adjoint
+    "scatter": ({"WARPGS_BWD_KERNEL": "scatter"},
+                ["test_raster_forward.py", "test_raster_gradients.py",
+                 "test_raster_knobs.py",  # covers the surfel kernels at other thresholds too
+                 "test_raster_degenerate.py", "test_raster_fast_path.py", "test_absgrad.py",
+                 "test_render_splats.py"]),  # the split op of model-parallel rendering
     "warp_sums": ({"WARPGS_BWD_KERNEL": "warp_sums"},
-                  ["test_raster_forward.py", "test_raster_gradients.py",
-                   "test_raster_knobs.py",  # covers the surfel kernels at other thresholds too
-                   "test_raster_degenerate.py", "test_raster_fast_path.py", "test_absgrad.py",
-                   "test_render_splats.py"]),  # the split op of model-parallel rendering
+                  ["test_raster_gradients.py",
+                   "test_raster_knobs.py::test_gaussians_gradients_follow_reference_at_other_thresholds",
+                   "test_absgrad.py"]),
     # the tile-key emission's full search (raster option pair_search; the default narrows it): the op against its oracle
     "pair_full": ({"WARPGS_PAIR_SEARCH": "full"}, ["test_raster_fast_path.py", "test_binning.py"]),
     "block": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "1"},

@@ -60,7 +60,13 @@ def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool, primitives_per_p
 
 # Which GPU blend adjoint the ops launch (speed only: both give the same images and gradients, which the tests
 # check). Benchmarks switch them in one process with `raster_options(...)`; the WARPGS_* variables set the defaults.
-BACKWARD_KERNELS = ("warp_sums", "block")  # GPU blend adjoint: blend_gpu.backward_kernel_warp_sums / backward_kernel
+# GPU blend adjoint of 3D Gaussians: blend_gpu.backward_kernel_warp_sums with each Gaussian's ten gradient sums made
+# by one reduce-scatter and written from ten lanes ("scatter", the default: the adjoint kernel 5% faster at 100k and
+# 1M Gaussians at 1080p on an H200, render_trace_cuda_scatter_s35.json; fwd+bwd 1-7% faster,
+# raster_cuda_h200_scatter{2,3}_s35.json) or ten butterfly sums written by lane 0 ("warp_sums"; the same gradients up
+# to float32 rounding), or backward_kernel ("block").
+BACKWARD_KERNELS = ("warp_sums", "scatter", "block")
+SURFEL_BACKWARD_KERNELS = ("warp_sums", "block")
 # How a GPU thread of the tile-key emission finds its primitive: "table" (kernels/binning.py emit_tile_keys_by_table,
 # its binary search narrowed by a coarse table) or "full" (emit_tile_keys_per_pair, a search over every primitive).
 # The 3D projection's adjoint: "written" (kernels/project_adjoint.py, for one camera that is not differentiated; the
@@ -73,7 +79,7 @@ PROJECT_ADJOINTS = ("written", "generated")
 
 @dataclass(frozen=True)
 class RasterOptions:
-    backward_kernel: str = os.environ.get("WARPGS_BWD_KERNEL", "warp_sums")
+    backward_kernel: str = os.environ.get("WARPGS_BWD_KERNEL", "scatter")
     # Surfels: the per-warp adjoint halves fwd+bwd on an H200 (raster_cuda_h200_surfels_*.json); "block" is the old one.
     surfel_backward_kernel: str = os.environ.get("WARPGS_SURFEL_BWD_KERNEL", "warp_sums")
     # GPU gradients bit-identical from run to run: the blend adjoint sums each primitive's per-tile parts in a fixed
@@ -87,9 +93,9 @@ class RasterOptions:
     speculative_pairs: bool = False
 
     def __post_init__(self):
-        for f in ("backward_kernel", "surfel_backward_kernel"):
-            if getattr(self, f) not in BACKWARD_KERNELS:
-                raise ValueError(f"raster option {f}: expected one of {BACKWARD_KERNELS}, got {getattr(self, f)!r}")
+        for f, allowed in (("backward_kernel", BACKWARD_KERNELS), ("surfel_backward_kernel", SURFEL_BACKWARD_KERNELS)):
+            if getattr(self, f) not in allowed:
+                raise ValueError(f"raster option {f}: expected one of {allowed}, got {getattr(self, f)!r}")
         if self.project_adjoint not in PROJECT_ADJOINTS:
             raise ValueError(f"raster option project_adjoint: expected one of {PROJECT_ADJOINTS}, got "
                              f"{self.project_adjoint!r}")

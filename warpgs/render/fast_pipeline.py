@@ -173,9 +173,16 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
     # |d means2d| summed per Gaussian (want.absgrad): a field of its own, else a placeholder the kernel never writes
     no_absgrad = [] if want.absgrad else [ws.dummy(wp.vec2)]
 
+    # the per-warp kernels' last argument: for the scatter sums the fields' block as one flat array (the fields
+    # below, in blend_gpu.SCATTER_LAYOUT's order), else a placeholder; the other kernels have no such argument
+    takes_block = warp_sums_kernel(ws.device, s, backward_kernel)
+    scatter = takes_block and frame.pairs is None and scatter_sums(backward_kernel, want)
+
     def launch(key, first, count, targets):
+        block = [ws.view(f"{key}_flat", targets[0], 0, 9 * frame.n, float) if scatter else ws.dummy(float)]
         L.launch(key, kernel, count * s.tile_size**2,
-                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets + no_absgrad, block_dim)
+                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets + no_absgrad
+                 + (block if takes_block else []), block_dim)
 
     fields = [("means2d", 2, wp.vec2), ("conics", 3, wp.vec3), OPACITIES, ("colors", 3, wp.vec3),
               ("depths", 1, float), FEATURES] + ([("means2d_abs", 2, wp.vec2)] if want.absgrad else [])
@@ -322,16 +329,29 @@ def _params(ws: Workspace, s: Settings, want: Wanted, first: int, depth_eps: flo
 
 def _blend_kernel(dev, s: Settings, want: Wanted, backward: bool, variant: str = "warp_sums"):
     """(kernel, block_dim): the per-thread CPU kernels, or the cooperative GPU ones (blend_gpu.py). variant: the GPU
-    adjoint, "warp_sums" (backward_kernel_warp_sums, tiles of 8x8 and up) or "block" (backward_kernel)."""
+    adjoint, "warp_sums" or "scatter" (backward_kernel_warp_sums, tiles of 8x8 and up) or "block" (backward_kernel)."""
     if not _cooperative(dev):
         return (blend.blend_backward if backward else blend.blend_forward), 0
     fwd_block, bwd_block = _block_dims(s)
     if not backward:
         return blend_gpu.forward_kernel(fwd_block, want.num_features), fwd_block
-    if variant == "warp_sums" and blend_gpu.warp_sums_supported(s.tile_size):
+    if warp_sums_kernel(dev, s, variant):
         block = min(s.tile_size**2, 256)
-        return blend_gpu.backward_kernel_warp_sums(block, want.num_features, absgrad=want.absgrad), block
+        return blend_gpu.backward_kernel_warp_sums(block, want.num_features, absgrad=want.absgrad,
+                                                   scatter=scatter_sums(variant, want)), block
     return blend_gpu.backward_kernel(bwd_block, _block_reduce(), want.num_features), bwd_block
+
+
+def warp_sums_kernel(dev, s: Settings, variant: str) -> bool:
+    """Whether the 3D adjoint `variant` runs blend_gpu.backward_kernel_warp_sums here (or its deterministic twin)."""
+    return (_cooperative(dev) and variant in ("warp_sums", "scatter")
+            and blend_gpu.warp_sums_supported(s.tile_size))
+
+
+def scatter_sums(variant: str, want: Wanted) -> bool:
+    """Whether the GPU adjoint `variant` sums by reduce-scatter: "scatter", unless |d means2d| is summed too (AbsGS),
+    which the per-lane sums carry."""
+    return variant == "scatter" and not want.absgrad
 
 
 def feature_layout(dev) -> str:

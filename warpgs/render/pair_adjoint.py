@@ -29,7 +29,7 @@ def choose_kernel(kernels, tile_size: int, variant: str, block: int, num_feature
     surfel_blend_gpu), and how many summing groups each tile has. block: the "block" variant's block size.
     absgrad: the 3D per-warp kernel that also sums |d means2d| (blend_gpu only)."""
     per_tile = tile_size * tile_size
-    if variant == "warp_sums" and per_tile % kernels.WARP == 0:
+    if variant in ("warp_sums", "scatter") and per_tile % kernels.WARP == 0:  # scatter: lane 0's sums here
         block = min(per_tile, 256)
         extra = (True,) if absgrad else ()
         return kernels.backward_kernel_warp_sums(block, num_features, True, *extra), block, per_tile // kernels.WARP
