@@ -1,9 +1,9 @@
 """Renderer variants to time side by side in one process (benchmarks/raster.py, profile_stages.py).
 
 A variant is `default` (whatever the WARPGS_* variables select) or `fast`, then optional options joined by '+':
-`fast+bwd=block`, `fast+sbwd=warp_sums`, `fast+det=on`, `fast+keys=full`. Keys: bwd (the 3D GPU adjoint: scatter,
-warp_sums, block), sbwd (the surfel GPU adjoint: block, warp_sums), det (the deterministic adjoint: on, off; a no-op for the CPU's
-per-thread kernels, deterministic anyway), keys (the GPU tile-key emission's search: table, full), padj (the 3D
+`fast+bwd=block`, `fast+sbwd=scatter`, `fast+det=on`, `fast+keys=full`. Keys: bwd (the 3D GPU adjoint: scatter,
+warp_sums, block), sbwd (the surfel GPU adjoint: warp_sums, scatter, block), det (the deterministic adjoint: on, off;
+a no-op for the CPU's per-thread kernels, deterministic anyway), keys (the GPU tile-key emission's search: table, full), padj (the 3D
 projection's adjoint: written, generated); see warpgs/render/defaults.py.
 """
 from __future__ import annotations

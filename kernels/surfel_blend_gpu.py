@@ -17,9 +17,14 @@ import warp as wp
 from .blend import thread_pixel
 from .blend_gpu import WARP, feature_vector_type
 from .pair_sums import pair_part_index
-from .warp_ops import lane_any, lane_max, lane_sum
+from .warp_ops import Lanes32, lane_any, lane_max, lane_scatter_sum32, lane_sum
 from .surfel_steps import (
+    ROW_COLOR,
+    ROW_DEPTH,
     ROW_HIT,
+    ROW_MEAN,
+    ROW_NORMAL,
+    ROW_OPACITY,
     ROW_SCREEN,
     ROW_SUFFIX,
     ROW_T,
@@ -251,16 +256,44 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deter
 # --- Pixel-per-thread adjoint with per-warp sums ----------------------------------------------------------------
 # blend_gpu.backward_kernel_warp_sums's layout for surfels: each warp skips the entries past the last one any of its
 # pixels blended, votes to skip surfels none of its pixels blended, and sums a surfel's GRAD_SUM_LENGTH gradient
-# entries over its 32 pixels with butterfly shuffles before lane 0 adds them; no block barrier per surfel.
+# entries over its 32 pixels with butterfly shuffles before lane 0 adds them (or, with `scatter`, with one
+# reduce-scatter that leaves entry k's sum in lane k, and the lanes add theirs at once); no block barrier per surfel.
 # The default (raster option surfel_backward_kernel): on an H200 it took fwd+bwd from 5.2 to 3.2 ms (100k surfels)
 # and from 19.0 to 9.6 ms (1M) at 1080p against `backward_kernel` (benchmarks/raster.py --primitive surfels).
 
 
+# Where the scatter adjoint adds a SurfelGradRow's entries (opacity, ROW_OPACITY, goes to its own array; the hit and
+# screen counts are not written): one flat float block holding transforms [N,9], means2d [N,2], depths [N], colors
+# [N,3] and normals [N,3] one after another (fast_pipeline_surfels.ADJOINT_FIELDS, in that order); entry k of surfel g
+# lands at offset * N + stride * g + component, SCATTER_LAYOUT[k].
+SCATTER_LAYOUT = tuple([(0, 9, c) for c in range(9)] + [(9, 2, 0), (9, 2, 1), (11, 1, 0), None]
+                       + [(12, 3, c) for c in range(3)] + [(15, 3, c) for c in range(3)])
+
+
+@wp.func
+def scatter_slot(k: int, g: int, n: int) -> int:
+    """SCATTER_LAYOUT's place of entry k (below ROW_HIT, not ROW_OPACITY) of surfel g, of n."""
+    if k < ROW_MEAN:
+        return 9 * g + k
+    if k < ROW_DEPTH:
+        return 9 * n + 2 * g + k - ROW_MEAN
+    if k == ROW_DEPTH:
+        return 11 * n + g
+    if k < ROW_NORMAL:
+        return 12 * n + 3 * g + k - ROW_COLOR
+    return 15 * n + 3 * g + k - ROW_NORMAL
+
+
 @functools.lru_cache(maxsize=None)  # compiled once per block size and feature count
-def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: bool = False):
-    """deterministic: each warp's sums go to their own slot per sorted pair (pair_sums.py), not to the surfel."""
+def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: bool = False, scatter: bool = False):
+    """deterministic: each warp's sums go to their own slot per sorted pair (pair_sums.py), not to the surfel.
+    scatter: a surfel's gradient entries summed by one 32-value reduce-scatter (warp_ops.lane_scatter_sum32), lane k
+    writing entry k into `adj_block` (laid out as SCATTER_LAYOUT says) or adj_opacities, instead of
+    GRAD_SUM_LENGTH butterfly sums written by lane 0 (not with deterministic)."""
     if block_dim % WARP != 0:
         raise ValueError(f"per-warp sums need whole warps per block, got block_dim={block_dim}")
+    if scatter and deterministic:
+        raise ValueError("the scatter sums write to the surfels' gradients: not with deterministic")
     FeatureVec = feature_vector_type(num_features)
     has_features = num_features > 0
 
@@ -298,6 +331,7 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
         adj_colors: wp.array(dtype=wp.vec3),
         adj_normals: wp.array(dtype=wp.vec3),
         adj_features: wp.array(dtype=FeatureVec),
+        adj_block: wp.array(dtype=float),  # written when compiled with scatter (a placeholder otherwise)
     ):
         tid = wp.tid()
         lane = tid % WARP
@@ -352,15 +386,26 @@ def backward_kernel_warp_sums(block_dim: int, num_features: int, deterministic: 
                         suffix = row[ROW_SUFFIX]
                         if wp.static(has_features):
                             f_part = row[ROW_WEIGHT] * up_features
-                    total = SurfelGradSum()
-                    for i in range(wp.static(GRAD_SUM_LENGTH)):
-                        total[i] = lane_sum(row[i])
                     dest = g  # deterministic: this warp's slot for the pair instead (pair_sums.py)
                     if wp.static(deterministic):
                         dest = pair_part_index(lo + j, tid, p.base.tile_size, WARP)
-                    if lane == 0:  # one set of atomics per warp and surfel
-                        add_surfel_gradient_row(dest, gradient_sum_row(total), p, adj_transforms, adj_means2d,
-                                                adj_depths, adj_opacities, adj_colors, adj_normals)
+                    if wp.static(scatter):  # entry k's sum in lane k; a zero sum (a path no pixel took) is skipped
+                        part = Lanes32()
+                        for i in range(wp.static(GRAD_SUM_LENGTH)):
+                            part[i] = row[i]
+                        total_k = lane_scatter_sum32(part, lane)
+                        if lane < ROW_HIT and total_k != 0.0:
+                            if lane == ROW_OPACITY:
+                                wp.atomic_add(adj_opacities, g, total_k)
+                            else:
+                                wp.atomic_add(adj_block, scatter_slot(lane, g, adj_opacities.shape[0]), total_k)
+                    else:
+                        total = SurfelGradSum()
+                        for i in range(wp.static(GRAD_SUM_LENGTH)):
+                            total[i] = lane_sum(row[i])
+                        if lane == 0:  # one set of atomics per warp and surfel
+                            add_surfel_gradient_row(dest, gradient_sum_row(total), p, adj_transforms, adj_means2d,
+                                                    adj_depths, adj_opacities, adj_colors, adj_normals)
                     if wp.static(has_features):
                         f_sum = FeatureVec()
                         for ch in range(wp.static(num_features)):

@@ -92,47 +92,53 @@ _ANY = """
 """
 
 
-# lane_scatter_sum: a reduce-scatter of 16 values over the warp. Each butterfly step halves the values a lane keeps:
-# it adds its partner's copy of the half it keeps and hands over the other half, so 16 sums take 8+4+2+1+1 = 16
-# shuffles instead of 16 x 5, and every sum ends in two lanes (lane L holds value (L >> 1) & 15), which can then
-# write their sums with one atomic instruction instead of lane 0 writing all of them in turn.
-_SCATTER_SUM = """
+def _scatter_snippet(width: int) -> str:
+    """Native code of a reduce-scatter of `width` (16 or 32) values x over the warp, for a stub taking (x, lane).
+    Each butterfly step halves the values a lane keeps: it adds its partner's copy of the half it keeps and hands
+    over the other half, so the sums take width - 1 shuffles (plus one for 16) instead of width x 5, and every sum
+    ends in its own lanes (value (lane >> 1) & 15 for 16, value lane for 32), which can then write their sums with
+    one atomic instruction instead of lane 0 writing all of them in turn. Written out with constant indices: a loop
+    over the halves left the values in local memory (the call 1.6x slower on an H200)."""
+    lines, names, bit = [], [f"x[{i}]" for i in range(width)], 16
+    while len(names) > 1:
+        half = len(names) // 2
+        new = [f"v{bit}_{i}" for i in range(half)]
+        lines += [f"    const float {new[i]} = WPGS_KEEP({bit}, {names[i]}, {names[i + half]});" for i in range(half)]
+        names, bit = new, bit // 2
+    result = names[0] if bit == 0 else f"{names[0]} + __shfl_xor_sync(0xffffffffu, {names[0]}, 1)"
+    shift = 0 if width == 32 else 1
+    return f"""
 #if defined(__CUDA_ARCH__)
-    // written out with constant indices: a loop over the halves left the values in local memory (1.6x slower)
-    #define WPGS_KEEP(bit, lo, hi) (((lane & bit) != 0 ? (hi) : (lo)) + \
+    #define WPGS_KEEP(bit, lo, hi) (((lane & bit) != 0 ? (hi) : (lo)) + \\
         __shfl_xor_sync(0xffffffffu, (lane & bit) != 0 ? (lo) : (hi), bit))
-    const float a0 = WPGS_KEEP(16, x[0], x[8]), a1 = WPGS_KEEP(16, x[1], x[9]);
-    const float a2 = WPGS_KEEP(16, x[2], x[10]), a3 = WPGS_KEEP(16, x[3], x[11]);
-    const float a4 = WPGS_KEEP(16, x[4], x[12]), a5 = WPGS_KEEP(16, x[5], x[13]);
-    const float a6 = WPGS_KEEP(16, x[6], x[14]), a7 = WPGS_KEEP(16, x[7], x[15]);
-    const float b0 = WPGS_KEEP(8, a0, a4), b1 = WPGS_KEEP(8, a1, a5), b2 = WPGS_KEEP(8, a2, a6), b3 = WPGS_KEEP(8, a3, a7);
-    const float c0 = WPGS_KEEP(4, b0, b2), c1 = WPGS_KEEP(4, b1, b3);
-    const float d0 = WPGS_KEEP(2, c0, c1);
+{chr(10).join(lines)}
     #undef WPGS_KEEP
-    return d0 + __shfl_xor_sync(0xffffffffu, d0, 1);
+    return {result};
 #else
-    if constexpr (WP_TILE_BLOCK_DIM == 1) {
+    if constexpr (WP_TILE_BLOCK_DIM == 1) {{
         return x[0];
-    } else {
-        wp::wp_block_shared<float[WP_TILE_BLOCK_DIM * 16]> scratch;
+    }} else {{
+        wp::wp_block_shared<float[WP_TILE_BLOCK_DIM * {width}]> scratch;
         const int t = WP_TILE_THREAD_IDX;
         WP_TILE_SYNC();
-        for (int i = 0; i < 16; ++i)
-            (*scratch)[t * 16 + i] = x[i];
+        for (int i = 0; i < {width}; ++i)
+            (*scratch)[t * {width} + i] = x[i];
         WP_TILE_SYNC();
         const int first = t - t % 32;
         const int last = first + 32 < WP_TILE_BLOCK_DIM ? first + 32 : WP_TILE_BLOCK_DIM;
-        const int k = (lane >> 1) & 15;
+        const int k = (lane >> {shift}) & {width - 1};
         float v = 0.0f;
         for (int i = first; i < last; ++i)
-            v += (*scratch)[i * 16 + k];
+            v += (*scratch)[i * {width} + k];
         WP_TILE_SYNC();
         return v;
-    }
+    }}
 #endif
 """
 
+
 Lanes16 = wp.types.vector(length=16, dtype=float)  # what lane_scatter_sum takes
+Lanes32 = wp.types.vector(length=32, dtype=float)  # what lane_scatter_sum32 takes
 
 
 @wp.func_native(_SUM)
@@ -153,10 +159,16 @@ def lane_any(x: int) -> int:
     ...
 
 
-@wp.func_native(_SCATTER_SUM)
+@wp.func_native(_scatter_snippet(16))
 def lane_scatter_sum(x: Lanes16, lane: int) -> float:
     """The sum over the warp (32 lanes) of x[(lane >> 1) & 15], in lane `lane` (the caller's lane index, tid % 32):
     each of the 16 sums lands in two neighbouring lanes."""
+    ...
+
+
+@wp.func_native(_scatter_snippet(32))
+def lane_scatter_sum32(x: Lanes32, lane: int) -> float:
+    """The sum over the warp (32 lanes) of x[lane], in lane `lane` (the caller's lane index, tid % 32)."""
     ...
 
 

@@ -66,7 +66,9 @@ def choose_tile_size(tile_size, needs_grad: bool, on_gpu: bool, primitives_per_p
 # raster_cuda_h200_scatter{2,3}_s35.json) or ten butterfly sums written by lane 0 ("warp_sums"; the same gradients up
 # to float32 rounding), or backward_kernel ("block").
 BACKWARD_KERNELS = ("warp_sums", "scatter", "block")
-SURFEL_BACKWARD_KERNELS = ("warp_sums", "block")
+# Surfels: the same three; "scatter" (a 32-value reduce-scatter) is not yet timed on a GPU, so lane 0's sums stay the
+# default.
+SURFEL_BACKWARD_KERNELS = ("warp_sums", "scatter", "block")
 # How a GPU thread of the tile-key emission finds its primitive: "table" (kernels/binning.py emit_tile_keys_by_table,
 # its binary search narrowed by a coarse table) or "full" (emit_tile_keys_per_pair, a search over every primitive).
 # The 3D projection's adjoint: "written" (kernels/project_adjoint.py, for one camera that is not differentiated; the

@@ -136,8 +136,8 @@ def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelW
     """The blending adjoint. upstream: (grad color, alpha, depth, inv_depth, normal, median, distortion, features)
     in the kernels' layouts (dummies for outputs not rendered); zacc: the forward's depth accumulation, given when
     the depth upstream is the expected depth's (fast_pipeline.blend_backward). adj_opacities / adj_features: where
-    the opacity and feature gradients accumulate (zeroed by the caller). backward_kernel: the GPU adjoint, "block"
-    or "warp_sums" (tiles of 8x8 and up). Returns the projected gradients (transforms, means2d, depths, colors,
+    the opacity and feature gradients accumulate (zeroed by the caller). backward_kernel: the GPU adjoint, "block",
+    "warp_sums" or "scatter" (tiles of 8x8 and up). Returns the projected gradients (transforms, means2d, depths, colors,
     normals), in the workspace: valid until the next backward on it. A frame with `pairs` gets the fixed-order
     adjoint (pair_adjoint.py)."""
     L = ws.launches
@@ -152,9 +152,16 @@ def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelW
              ws.dummy(float) if zacc is None else zacc] + list(upstream))
     depth_eps = 0.0 if zacc is None else DEPTH_EPS
 
+    # the per-warp kernels' last argument: for the scatter sums the fields' block as one flat array (ADJOINT_FIELDS'
+    # own fields, in surfel_blend_gpu.SCATTER_LAYOUT's order), else a placeholder; the block kernels have none
+    takes_block = warp_sums_kernel(ws.device, s, backward_kernel)
+    scatter = takes_block and frame.pairs is None and backward_kernel == "scatter"
+
     def launch(key, first, count, targets):
+        block = [ws.view(f"{key}_flat", targets[0], 0, 18 * frame.n, float) if scatter else ws.dummy(float)]
         L.launch(key, kernel, count * s.tile_size**2,
-                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets, block_dim)
+                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets + (block if takes_block else []),
+                 block_dim)
 
     projected = run_blend_adjoint(ws, s, "surfel_blend_bwd", ADJOINT_FIELDS, frame.n, adj_opacities, adj_features,
                                   num_features_rows, want.num_features, launch, frame.pairs, parts)
@@ -189,15 +196,21 @@ def _params(ws: Workspace, s: Settings, want: SurfelWanted, first: int, depth_ep
     return ws.memo(key, lambda: surfel_blend_params(s, want, first, depth_eps))
 
 
+def warp_sums_kernel(dev, s: Settings, variant: str) -> bool:
+    """Whether the surfel adjoint `variant` runs surfel_blend_gpu.backward_kernel_warp_sums here (or its
+    deterministic twin)."""
+    return _cooperative(dev) and variant in ("warp_sums", "scatter") and warp_sums_supported(s.tile_size)
+
+
 def _blend_kernel(dev, s: Settings, want: SurfelWanted, backward: bool, variant: str = "warp_sums"):
     """(kernel, block_dim): the per-thread CPU kernels (block_dim 1, as the tests' per-call driver launches them, so
     both share one compiled module), or the cooperative GPU ones of surfel_blend_gpu.py (variant: the adjoint)."""
     if not _cooperative(dev):
         return (surfel_blend.blend_backward if backward else surfel_blend.blend_forward), 1
     fwd_block, bwd_block = _block_dims(s)
-    if backward and variant == "warp_sums" and warp_sums_supported(s.tile_size):
+    if backward and warp_sums_kernel(dev, s, variant):
         block = min(s.tile_size**2, 256)
-        return surfel_blend_gpu.backward_kernel_warp_sums(block, want.num_features), block
+        return surfel_blend_gpu.backward_kernel_warp_sums(block, want.num_features, scatter=variant == "scatter"), block
     if backward:
         return surfel_blend_gpu.backward_kernel(bwd_block, _block_reduce(), want.num_features), bwd_block
     return surfel_blend_gpu.forward_kernel(fwd_block, want.num_features), fwd_block
