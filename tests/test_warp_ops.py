@@ -58,3 +58,44 @@ def test_scatter_adjoint_compiles_to_registers_with_fewer_shuffles_and_atomics(k
     def atomics(ptx):
         return len(re.findall(r"^\s*(?:atom|red)\.", ptx, re.M))
     assert atomics(scatter) < atomics(lane0) / 2
+
+
+def _field_offsets(fields) -> dict:
+    """{name: (offset in N, floats per primitive)} of a blend adjoint's own fields, in the block run_blend_adjoint
+    lays out (the caller's opacity and feature arrays take no room there)."""
+    offsets, at = {}, 0
+    for f in fields:
+        if isinstance(f, tuple):
+            offsets[f[0]] = (at, f[1])
+            at += f[1]
+    return offsets
+
+
+@pytest.mark.parametrize("kernels,names", [
+    (blend_gpu, ["means2d"] * 2 + ["conics"] * 3 + [None] + ["colors"] * 3 + ["depths"]),
+    (surfel_blend_gpu, ["transforms"] * 9 + ["means2d"] * 2 + ["depths"] + [None] + ["colors"] * 3 + ["normals"] * 3),
+], ids=["gaussians", "surfels"])
+def test_scatter_slots_follow_the_host_layout_of_the_gradient_block(kernels, names):
+    """Entry k of a gradient row lands where the host's fields put it: SCATTER_LAYOUT against the fields list the
+    pipeline hands run_blend_adjoint, and the kernel's scatter_slot against SCATTER_LAYOUT (None: the opacity)."""
+    from warpgs.render import fast_pipeline, fast_pipeline_surfels
+    fields = (fast_pipeline_surfels if kernels is surfel_blend_gpu else fast_pipeline).ADJOINT_FIELDS
+    offsets = _field_offsets(fields)
+    seen = {}
+    for k, (name, layout) in enumerate(zip(names, kernels.SCATTER_LAYOUT)):
+        assert (layout is None) == (name is None), k
+        if name is not None:
+            component = seen[name] = seen.get(name, -1) + 1
+            assert layout == (offsets[name][0], offsets[name][1], component), k
+
+    n, g = 7, 3
+    slots = wp.zeros(len(names), dtype=int, device="cpu")
+
+    @wp.kernel(module="unique")
+    def slot_of(out: wp.array(dtype=int)):
+        k = wp.tid()
+        out[k] = kernels.scatter_slot(k, g, n)
+    wp.launch(slot_of, dim=len(names), inputs=[slots], device="cpu")
+    for k, layout in enumerate(kernels.SCATTER_LAYOUT):
+        if layout is not None:
+            assert slots.numpy()[k] == layout[0] * n + layout[1] * g + layout[2], k

@@ -179,13 +179,12 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
     scatter = takes_block and frame.pairs is None and scatter_sums(backward_kernel, want)
 
     def launch(key, first, count, targets):
-        block = [ws.view(f"{key}_flat", targets[0], 0, 9 * frame.n, float) if scatter else ws.dummy(float)]
+        block = [ws.view(f"{key}_flat", targets[0], 0, OWN_FLOATS * frame.n, float) if scatter else ws.dummy(float)]
         L.launch(key, kernel, count * s.tile_size**2,
                  head + [_params(ws, s, want, first, depth_eps)] + tail + targets + no_absgrad
                  + (block if takes_block else []), block_dim)
 
-    fields = [("means2d", 2, wp.vec2), ("conics", 3, wp.vec3), OPACITIES, ("colors", 3, wp.vec3),
-              ("depths", 1, float), FEATURES] + ([("means2d_abs", 2, wp.vec2)] if want.absgrad else [])
+    fields = ADJOINT_FIELDS + ([("means2d_abs", 2, wp.vec2)] if want.absgrad else [])
     projected = run_blend_adjoint(ws, s, "blend_bwd", fields, frame.n, adj_opacities, adj_features,
                                   num_features_rows, want.num_features, launch, frame.pairs, parts)
     _stage(None, "blend backward")
@@ -193,6 +192,11 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
 
 
 OPACITIES, FEATURES = "opacities", "features"  # where a blend adjoint takes the caller's gradient arrays
+# The 3D blend adjoint's gradient targets in its kernels' argument order (run_blend_adjoint's `fields`); the scatter
+# kernel's SCATTER_LAYOUT follows this order (tests/test_warp_ops.py checks it).
+ADJOINT_FIELDS = [("means2d", 2, wp.vec2), ("conics", 3, wp.vec3), OPACITIES, ("colors", 3, wp.vec3),
+                  ("depths", 1, float), FEATURES]
+OWN_FLOATS = sum(f[1] for f in ADJOINT_FIELDS if isinstance(f, tuple))  # floats per primitive in the block
 
 
 def run_blend_adjoint(ws: Workspace, s: Settings, key: str, fields, n: int, adj_opacities, adj_features,

@@ -60,6 +60,7 @@ def surfel_blend_params(s: Settings, want: SurfelWanted, first_tile: int,
 # The blend adjoint's gradient targets, in its argument order (see run_blend_adjoint).
 ADJOINT_FIELDS = [("transforms", 9, wp.mat33), ("means2d", 2, wp.vec2), ("depths", 1, float), OPACITIES,
                   ("colors", 3, wp.vec3), ("normals", 3, wp.vec3), FEATURES]
+OWN_FLOATS = sum(f[1] for f in ADJOINT_FIELDS if isinstance(f, tuple))  # floats per surfel in the block
 
 
 @dataclass
@@ -158,7 +159,7 @@ def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelW
     scatter = takes_block and frame.pairs is None and backward_kernel == "scatter"
 
     def launch(key, first, count, targets):
-        block = [ws.view(f"{key}_flat", targets[0], 0, 18 * frame.n, float) if scatter else ws.dummy(float)]
+        block = [ws.view(f"{key}_flat", targets[0], 0, OWN_FLOATS * frame.n, float) if scatter else ws.dummy(float)]
         L.launch(key, kernel, count * s.tile_size**2,
                  head + [_params(ws, s, want, first, depth_eps)] + tail + targets + (block if takes_block else []),
                  block_dim)
