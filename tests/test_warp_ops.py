@@ -1,7 +1,8 @@
 """kernels/warp_ops.py's reduce-scatters: on the CPU (Warp's CPU blocks, the branch CI runs) every lane gets the warp's
-sum of its own entry; compiled for a GPU (ahead of time, which needs no GPU), the adjoints that use them keep their
-values in registers (a version whose values went to local memory made the 3D call 1.6x slower on an H200) with
-fewer shuffles and atomics than the lane-0 sums they replace."""
+sum of its own entry, and so does the generated GPU code, run line by line over emulated lanes; compiled for a GPU
+(ahead of time, which needs no GPU), the adjoints that use them keep their values in registers (a version whose
+values went to local memory made the 3D call 1.6x slower on an H200) with fewer shuffles and atomics than the
+lane-0 sums they replace; and each kernel's gradient layout is the host's."""
 import re
 
 import numpy as np
@@ -99,3 +100,31 @@ def test_scatter_slots_follow_the_host_layout_of_the_gradient_block(kernels, nam
     for k, layout in enumerate(kernels.SCATTER_LAYOUT):
         if layout is not None:
             assert slots.numpy()[k] == layout[0] * n + layout[1] * g + layout[2], k
+
+
+@pytest.mark.parametrize("width", [16, 32])
+def test_generated_gpu_butterfly_leaves_each_lane_its_entrys_sum(width):
+    """The GPU branch of the scatter (generated code CI cannot run), executed line by line over 32 emulated lanes:
+    each `WPGS_KEEP(bit, lo, hi)` keeps `hi` in lanes with that bit set and adds the partner lane's other half."""
+    from warpgs.kernels.warp_ops import _scatter_snippet
+    code = _scatter_snippet(width)
+    gpu = code[code.index("#if defined(__CUDA_ARCH__)"): code.index("#else")]
+    x = np.random.default_rng(1).normal(size=(32, width))
+    lanes = np.arange(32)
+    values = {f"x[{i}]": x[:, i] for i in range(width)}
+
+    def shfl_xor(v, bit):
+        return v[lanes ^ bit]
+    result = None
+    for line in gpu.splitlines():
+        keep = re.match(r"\s*const float (\w+) = WPGS_KEEP\((\d+), ([\w\[\]]+), ([\w\[\]]+)\);", line)
+        if keep:
+            name, bit, lo, hi = keep.group(1), int(keep.group(2)), values[keep.group(3)], values[keep.group(4)]
+            upper = (lanes & bit) != 0
+            values[name] = np.where(upper, hi, lo) + shfl_xor(np.where(upper, lo, hi), bit)
+        ret = re.match(r"\s*return (\w+)(?: \+ __shfl_xor_sync\(0xffffffffu, (\w+), 1\))?;", line)
+        if ret:
+            result = values[ret.group(1)] + (shfl_xor(values[ret.group(2)], 1) if ret.group(2) else 0.0)
+    assert result is not None
+    entry = (lanes >> 1) & 15 if width == 16 else lanes
+    np.testing.assert_allclose(result, x.sum(axis=0)[entry], rtol=1e-12, atol=1e-12)
