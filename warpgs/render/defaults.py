@@ -69,6 +69,7 @@ BACKWARD_KERNELS = ("warp_sums", "scatter", "block")
 # Surfels: the same three; "scatter" (a 32-value reduce-scatter) is not yet timed on a GPU, so lane 0's sums stay the
 # default.
 SURFEL_BACKWARD_KERNELS = ("warp_sums", "scatter", "block")
+PER_WARP_ADJOINTS = ("warp_sums", "scatter")  # the variants that run a backward_kernel_warp_sums (both kinds)
 # How a GPU thread of the tile-key emission finds its primitive: "table" (kernels/binning.py emit_tile_keys_by_table,
 # its binary search narrowed by a coarse table) or "full" (emit_tile_keys_per_pair, a search over every primitive).
 # The 3D projection's adjoint: "written" (kernels/project_adjoint.py, for one camera that is not differentiated; the

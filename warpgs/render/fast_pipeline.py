@@ -29,7 +29,7 @@ import warp as wp
 
 from warpgs.kernels import binning, blend, blend_gpu, input_checks, project, project_adjoint
 from warpgs.render.cpu_threads import run_threads
-from warpgs.render.defaults import DEPTH_EPS, current_raster_options
+from warpgs.render.defaults import DEPTH_EPS, PER_WARP_ADJOINTS, current_raster_options
 from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params, projection_color_mode)
@@ -179,10 +179,9 @@ def blend_backward(ws: Workspace, frame: Frame, s: Settings, want: Wanted, opaci
     scatter = takes_block and frame.pairs is None and scatter_sums(backward_kernel, want)
 
     def launch(key, first, count, targets):
-        block = [ws.view(f"{key}_flat", targets[0], 0, OWN_FLOATS * frame.n, float) if scatter else ws.dummy(float)]
+        block = [scatter_block_arg(ws, key, targets, OWN_FLOATS * frame.n, scatter)] if takes_block else []
         L.launch(key, kernel, count * s.tile_size**2,
-                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets + no_absgrad
-                 + (block if takes_block else []), block_dim)
+                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets + no_absgrad + block, block_dim)
 
     fields = ADJOINT_FIELDS + ([("means2d_abs", 2, wp.vec2)] if want.absgrad else [])
     projected = run_blend_adjoint(ws, s, "blend_bwd", fields, frame.n, adj_opacities, adj_features,
@@ -347,9 +346,15 @@ def _blend_kernel(dev, s: Settings, want: Wanted, backward: bool, variant: str =
 
 
 def warp_sums_kernel(dev, s: Settings, variant: str) -> bool:
-    """Whether the 3D adjoint `variant` runs blend_gpu.backward_kernel_warp_sums here (or its deterministic twin)."""
-    return (_cooperative(dev) and variant in ("warp_sums", "scatter")
-            and blend_gpu.warp_sums_supported(s.tile_size))
+    """Whether the adjoint `variant` (3D or surfels) runs a backward_kernel_warp_sums here (or its deterministic
+    twin): a cooperative device and tiles of whole warps."""
+    return _cooperative(dev) and variant in PER_WARP_ADJOINTS and blend_gpu.warp_sums_supported(s.tile_size)
+
+
+def scatter_block_arg(ws: Workspace, key, targets, floats: int, scatter: bool) -> wp.array:
+    """A per-warp adjoint's last argument: with the scatter sums, the launch's gradient block (its first field,
+    targets[0], starts it) as `floats` flat floats, else a placeholder the kernel never writes."""
+    return ws.view(f"{key}_flat", targets[0], 0, floats, float) if scatter else ws.dummy(float)
 
 
 def scatter_sums(variant: str, want: Wanted) -> bool:

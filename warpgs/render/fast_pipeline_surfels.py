@@ -13,11 +13,11 @@ from typing import Optional
 import warp as wp
 
 from warpgs.kernels import surfel_blend, surfel_blend_gpu, surfel_project, surfel_steps
-from warpgs.kernels.blend_gpu import warp_sums_supported
 from warpgs.render.cpu_threads import run_threads
 from warpgs.render.defaults import DEPTH_EPS
 from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, InputCheck, TileFrame, add_input_check,
-                                         blend_settings_key, run_blend_adjoint)
+                                         blend_settings_key, run_blend_adjoint, scatter_block_arg,
+                                         warp_sums_kernel)
 from warpgs.render.pair_adjoint import choose_kernel
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
@@ -159,10 +159,9 @@ def blend_backward(ws: Workspace, frame: SurfelFrame, s: Settings, want: SurfelW
     scatter = takes_block and frame.pairs is None and backward_kernel == "scatter"
 
     def launch(key, first, count, targets):
-        block = [ws.view(f"{key}_flat", targets[0], 0, OWN_FLOATS * frame.n, float) if scatter else ws.dummy(float)]
+        block = [scatter_block_arg(ws, key, targets, OWN_FLOATS * frame.n, scatter)] if takes_block else []
         L.launch(key, kernel, count * s.tile_size**2,
-                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets + (block if takes_block else []),
-                 block_dim)
+                 head + [_params(ws, s, want, first, depth_eps)] + tail + targets + block, block_dim)
 
     projected = run_blend_adjoint(ws, s, "surfel_blend_bwd", ADJOINT_FIELDS, frame.n, adj_opacities, adj_features,
                                   num_features_rows, want.num_features, launch, frame.pairs, parts)
@@ -195,12 +194,6 @@ def _params(ws: Workspace, s: Settings, want: SurfelWanted, first: int, depth_ep
            want.inv_depth, want.normal, want.median, want.distortion, want.num_features, want.distortion_scale, first,
            depth_eps)
     return ws.memo(key, lambda: surfel_blend_params(s, want, first, depth_eps))
-
-
-def warp_sums_kernel(dev, s: Settings, variant: str) -> bool:
-    """Whether the surfel adjoint `variant` runs surfel_blend_gpu.backward_kernel_warp_sums here (or its
-    deterministic twin)."""
-    return _cooperative(dev) and variant in ("warp_sums", "scatter") and warp_sums_supported(s.tile_size)
 
 
 def _blend_kernel(dev, s: Settings, want: SurfelWanted, backward: bool, variant: str = "warp_sums"):

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from warpgs.kernels import pair_sums
+from warpgs.render.defaults import PER_WARP_ADJOINTS
 from warpgs.render.workspace import Workspace
 
 
@@ -29,7 +30,7 @@ def choose_kernel(kernels, tile_size: int, variant: str, block: int, num_feature
     surfel_blend_gpu), and how many summing groups each tile has. block: the "block" variant's block size.
     absgrad: the 3D per-warp kernel that also sums |d means2d| (blend_gpu only)."""
     per_tile = tile_size * tile_size
-    if variant in ("warp_sums", "scatter") and per_tile % kernels.WARP == 0:  # scatter: lane 0's sums here
+    if variant in PER_WARP_ADJOINTS and per_tile % kernels.WARP == 0:  # scatter: lane 0's sums here
         block = min(per_tile, 256)
         extra = (True,) if absgrad else ()
         return kernels.backward_kernel_warp_sums(block, num_features, True, *extra), block, per_tile // kernels.WARP
