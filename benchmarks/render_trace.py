@@ -10,7 +10,8 @@ GPU work. "reads" counts the read-backs a call makes: the device-to-host copies 
 whether issued through the runtime (torch's, gsplat's) or the driver (Warp's); "syncs" the runtime's
 synchronisations the profiler sees (a torch read-back's stream sync, the closing device sync; Warp's go through the
 driver and are not seen). Device-to-device and host-to-device copies (camera staging) do not stall the host; every
-copy is listed by direction in "copies_per_call".
+copy is listed by direction in "copies_per_call". "typical_call_timeline" is one call's GPU work in order with the GPU's
+wait before each piece (the call with the median total wait): where the GPU waits on the host.
 Writes benchmarks/results/render_trace_<device>[_<tag>].json ($OUT when set).
 """
 from __future__ import annotations
@@ -51,6 +52,27 @@ def kernel_name(name: str, width: int = 90) -> str:
     return name[:width]
 
 
+def idle_before(gpu_events, start: float, end: float) -> list:
+    """One call's GPU timeline in order: (kernel name, idle us before it, its us), the idle time being the GPU's wait
+    since the call began or since its previous work ended; the last entry ("(end)", idle, 0) is the wait after the
+    GPU's last work until the call returned. Where a call's GPU waits shows which host work it waits on."""
+    timeline, free = [], start
+    for e in sorted(gpu_events, key=lambda e: e["ts"]):
+        timeline.append((kernel_name(e["name"], 60), max(e["ts"] - free, 0.0), e["dur"]))
+        free = max(free, e["ts"] + e["dur"])
+    timeline.append(("(end)", max(end - free, 0.0), 0.0))
+    return timeline
+
+
+def median_timeline(timelines: list) -> list:
+    """The call whose total GPU wait is the median's, as [name, idle us, busy us] rows (a typical call, not an
+    average of calls whose kernels need not line up)."""
+    if not timelines:
+        return []
+    ranked = sorted(timelines, key=lambda t: sum(idle for _, idle, _ in t))
+    return [[name, round(idle, 1), round(busy, 1)] for name, idle, busy in ranked[len(ranked) // 2]]
+
+
 def per_call_breakdown(events, calls: int) -> dict:
     """GPU busy microseconds per call, host reads per call, and kernel time per call by kernel name."""
     windows = call_windows(events)
@@ -59,9 +81,11 @@ def per_call_breakdown(events, calls: int) -> dict:
         return any(start <= e["ts"] < end for start, end in windows)
 
     gpu = [e for e in events if e.get("cat") in GPU_CATEGORIES and inside(e)]
-    busy = []
+    busy, timelines = [], []
     for start, end in windows:
-        busy.append(busy_time([e for e in gpu if start <= e["ts"] < end])[1])
+        mine = [e for e in gpu if start <= e["ts"] < end]
+        busy.append(busy_time(mine)[1])
+        timelines.append(idle_before(mine, start, end))
     kernels = collections.defaultdict(float)
     launches = collections.Counter()
     for e in gpu:
@@ -79,7 +103,8 @@ def per_call_breakdown(events, calls: int) -> dict:
             "syncs_per_call": {k: v / calls for k, v in syncs.items()},
             "copies_per_call": {k: v / calls for k, v in copies.items()},
             "kernels_us_per_call": {k: kernels[k] / calls for k in sorted(kernels, key=lambda k: -kernels[k])},
-            "launches_per_call": {k: launches[k] / calls for k in launches}}
+            "launches_per_call": {k: launches[k] / calls for k in launches},
+            "typical_call_timeline": median_timeline(timelines)}
 
 
 def trace_calls(fn, calls: int) -> dict:
@@ -137,6 +162,9 @@ def main(argv=None) -> dict:
                 top = list(found["kernels_us_per_call"].items())[:12]
                 for name, us in top:
                     print(f"    {us:8.1f} us x{found['launches_per_call'][name]:.0f}  {name}")
+                waits = sorted(found["typical_call_timeline"], key=lambda r: -r[1])[:6]
+                print("    GPU waits of a typical call, us before:",
+                      ", ".join(f"{name[:40]} {idle:.0f}" for name, idle, _ in waits))
     print_table(rows, ["n", "system", "mode", "plain_ms", "profiled_wall_ms", "gpu_busy_ms", "gpu_waits_ms", "reads",
                        "syncs"])
     result = {"primitive": args.primitive, "resolution": args.resolution, "calls": args.calls,

@@ -40,3 +40,23 @@ def test_cub_kernels_are_told_apart_past_their_shared_prefix():
     assert render_trace.kernel_name(sort).startswith("cub::detail::radix_sort::")
     assert render_trace.kernel_name(scan).startswith("cub::detail::scan::")
     assert render_trace.kernel_name("blend_forward_blocks") == "blend_forward_blocks"
+
+
+def test_a_calls_gpu_waits_are_placed_before_the_work_they_delay():
+    """Idle time is measured from the call's start or the end of all earlier work (overlapping kernels do not make
+    a wait), and the wait after the last kernel is the call's own tail."""
+    events = [{"cat": "kernel", "name": "project", "ts": 110, "dur": 5},
+              {"cat": "kernel", "name": "sort", "ts": 140, "dur": 30},
+              {"cat": "kernel", "name": "overlapping", "ts": 150, "dur": 10},
+              {"cat": "kernel", "name": "blend", "ts": 180, "dur": 10}]
+    timeline = render_trace.idle_before(events, 100, 200)
+    assert [(name, idle) for name, idle, _ in timeline] == [
+        ("project", 10), ("sort", 25), ("overlapping", 0), ("blend", 10), ("(end)", 10)]
+
+
+def test_the_typical_call_is_the_one_with_the_median_wait():
+    calls = [{"cat": "user_annotation", "name": "call", "ts": t, "dur": 100} for t in (0, 200, 400)]
+    kernels = [{"cat": "kernel", "name": "blend", "ts": t + 10, "dur": busy}
+               for t, busy in ((0, 80), (200, 10), (400, 40))]  # waits 20, 90, 60
+    found = render_trace.per_call_breakdown(calls + kernels, calls=3)
+    assert found["typical_call_timeline"] == [["blend", 10.0, 40.0], ["(end)", 50.0, 0.0]]
