@@ -258,8 +258,9 @@ def backward_kernel(block_dim: int, block_reduce: bool, num_features: int, deter
 # pixels blended, votes to skip surfels none of its pixels blended, and sums a surfel's GRAD_SUM_LENGTH gradient
 # entries over its 32 pixels with butterfly shuffles before lane 0 adds them (or, with `scatter`, with one
 # reduce-scatter that leaves entry k's sum in lane k, and the lanes add theirs at once); no block barrier per surfel.
-# The default (raster option surfel_backward_kernel): on an H200 it took fwd+bwd from 5.2 to 3.2 ms (100k surfels)
-# and from 19.0 to 9.6 ms (1M) at 1080p against `backward_kernel` (benchmarks/raster.py --primitive surfels).
+# On an H200 it took fwd+bwd from 5.2 to 3.2 ms (100k surfels) and from 19.0 to 9.6 ms (1M) at 1080p against
+# `backward_kernel` (benchmarks/raster.py --primitive surfels); the scatter (raster option surfel_backward_kernel,
+# the default) 3.51 -> 3.13 ms and 9.84 -> 9.35 ms against lane 0's sums.
 
 
 # Where the scatter adjoint adds a SurfelGradRow's entries (opacity, ROW_OPACITY, goes to its own array; the hit and
