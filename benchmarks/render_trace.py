@@ -11,7 +11,9 @@ whether issued through the runtime (torch's, gsplat's) or the driver (Warp's); "
 synchronisations the profiler sees (a torch read-back's stream sync, the closing device sync; Warp's go through the
 driver and are not seen). Device-to-device and host-to-device copies (camera staging) do not stall the host; every
 copy is listed by direction in "copies_per_call". "typical_call_timeline" is one call's GPU work in order with the GPU's
-wait before each piece (the call with the median total wait): where the GPU waits on the host.
+wait before each piece (the call with the median total wait): where the GPU waits on the host;
+"typical_call_host_before_gpu" what the host did in that call before its first GPU work (the outermost torch ops,
+runtime and driver calls the profiler saw, by name, and the rest: Python, which it does not see).
 Writes benchmarks/results/render_trace_<device>[_<tag>].json ($OUT when set).
 """
 from __future__ import annotations
@@ -64,13 +66,38 @@ def idle_before(gpu_events, start: float, end: float) -> list:
     return timeline
 
 
+HOST_CATEGORIES = ("cpu_op", "cuda_runtime", "cuda_driver")  # host work the profiler sees (Python it does not)
+
+
+def median_index(timelines: list) -> int:
+    """The call whose total GPU wait is the median's (a typical call, not an average of calls whose kernels need
+    not line up)."""
+    waits = [sum(idle for _, idle, _ in t) for t in timelines]
+    return sorted(range(len(waits)), key=waits.__getitem__)[len(waits) // 2]
+
+
 def median_timeline(timelines: list) -> list:
-    """The call whose total GPU wait is the median's, as [name, idle us, busy us] rows (a typical call, not an
-    average of calls whose kernels need not line up)."""
+    """median_index's call as [name, idle us, busy us] rows."""
     if not timelines:
         return []
-    ranked = sorted(timelines, key=lambda t: sum(idle for _, idle, _ in t))
-    return [[name, round(idle, 1), round(busy, 1)] for name, idle, busy in ranked[len(ranked) // 2]]
+    return [[name, round(idle, 1), round(busy, 1)] for name, idle, busy in timelines[median_index(timelines)]]
+
+
+def host_before_first_work(host_events, start: float, first: float) -> dict:
+    """What the host did from a call's start until its GPU's first work began at `first`: the outermost host events
+    the profiler saw there (torch ops, runtime and driver calls; nested ones are inside their parent's time), total
+    us by name, and "(not seen: Python)" for the rest of the span."""
+    spans = sorted((e["ts"], e["ts"] + e["dur"], e["name"]) for e in host_events
+                   if start <= e["ts"] and e["ts"] + e["dur"] <= first)
+    totals, covered_to, seen = collections.Counter(), start, 0.0
+    for begin, end, name in spans:
+        if begin < covered_to:  # inside an outer event already counted
+            continue
+        totals[name] += end - begin
+        seen += end - begin
+        covered_to = end
+    totals["(not seen: Python)"] = max(first - start - seen, 0.0)
+    return {name: round(us, 1) for name, us in totals.most_common()}
 
 
 def per_call_breakdown(events, calls: int) -> dict:
@@ -81,11 +108,13 @@ def per_call_breakdown(events, calls: int) -> dict:
         return any(start <= e["ts"] < end for start, end in windows)
 
     gpu = [e for e in events if e.get("cat") in GPU_CATEGORIES and inside(e)]
-    busy, timelines = [], []
+    host = [e for e in events if e.get("cat") in HOST_CATEGORIES and inside(e)]
+    busy, timelines, firsts = [], [], []
     for start, end in windows:
         mine = [e for e in gpu if start <= e["ts"] < end]
         busy.append(busy_time(mine)[1])
         timelines.append(idle_before(mine, start, end))
+        firsts.append(min((e["ts"] for e in mine), default=end))
     kernels = collections.defaultdict(float)
     launches = collections.Counter()
     for e in gpu:
@@ -104,7 +133,9 @@ def per_call_breakdown(events, calls: int) -> dict:
             "copies_per_call": {k: v / calls for k, v in copies.items()},
             "kernels_us_per_call": {k: kernels[k] / calls for k in sorted(kernels, key=lambda k: -kernels[k])},
             "launches_per_call": {k: launches[k] / calls for k in launches},
-            "typical_call_timeline": median_timeline(timelines)}
+            "typical_call_timeline": median_timeline(timelines),
+            "typical_call_host_before_gpu": {} if not windows else host_before_first_work(
+                host, windows[median_index(timelines)][0], firsts[median_index(timelines)])}
 
 
 def trace_calls(fn, calls: int) -> dict:
@@ -165,6 +196,9 @@ def main(argv=None) -> dict:
                 waits = sorted(found["typical_call_timeline"], key=lambda r: -r[1])[:6]
                 print("    GPU waits of a typical call, us before:",
                       ", ".join(f"{name[:40]} {idle:.0f}" for name, idle, _ in waits))
+                print("    host work before its first GPU work, us:",
+                      ", ".join(f"{name[:40]} {us:.0f}" for name, us in
+                                list(found["typical_call_host_before_gpu"].items())[:8]))
     print_table(rows, ["n", "system", "mode", "plain_ms", "profiled_wall_ms", "gpu_busy_ms", "gpu_waits_ms", "reads",
                        "syncs"])
     result = {"primitive": args.primitive, "resolution": args.resolution, "calls": args.calls,

@@ -60,3 +60,20 @@ def test_the_typical_call_is_the_one_with_the_median_wait():
                for t, busy in ((0, 80), (200, 10), (400, 40))]  # waits 20, 90, 60
     found = render_trace.per_call_breakdown(calls + kernels, calls=3)
     assert found["typical_call_timeline"] == [["blend", 10.0, 40.0], ["(end)", 50.0, 0.0]]
+
+
+def test_host_work_before_the_gpu_starts_counts_outer_events_once_and_the_rest_as_python():
+    host = [{"cat": "cpu_op", "name": "aten::copy_", "ts": 10, "dur": 20},
+            {"cat": "cuda_runtime", "name": "cudaMemcpyAsync", "ts": 15, "dur": 5},  # inside copy_: not again
+            {"cat": "cuda_driver", "name": "cuGraphLaunch", "ts": 60, "dur": 10},
+            {"cat": "cpu_op", "name": "aten::empty", "ts": 95, "dur": 10}]  # ends after the GPU started: left out
+    found = render_trace.host_before_first_work(host, 0, 100)
+    assert found == {"(not seen: Python)": 70.0, "aten::copy_": 20.0, "cuGraphLaunch": 10.0}
+
+
+def test_the_typical_calls_host_work_is_reported_with_its_timeline():
+    calls = [{"cat": "user_annotation", "name": "call", "ts": t, "dur": 100} for t in (0, 200)]
+    kernels = [{"cat": "kernel", "name": "blend", "ts": t + 40, "dur": 10} for t in (0, 200)]
+    host = [{"cat": "cpu_op", "name": "aten::copy_", "ts": t + 5, "dur": 20} for t in (0, 200)]
+    found = render_trace.per_call_breakdown(calls + kernels + host, calls=2)
+    assert found["typical_call_host_before_gpu"] == {"aten::copy_": 20.0, "(not seen: Python)": 20.0}
