@@ -19,7 +19,7 @@ from typing import Optional, Tuple
 import torch
 import torch.nn.functional as F
 
-from warpgs.losses.marr import DEPTH_SCHEDULE, OUTPUTS, _inputs, _masked_mean
+from warpgs.losses.marr import DEPTH_SCHEDULE, OUTPUTS, depth_inputs, masked_mean
 from warpgs.losses.registry import register_loss
 
 PATCH = 8  # block side in pixels
@@ -44,8 +44,8 @@ def patch_normalised_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Ten
     pad = (left, right, top, bottom)
     m = F.pad(mask.to(pred.dtype), pad)
     with torch.no_grad():  # both maps shifted by one constant: the block statistics lose less to cancellation
-        centre = _masked_mean(prior, mask)
-        scale = _masked_mean(prior.abs(), mask)
+        centre = masked_mean(prior, mask)
+        scale = masked_mean(prior.abs(), mask)
     a = F.pad(torch.where(mask, pred - centre, torch.zeros_like(pred)), pad)
     b = F.pad(torch.where(mask, prior - centre, torch.zeros_like(prior)), pad)
     area = float(patch * patch)
@@ -65,7 +65,7 @@ def patch_normalised_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Ten
         usable = (count >= MIN_VALID * area) & (var_b >= (FLAT * scale) ** 2)
         keep = (m > 0) & _up(usable, patch)
     w = None if weight is None else F.pad(weight, pad)
-    return _masked_mean((na - nb).abs(), keep, w)
+    return masked_mean((na - nb).abs(), keep, w)
 
 
 def _up(t: torch.Tensor, patch: int) -> torch.Tensor:
@@ -76,5 +76,5 @@ def _up(t: torch.Tensor, patch: int) -> torch.Tensor:
 @register_loss("depth_patch", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
 def depth_patch(render_out, batch, model, step) -> torch.Tensor:
     """L_patch = mean |norm_P(D̂) - norm_P(D*)| over PATCH x PATCH blocks (DNGaussian's local depth normalisation)."""
-    pred, prior, mask, weight = _inputs(render_out, batch)
+    pred, prior, mask, weight = depth_inputs(render_out, batch)
     return patch_normalised_l1(pred, prior, mask, weight, offset=grid_offset(int(step)))

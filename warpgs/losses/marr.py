@@ -95,7 +95,7 @@ def window_valid(mask: torch.Tensor) -> torch.Tensor:
     return F.max_pool2d(inv, 3, stride=1) < 0.5
 
 
-def _masked_mean(value: torch.Tensor, mask: torch.Tensor, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+def masked_mean(value: torch.Tensor, mask: torch.Tensor, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
     """(Weighted) mean of `value` over `mask` (broadcast over channels); 0 (still connected to the graph) when
     empty. weight: [B, 1, H, W] >= 0, or None for a plain mean."""
     m = mask.to(value.dtype)
@@ -115,7 +115,7 @@ def depth_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor,
              weight: Optional[torch.Tensor] = None) -> torch.Tensor:
     """mean |pred - prior| over mask, weighted by `weight` when given; maps [B, 1, H, W]."""
     diff = torch.where(mask, pred - prior, torch.zeros_like(pred))
-    return _masked_mean(diff.abs(), mask, weight)
+    return masked_mean(diff.abs(), mask, weight)
 
 
 def depth_gradient_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor,
@@ -125,7 +125,7 @@ def depth_gradient_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tenso
     diff = torch.where(mask, pred - prior, torch.zeros_like(pred))  # ∇ is linear: ∇D̂ - ∇D* = ∇(D̂ - D*)
     g = spatial_gradient(diff, mode="sobel", order=1, normalized=True)  # [B, 1, 2, H, W]
     inner = window_valid(mask)
-    return _masked_mean(g.abs().sum(2), inner, None if weight is None else window_min(weight))
+    return masked_mean(g.abs().sum(2), inner, None if weight is None else window_min(weight))
 
 
 def local_stats(x: torch.Tensor) -> tuple:
@@ -143,11 +143,11 @@ def depth_local_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor,
     # Both maps are shifted by the same constant (the prior's mean): the statistics' differences do not change,
     # and E[x²] - E[x]² loses less to float32 cancellation.
     with torch.no_grad():
-        centre = _masked_mean(prior, mask)  # 0 without valid pixels (no host read to ask whether there are any)
+        centre = masked_mean(prior, mask)  # 0 without valid pixels (no host read to ask whether there are any)
     zero = torch.zeros_like(pred)
     mu_p, var_p = local_stats(torch.where(mask, pred - centre, zero))
     mu_t, var_t = local_stats(torch.where(mask, prior - centre, zero))
-    return _masked_mean((mu_p - mu_t).abs() + (var_p - var_t).abs(), inner,
+    return masked_mean((mu_p - mu_t).abs() + (var_p - var_t).abs(), inner,
                         None if weight is None else window_min(weight))
 
 
@@ -232,7 +232,9 @@ def prior_weight(batch, like: torch.Tensor, power: Optional[float] = None) -> Op
     return conf.clamp(0.0, 1.0).pow(power).expand_as(like)
 
 
-def _inputs(render_out, batch):
+def depth_inputs(render_out, batch):
+    """(rendered inverse depth, prior, valid mask, per-pixel weight) of a render against its batch's depth prior, as
+    every depth term here (and losses/depth_patch.py) takes them."""
     pred, alpha = rendered_inverse_depth(render_out)
     prior, mask = prior_and_mask(batch, pred, alpha)
     return pred, prior, mask, prior_weight(batch, pred)
@@ -241,16 +243,16 @@ def _inputs(render_out, batch):
 @register_loss("depth", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
 def depth(render_out, batch, model, step) -> torch.Tensor:
     """L_D = mean |D̂ - D*| over valid prior pixels (paper eq. 4)."""
-    return depth_l1(*_inputs(render_out, batch))
+    return depth_l1(*depth_inputs(render_out, batch))
 
 
 @register_loss("depth_grad", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
 def depth_grad(render_out, batch, model, step) -> torch.Tensor:
     """L_grad = mean |∇D̂ - ∇D*| (paper eq. 5)."""
-    return depth_gradient_l1(*_inputs(render_out, batch))
+    return depth_gradient_l1(*depth_inputs(render_out, batch))
 
 
 @register_loss("depth_local", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
 def depth_local(render_out, batch, model, step) -> torch.Tensor:
     """L_local = mean |μ_D̂ - μ_D*| + |σ²_D̂ - σ²_D*| over 3x3 windows (paper eqs. 6-8)."""
-    return depth_local_l1(*_inputs(render_out, batch))
+    return depth_local_l1(*depth_inputs(render_out, batch))
