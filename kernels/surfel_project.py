@@ -19,9 +19,10 @@ COLOR_SH = wp.constant(1)
 # The screen-space fallback is a Gaussian of standard deviation sigma px around the projected centre: in the
 # exponent -s/2 it reads s = |d|^2 / sigma^2 = filter_inv |d|^2. 2DGS's sigma is 1/sqrt(2) px (filter_inv 2, G =
 # exp(-|d|^2)); the kernels take filter_inv as an argument (the render op's `screen_sigma`).
-# A disk reaching closer than this fraction of its centre depth to the camera plane gets the whole screen
-# as footprint (its image is a huge ellipse or unbounded).
+# A disk reaching closer than this fraction of its centre depth to the camera plane is bounded through the part of
+# it the blend can hit (`clipped_disk_span`): its whole image is a huge ellipse or unbounded.
 FRONT_MARGIN = wp.constant(0.01)
+WHOLE_SCREEN = wp.constant(1.0e30)
 
 
 @wp.func
@@ -177,6 +178,58 @@ def disk_extent(row: wp.vec3, row_z: wp.vec3, r2: float) -> wp.vec2:
 
 
 @wp.func
+def clipped_disk_span(row: wp.vec3, row_z: wp.vec3, r2: float, e: float) -> wp.vec2:
+    """(lo, hi) along one screen axis of the image of the part of the disk u^2 + v^2 <= r2 at depth >= e (rows
+    normalised by the centre depth, so e = near / centre depth): what the blend can hit of a disk whose image is
+    unbounded (it reaches the camera plane) or ill-conditioned. The coordinate x = row.p / row_z.p (p = (u, v, 1))
+    is linear-fractional, so over that region (the disk cut by the line row_z.p = e) it is extreme on its boundary:
+    at the two points of the circle where dx/dtheta = 0 (P cos + Q sin = R, when they lie at depth >= e) or at the
+    ends of the cut (where x = row.p / e, linear along the cut). (-WHOLE_SCREEN, WHOLE_SCREEN) if none is found."""
+    r = wp.sqrt(r2)
+    lo = float(WHOLE_SCREEN)
+    hi = -float(WHOLE_SCREEN)
+    c0 = row_z[0]
+    c1 = row_z[1]
+    tol = 1.0e-5 * (1.0 + r * wp.sqrt(c0 * c0 + c1 * c1))  # keeps a point float rounding puts just past the cut
+    P = row[1] - row[2] * c1
+    Q = row[2] * c0 - row[0]
+    R = -r * (row[1] * c0 - row[0] * c1)
+    rho = wp.sqrt(P * P + Q * Q)
+    if rho > 0.0:
+        base = wp.atan2(Q, P)
+        half = wp.acos(wp.clamp(R / rho, -1.0, 1.0))
+        for k in range(2):
+            th = base + half * (1.0 - 2.0 * float(k))
+            pu = r * wp.cos(th)
+            pv = r * wp.sin(th)
+            d = c0 * pu + c1 * pv + 1.0
+            if d >= e - tol:
+                x = (row[0] * pu + row[1] * pv + row[2]) / wp.max(d, e)
+                lo = wp.min(lo, x)
+                hi = wp.max(hi, x)
+    g2 = c0 * c0 + c1 * c1
+    if g2 > 0.0:
+        k_cut = e - 1.0  # the cut: c0 u + c1 v = e - 1
+        rest = r2 - k_cut * k_cut / g2
+        if rest >= 0.0:
+            h = wp.sqrt(rest / g2)
+            fu = c0 * k_cut / g2
+            fv = c1 * k_cut / g2
+            for k in range(2):
+                sgn = 1.0 - 2.0 * float(k)
+                pu = fu - sgn * h * c1
+                pv = fv + sgn * h * c0
+                x = (row[0] * pu + row[1] * pv + row[2]) / e
+                lo = wp.min(lo, x)
+                hi = wp.max(hi, x)
+    if lo > hi:
+        return wp.vec2(-WHOLE_SCREEN, WHOLE_SCREEN)
+    # Generous like disk_extent's callers: float rounding in the blend never finds a pixel outside.
+    pad = 0.001 * (hi - lo) + 1.0e-4 * (wp.abs(lo) + wp.abs(hi)) + 0.05
+    return wp.vec2(lo - pad, hi + pad)
+
+
+@wp.func
 def pixel_span(lo: float, hi: float, size: int) -> wp.vec2i:
     """First and last pixel index whose centre (i + 0.5) lies in [lo, hi], clamped to the image."""
     a = wp.clamp(lo - 0.5, -1.0, float(size) + 1.0)  # clamp in float: huge extents cannot overflow int
@@ -191,6 +244,7 @@ def surfel_footprints(
     opacities: wp.array(dtype=float),
     valid: wp.array(dtype=wp.int32),
     filter_inv: float,  # 1 / sigma^2 of the screen-space fallback
+    near: float,  # the blend's: ray hits closer than this are misses
     width: int,
     height: int,
     tile_size: int,
@@ -235,11 +289,20 @@ def surfel_footprints(
     y_lo = ey[0] - hy
     y_hi = ey[0] + hy
     reach = FRONT_MARGIN - 1.0 + q_max * (row_z[0] * row_z[0] + row_z[1] * row_z[1])
-    if reach >= 0.0 or not (wp.isfinite(x_lo) and wp.isfinite(x_hi) and wp.isfinite(y_lo) and wp.isfinite(y_hi)):
-        x_lo = -1.0e30
-        x_hi = 1.0e30
-        y_lo = -1.0e30
-        y_hi = 1.0e30
+    if reach >= 0.0:  # near the camera plane or across it: the part of the disk in front of `near`
+        e = near * inv_z
+        r2 = q_max * 1.0001 + 1.0e-4
+        cx = clipped_disk_span(row_x, row_z, r2, e)
+        cy = clipped_disk_span(row_y, row_z, r2, e)
+        x_lo = cx[0]
+        x_hi = cx[1]
+        y_lo = cy[0]
+        y_hi = cy[1]
+    if not (wp.isfinite(x_lo) and wp.isfinite(x_hi) and wp.isfinite(y_lo) and wp.isfinite(y_hi)):
+        x_lo = -WHOLE_SCREEN
+        x_hi = WHOLE_SCREEN
+        y_lo = -WHOLE_SCREEN
+        y_hi = WHOLE_SCREEN
 
     m = means2d[i]
     r_screen = wp.sqrt(q_max / filter_inv) * 1.001 + 0.05

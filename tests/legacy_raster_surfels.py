@@ -69,8 +69,8 @@ def project_surfels(means, quats, scales, coeffs, viewmat, intrinsics, s: Settin
 
 def bin_surfels(p: SurfelProjected, opacities, s: Settings) -> Bins:
     filter_inv = 1.0 / (s.screen_sigma * s.screen_sigma)
-    return bin_into_tiles(surfel_project.surfel_footprints, [p.transforms, p.means2d, opacities, p.valid, filter_inv],
-                          p.depths, s)
+    return bin_into_tiles(surfel_project.surfel_footprints,
+                          [p.transforms, p.means2d, opacities, p.valid, filter_inv, s.near], p.depths, s)
 
 
 def _blend_inputs(p: SurfelProjected, bins: Bins, opacities, features):

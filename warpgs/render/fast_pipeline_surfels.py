@@ -102,7 +102,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     _stage(None, "surfel project")
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "surfel_footprints", surfel_project.surfel_footprints,
-        [transforms, means2d, opacities, valid, 1.0 / (s.screen_sigma * s.screen_sigma)], depths,
+        [transforms, means2d, opacities, valid, 1.0 / (s.screen_sigma * s.screen_sigma), s.near], depths,
         s, per_call, sequence=seq, overflow=None if deterministic else overflow)
     pairs = pair_order(ws, s, keep, n, total, sorted_ids) if deterministic else None
 
