@@ -1,6 +1,7 @@
 """Surfel tile footprints (kernels/surfel_project.py surfel_footprints): every pixel a surfel can reach lies in its
-tile rectangle, also for disks that reach the camera plane, whose footprint is the image of the part of the disk in
-front of the near plane (not the whole screen), and renders of such surfels match the float64 reference."""
+tile rectangle, also for disks that reach the camera plane, whose footprint bounds the image of the part of the disk
+in front of the near plane and on the screen (not the whole screen), close to the tightest rectangle; renders of
+such surfels match the float64 reference."""
 import numpy as np
 import torch
 import warp as wp
@@ -84,8 +85,8 @@ def test_every_reached_pixel_lies_in_the_footprint_and_disks_at_the_camera_plane
             if len(tx):  # the smallest tile rectangle holding every reached pixel
                 tightest += (tx.max() - tx.min() + 1) * (ty.max() - ty.min() + 1)
     assert crossing > 1000  # the scene is mostly such disks
-    # the whole screen for each of them would be 2.2x the tightest rectangles here
-    assert ours <= 1.6 * tightest
+    # the whole screen for each of them would be 2.2x the tightest rectangles here, the near cut alone 1.5x
+    assert ours <= 1.15 * tightest
 
 
 def test_renders_of_disks_reaching_the_camera_plane_match_the_reference():

@@ -121,7 +121,7 @@ def test_opacity_zero_and_one():
 
 def test_disk_reaching_behind_the_camera():
     # Centre in front, but the disk is large and tilted so it crosses the camera plane: its image is unbounded, the
-    # footprint bounds the part in front of the near plane, and only hits there count.
+    # footprint bounds the part in front of the near plane and on the screen, and only hits there count.
     scene = random_surfel_scene(n=12, seed=5)
     eye = camera_centre(scene)
     scene["means"][8] = eye + torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64)
