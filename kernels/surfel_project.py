@@ -333,7 +333,7 @@ def surfel_footprints(
     y_lo = ey[0] - hy
     y_hi = ey[0] + hy
     reach = FRONT_MARGIN - 1.0 + q_max * (row_z[0] * row_z[0] + row_z[1] * row_z[1])
-    if reach >= 0.0:  # near the camera plane or across it: the part of the disk in front of `near`
+    if reach >= 0.0:  # near the camera plane or across it: the part in front of `near` and on the screen
         e = near * inv_z
         r2 = q_max * 1.0001 + 1.0e-4
         box = clipped_disk_box(row_x, row_y, row_z, r2, e, width, height)
