@@ -76,11 +76,9 @@ def median_index(timelines: list) -> int:
     return sorted(range(len(waits)), key=waits.__getitem__)[len(waits) // 2]
 
 
-def median_timeline(timelines: list) -> list:
-    """median_index's call as [name, idle us, busy us] rows."""
-    if not timelines:
-        return []
-    return [[name, round(idle, 1), round(busy, 1)] for name, idle, busy in timelines[median_index(timelines)]]
+def timeline_rows(timeline: list) -> list:
+    """One call's timeline as [name, idle us, busy us] rows, rounded for the JSON."""
+    return [[name, round(idle, 1), round(busy, 1)] for name, idle, busy in timeline]
 
 
 def host_before_first_work(host_events, start: float, first: float) -> dict:
@@ -125,6 +123,7 @@ def per_call_breakdown(events, calls: int) -> dict:
     syncs = collections.Counter(e["name"] for e in events if e.get("cat") in ("cuda_runtime", "cuda_driver")
                                 and e.get("name") in SYNCS and inside(e))
     wall = [end - start for start, end in windows]
+    typical = median_index(timelines) if windows else None
     return {"calls_seen": len(windows),
             "profiled_wall_us": sum(wall) / max(len(wall), 1),
             "gpu_busy_us": sum(busy) / max(len(busy), 1),
@@ -133,9 +132,9 @@ def per_call_breakdown(events, calls: int) -> dict:
             "copies_per_call": {k: v / calls for k, v in copies.items()},
             "kernels_us_per_call": {k: kernels[k] / calls for k in sorted(kernels, key=lambda k: -kernels[k])},
             "launches_per_call": {k: launches[k] / calls for k in launches},
-            "typical_call_timeline": median_timeline(timelines),
-            "typical_call_host_before_gpu": {} if not windows else host_before_first_work(
-                host, windows[median_index(timelines)][0], firsts[median_index(timelines)])}
+            "typical_call_timeline": [] if typical is None else timeline_rows(timelines[typical]),
+            "typical_call_host_before_gpu": {} if typical is None else host_before_first_work(
+                host, windows[typical][0], firsts[typical])}
 
 
 def trace_calls(fn, calls: int) -> dict:
