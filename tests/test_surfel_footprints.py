@@ -6,7 +6,8 @@ import numpy as np
 import torch
 import warp as wp
 
-from reference_surfels import ALL_OUTPUTS, quat_from_normal, random_surfel_scene, render_surfels_ref
+from reference_surfels import (ALL_OUTPUTS, quat_from_normal, random_surfel_scene, render_surfels_ref,
+                               surfel_transforms)
 from warpgs import rasterize_surfels
 from warpgs.kernels import surfel_project
 
@@ -14,24 +15,15 @@ W, H, TILE, NEAR = 64, 48, 8, 0.01
 FILTER_INV = 2.0  # screen-space fallback sigma 1/sqrt(2) px
 
 
-def _rotations(q):
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
-
-
 def near_camera_surfels(n, seed):
-    """Transforms (K [t_u s_u, t_v s_v, centre], camera frame), projected centres and opacities of surfels close to
-    the camera, most of whose 3-sigma disks reach its plane."""
+    """Transforms (reference_surfels.surfel_transforms, camera at the origin), projected centres and opacities of
+    surfels close to the camera, most of whose 3-sigma disks reach its plane."""
     rng = np.random.default_rng(seed)
     centres = np.concatenate([rng.normal(0.0, 0.3, (n, 2)), rng.uniform(0.011, 0.3, (n, 1))], 1)
-    R = _rotations(rng.normal(size=(n, 4)))
-    scales = rng.uniform(0.02, 0.5, (n, 2))
-    K = np.array([[50.0, 0.0, W / 2], [0.0, 50.0, H / 2], [0.0, 0.0, 1.0]])
-    M = np.einsum("ij,njk->nik", K, np.stack([R[:, :, 0] * scales[:, :1], R[:, :, 1] * scales[:, 1:], centres], 2))
-    M = M.astype(np.float32)
+    K = torch.tensor([[50.0, 0.0, W / 2], [0.0, 50.0, H / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    M = surfel_transforms(torch.from_numpy(centres), torch.from_numpy(rng.normal(size=(n, 4))),
+                          torch.from_numpy(rng.uniform(0.02, 0.5, (n, 2))), torch.eye(4, dtype=torch.float64), K)
+    M = M.numpy().astype(np.float32)
     means2d = (M[:, :2, 2] / M[:, 2:, 2]).astype(np.float32)
     return M, means2d, rng.uniform(0.05, 0.99, n).astype(np.float32)
 
