@@ -1,10 +1,11 @@
 """Renderer variants to time side by side in one process (benchmarks/raster.py, profile_stages.py).
 
 A variant is `default` (whatever the WARPGS_* variables select) or `fast`, then optional options joined by '+':
-`fast+bwd=block`, `fast+sbwd=scatter`, `fast+det=on`, `fast+keys=full`. Keys: bwd (the 3D GPU adjoint: scatter,
-warp_sums, block), sbwd (the surfel GPU adjoint: warp_sums, scatter, block), det (the deterministic adjoint: on, off;
-a no-op for the CPU's per-thread kernels, deterministic anyway), keys (the GPU tile-key emission's search: table, full), padj (the 3D
-projection's adjoint: written, generated); see warpgs/render/defaults.py.
+`fast+bwd=block`, `fast+sbwd=scatter`, `fast+det=on`, `fast+keys=full`, `fast+psort=exact`. Keys: bwd (the 3D GPU
+adjoint: scatter, warp_sums, block), sbwd (the surfel GPU adjoint: warp_sums, scatter, block), det (the deterministic
+adjoint: on, off; a no-op for the CPU's per-thread kernels, deterministic anyway), keys (the GPU tile-key emission's
+search: table, full), padj (the 3D projection's adjoint: written, generated), psort (the GPU pair sort after the
+count's read: padded, exact); see warpgs/render/defaults.py.
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from contextlib import contextmanager
 from warpgs.render.defaults import current_raster_options, raster_options
 
 KEYS = {"bwd": "backward_kernel", "sbwd": "surfel_backward_kernel", "det": "deterministic", "keys": "pair_search",
-        "padj": "project_adjoint"}
+        "padj": "project_adjoint", "psort": "pair_sort"}
 SWITCHES = {"on": True, "off": False}  # the values of on/off keys
 
 
@@ -46,5 +47,5 @@ def variant(spec: str):
 def describe() -> str:
     o = current_raster_options()
     return (f"fast+bwd={o.backward_kernel}+sbwd={o.surfel_backward_kernel}+keys={o.pair_search}"
-            f"+padj={o.project_adjoint}"
+            f"+padj={o.project_adjoint}+psort={o.pair_sort}"
             + ("+det=on" if o.deterministic else ""))

@@ -119,12 +119,18 @@ def _reference_pairs(rects, counts, depths, tiles_x):
     return pairs
 
 
+@pytest.mark.parametrize("sort", ["per_primitive", "padded", "exact"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_lean_path_sorts_match_the_reference(seed):
+def test_lean_path_sorts_match_the_reference(seed, sort, monkeypatch):
     """render/tile_binning.sort_into_tiles: same pairs, same order, and every tile's range
-    written (no zero-fill beforehand: the workspace buffers start with garbage here)."""
+    written (no zero-fill beforehand: the workspace buffers start with garbage here). sort: the CPU's loop per
+    primitive, or the GPU's emission (a thread per pair, run here on the CPU) into a padded room or sized exactly."""
     from warpgs.render import tile_binning
+    from warpgs.render.defaults import raster_options
     from warpgs.render.workspace import Workspace
+
+    if sort != "per_primitive":
+        monkeypatch.setattr(tile_binning, "_cooperative", lambda device: True)
 
     tiles_x, tiles_y = 13, 9
     rects, counts, depths = random_rects(seed, tiles_x=tiles_x, tiles_y=tiles_y)
@@ -134,8 +140,9 @@ def test_lean_path_sorts_match_the_reference(seed):
     ws.array("tile_end", s.num_tiles, wp.int32).fill_(-7)
     pairs = _reference_pairs(rects, counts, depths, tiles_x)
     for _ in range(2):  # the second call reuses every buffer
-        total, start, end, ids = tile_binning.sort_into_tiles(ws, cpu(rects, wp.vec4i), cpu(counts, wp.int32),
-                                                               cpu(depths, wp.float32), s, ws.array)
+        with raster_options(pair_sort="exact" if sort == "exact" else "padded"):
+            total, start, end, ids = tile_binning.sort_into_tiles(ws, cpu(rects, wp.vec4i), cpu(counts, wp.int32),
+                                                                   cpu(depths, wp.float32), s, ws.array)
         assert total == len(pairs)
         np.testing.assert_array_equal(ids.numpy()[:total], [p[2] for p in pairs])
         start, end = start.numpy(), end.numpy()
@@ -146,3 +153,13 @@ def test_lean_path_sorts_match_the_reference(seed):
                 assert (start[tile], end[tile]) == expected
             else:
                 assert start[tile] == end[tile]
+
+
+def test_padded_pair_counts_round_up_by_at_most_a_sixteenth():
+    from warpgs.render.tile_binning import padded_capacity
+
+    for total in list(range(1, 200)) + [1000, 4095, 4096, 4097, 123_457, 2_000_000, 3_999_999]:
+        cap = padded_capacity(total)
+        assert total <= cap <= total * (1 + 1 / 16)
+        assert padded_capacity(cap) == cap  # a padded count is its own room
+    assert padded_capacity(990_000) == padded_capacity(1_010_000)  # nearby views share one room (and graph)

@@ -78,6 +78,11 @@ PER_WARP_ADJOINTS = ("warp_sums", "scatter")  # the variants that run a backward
 # 1M-Gaussian 1080p forward+backward calls 6-7% faster on an H200 and left 100k and 300k within noise
 # (raster_cuda_h200_keys_padj_run{1,2,3}_s28.json).
 PAIR_SEARCHES = ("table", "full")
+# The tile-pair sort of a GPU render that reads its pair count ("table" search): "padded" sorts a room of the count
+# rounded up to a sixteenth of its leading power of two, sentinels past the pairs (tile_binning.padded_capacity), so
+# renders of nearby views launch the same sequence and it replays as one CUDA graph; "exact" sorts the count itself
+# with its launches issued one by one. Same pairs in the same order (tests/test_binning.py).
+PAIR_SORTS = ("padded", "exact")
 PROJECT_ADJOINTS = ("written", "generated")
 
 
@@ -91,6 +96,7 @@ class RasterOptions:
     deterministic: bool = os.environ.get("WARPGS_DETERMINISTIC", "0") == "1"
     pair_search: str = os.environ.get("WARPGS_PAIR_SEARCH", "table")  # both give the same keys (tests/test_binning.py)
     project_adjoint: str = os.environ.get("WARPGS_PROJECT_ADJOINT", "written")  # tests/test_project_adjoint.py
+    pair_sort: str = os.environ.get("WARPGS_PAIR_SORT", "padded")
     # GPU renders size their tile-pair sort from earlier calls' counts instead of waiting for their own
     # (render/pair_room.py); a render that did not fit says so in out.pairs_overflowed. Set per call (rasterize,
     # rasterize_surfels).
@@ -103,8 +109,9 @@ class RasterOptions:
         if self.project_adjoint not in PROJECT_ADJOINTS:
             raise ValueError(f"raster option project_adjoint: expected one of {PROJECT_ADJOINTS}, got "
                              f"{self.project_adjoint!r}")
-        if self.pair_search not in PAIR_SEARCHES:
-            raise ValueError(f"raster option pair_search: expected one of {PAIR_SEARCHES}, got {self.pair_search!r}")
+        for f, allowed in (("pair_search", PAIR_SEARCHES), ("pair_sort", PAIR_SORTS)):
+            if getattr(self, f) not in allowed:
+                raise ValueError(f"raster option {f}: expected one of {allowed}, got {getattr(self, f)!r}")
         for f in ("deterministic", "speculative_pairs"):
             if not isinstance(getattr(self, f), bool):
                 raise ValueError(f"raster option {f}: expected True or False, got {getattr(self, f)!r}")

@@ -82,22 +82,32 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
         room.observe(total)
         L.launch("pair_overflow", binning.pair_overflow, 1, [offsets, n, total, overflow])
     _stage(on_stage, "sort: prefix sum + sync")
-    sorted_ids = per_call("sorted_ids", 2 * max(total, 1), wp.int32)  # radix sorts need 2x room
     if total == 0:
         tile_start.zero_()
         tile_end.zero_()
-        return 0, tile_start, tile_end, sorted_ids
+        return 0, tile_start, tile_end, per_call("sorted_ids", 2, wp.int32)
+    options = current_raster_options()
+    if _cooperative(dev) and options.pair_search == "table" and options.pair_sort == "padded":
+        # a thread per (primitive, tile) pair (balanced across the GPU), its primitive found by a binary search
+        # narrowed by a coarse table of every 32nd pair's slot; sized to a padded count, so that renders whose
+        # counts differ a little (a moving camera) launch the same sequence: one CUDA graph instead of ten launches
+        pairs = launch_sequence(ws, on_stage)
+        sorted_ids = queue_room_sort(ws, pairs, padded_capacity(total), rects, order, offsets, counts, s, per_call,
+                                     tile_start, tile_end)
+        pairs.run()  # no reads: no sync
+        _stage(on_stage, "sort: pairs (padded room)")
+        return total, tile_start, tile_end, sorted_ids
     tile_bits = max(1, (s.num_tiles - 1).bit_length())
     keys = ws.array("tile_keys", 2 * total, wp.int32)
+    sorted_ids = per_call("sorted_ids", 2 * total, wp.int32)  # radix sorts need 2x room
     if not _cooperative(dev):  # a loop per primitive: few threads, no search
         L.launch("emit", binning.emit_tile_keys, n, [rects, order, offsets, counts, s.tiles_x, keys, sorted_ids])
-    elif current_raster_options().pair_search == "table":  # a thread per (primitive, tile) pair (balanced across
-        # the GPU), its primitive found by a binary search narrowed by a coarse table of every 32nd pair's slot
+    elif options.pair_search == "table":  # pair_sort "exact": the same emission, sized to the count
         table = ws.array("pair_table", binning.pair_table_length(total), wp.int32)
         L.launch("pair_table", binning.pair_slot_table, table.shape[0], [offsets, n, total, table])
         L.launch("emit", binning.emit_tile_keys_by_table, total,
                  [rects, order, offsets, counts, table, s.tiles_x, keys, sorted_ids])
-    else:  # the same, each pair's search over every primitive
+    else:  # pair_search "full": a thread per pair, each pair's search over every primitive
         L.launch("emit", binning.emit_tile_keys_per_pair, total,
                  [rects, order, offsets, counts, s.tiles_x, n, keys, sorted_ids])
     _stage(on_stage, "sort: emit keys")
@@ -115,6 +125,21 @@ def sort_into_room(ws: Workspace, room, rects, counts, s: Settings, per_call, se
     room.settle()  # before the sequence rewrites the pinned count
     capacity = room.capacity
     n = int(counts.shape[0])
+    sorted_ids = queue_room_sort(ws, seq, capacity, rects, order, offsets, counts, s, per_call, tile_start, tile_end)
+    seq.read_ints(offsets, n - 1)
+    seq.run_unwaited(room.host_buffer(ws.device))
+    room.issued(ws.device.stream if ws.device.is_cuda else None, capacity)
+    ws.launches.launch("pair_overflow", binning.pair_overflow, 1, [offsets, n, capacity, overflow])
+    _stage(on_stage, "sort: speculative room")
+    return -1, tile_start, tile_end, sorted_ids
+
+
+def queue_room_sort(ws: Workspace, seq: LaunchSequence, capacity: int, rects, order, offsets, counts, s: Settings,
+                    per_call, tile_start, tile_end):
+    """Queues on `seq` the pairs' emission, sort and tile ranges within `capacity` slots, the pair count read on the
+    device from `offsets` (the pairs past the room are dropped; the slots past the pairs get the sentinel key
+    num_tiles and sort last). Returns sorted_ids (from `per_call`); the first min(count, capacity) are the pairs'."""
+    n = int(counts.shape[0])
     keys = ws.array("tile_keys", 2 * capacity, wp.int32)
     sorted_ids = per_call("sorted_ids", 2 * capacity, wp.int32)  # radix sorts need 2x room
     table = ws.array("pair_table", binning.pair_table_length(capacity), wp.int32)
@@ -124,12 +149,13 @@ def sort_into_room(ws: Workspace, room, rects, counts, s: Settings, per_call, se
     seq.sort_pairs(keys, sorted_ids, capacity, 0, max(1, s.num_tiles.bit_length()))  # the sentinel num_tiles too
     seq.launch("ranges_bounded", binning.tile_ranges_bounded, capacity,
                [keys, offsets, n, capacity, s.num_tiles, tile_start, tile_end])
-    seq.read_ints(offsets, n - 1)
-    seq.run_unwaited(room.host_buffer(ws.device))
-    room.issued(ws.device.stream if ws.device.is_cuda else None, capacity)
-    ws.launches.launch("pair_overflow", binning.pair_overflow, 1, [offsets, n, capacity, overflow])
-    _stage(on_stage, "sort: speculative room")
-    return -1, tile_start, tile_end, sorted_ids
+    return sorted_ids
+
+
+def padded_capacity(total: int) -> int:
+    """total rounded up to a multiple of 1/16 of its leading power of two (at most 6.25% more slots to sort)."""
+    granule = 1 << max(total.bit_length() - 5, 0)
+    return -(-total // granule) * granule
 
 
 def pair_order(ws: Workspace, s: Settings, keep: Optional[Keep], n: int, total: int,

@@ -236,8 +236,10 @@ class Workspace(Buffers):
 # CUDA graphs of fixed launch sequences (LaunchSequence.run). WARPGS_RASTER_GRAPHS=0 turns them off (benchmarks
 # compare both in one process by setting `GRAPHS_ENABLED`).
 GRAPHS_ENABLED = os.environ.get("WARPGS_RASTER_GRAPHS", "1") != "0"
-_GRAPHS_KEPT = 4  # graphs per workspace (a renderer alternating between a few buffer sets keeps them all)
-_KEYS_SEEN = 8  # keys remembered once; a key seen a second time is captured
+# Graphs per workspace: a renderer alternating between a few buffer sets, and the pair sorts of a few padded pair
+# counts (tile_binning.padded_capacity: a moving camera's), keep them all (a graph of a dozen launches is small).
+_GRAPHS_KEPT = 16
+_KEYS_SEEN = 32  # keys remembered once; a key seen a second time is captured
 
 
 class GraphCache:
