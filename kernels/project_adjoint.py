@@ -100,13 +100,13 @@ def conic_adjoint(t0: wp.vec3, t1: wp.vec3, low_pass: float, a: float, b: float,
 @wp.func
 def sh_adjoint(coeffs: wp.array2d(dtype=wp.vec3), adj_coeffs: wp.array2d(dtype=wp.vec3), write: bool, i: int,
                degree: int, d: wp.vec3, g: wp.vec3) -> wp.vec3:
-    """Adds each SH coefficient's gradient (basis value times g, when `write`) and returns the gradient of the
+    """Writes each SH coefficient's gradient (basis value times g, when `write`) and returns the gradient of the
     direction d (what eval_sh's value, dotted with g, changes by as d moves)."""
     x = d[0]
     y = d[1]
     z = d[2]
     if write:
-        adj_coeffs[i, 0] = adj_coeffs[i, 0] + g * SH_C0
+        adj_coeffs[i, 0] = g * SH_C0
     gd = wp.vec3(0.0, 0.0, 0.0)
     if degree > 0:
         w1 = wp.dot(coeffs[i, 1], g)
@@ -114,9 +114,9 @@ def sh_adjoint(coeffs: wp.array2d(dtype=wp.vec3), adj_coeffs: wp.array2d(dtype=w
         w3 = wp.dot(coeffs[i, 3], g)
         gd = gd + wp.vec3(-SH_C1 * w3, -SH_C1 * w1, SH_C1 * w2)
         if write:
-            adj_coeffs[i, 1] = adj_coeffs[i, 1] + g * (-SH_C1 * y)
-            adj_coeffs[i, 2] = adj_coeffs[i, 2] + g * (SH_C1 * z)
-            adj_coeffs[i, 3] = adj_coeffs[i, 3] + g * (-SH_C1 * x)
+            adj_coeffs[i, 1] = g * (-SH_C1 * y)
+            adj_coeffs[i, 2] = g * (SH_C1 * z)
+            adj_coeffs[i, 3] = g * (-SH_C1 * x)
         if degree > 1:
             xx = x * x
             yy = y * y
@@ -131,11 +131,11 @@ def sh_adjoint(coeffs: wp.array2d(dtype=wp.vec3), adj_coeffs: wp.array2d(dtype=w
                 SH_C2_0 * x * w4 + SH_C2_1 * z * w5 - 2.0 * SH_C2_2 * y * w6 - 2.0 * SH_C2_4 * y * w8,
                 SH_C2_1 * y * w5 + 4.0 * SH_C2_2 * z * w6 + SH_C2_3 * x * w7)
             if write:
-                adj_coeffs[i, 4] = adj_coeffs[i, 4] + g * (SH_C2_0 * (x * y))
-                adj_coeffs[i, 5] = adj_coeffs[i, 5] + g * (SH_C2_1 * (y * z))
-                adj_coeffs[i, 6] = adj_coeffs[i, 6] + g * (SH_C2_2 * (2.0 * zz - xx - yy))
-                adj_coeffs[i, 7] = adj_coeffs[i, 7] + g * (SH_C2_3 * (x * z))
-                adj_coeffs[i, 8] = adj_coeffs[i, 8] + g * (SH_C2_4 * (xx - yy))
+                adj_coeffs[i, 4] = g * (SH_C2_0 * (x * y))
+                adj_coeffs[i, 5] = g * (SH_C2_1 * (y * z))
+                adj_coeffs[i, 6] = g * (SH_C2_2 * (2.0 * zz - xx - yy))
+                adj_coeffs[i, 7] = g * (SH_C2_3 * (x * z))
+                adj_coeffs[i, 8] = g * (SH_C2_4 * (xx - yy))
             if degree > 2:
                 w9 = wp.dot(coeffs[i, 9], g)
                 w10 = wp.dot(coeffs[i, 10], g)
@@ -155,13 +155,13 @@ def sh_adjoint(coeffs: wp.array2d(dtype=wp.vec3), adj_coeffs: wp.array2d(dtype=w
                     + SH_C3_3 * (6.0 * zz - 3.0 * xx - 3.0 * yy) * w12 + SH_C3_4 * 8.0 * x * z * w13
                     + SH_C3_5 * (xx - yy) * w14)
                 if write:
-                    adj_coeffs[i, 9] = adj_coeffs[i, 9] + g * (SH_C3_0 * y * (3.0 * xx - yy))
-                    adj_coeffs[i, 10] = adj_coeffs[i, 10] + g * (SH_C3_1 * (x * y * z))
-                    adj_coeffs[i, 11] = adj_coeffs[i, 11] + g * (SH_C3_2 * y * (4.0 * zz - xx - yy))
-                    adj_coeffs[i, 12] = adj_coeffs[i, 12] + g * (SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy))
-                    adj_coeffs[i, 13] = adj_coeffs[i, 13] + g * (SH_C3_4 * x * (4.0 * zz - xx - yy))
-                    adj_coeffs[i, 14] = adj_coeffs[i, 14] + g * (SH_C3_5 * z * (xx - yy))
-                    adj_coeffs[i, 15] = adj_coeffs[i, 15] + g * (SH_C3_6 * x * (xx - 3.0 * yy))
+                    adj_coeffs[i, 9] = g * (SH_C3_0 * y * (3.0 * xx - yy))
+                    adj_coeffs[i, 10] = g * (SH_C3_1 * (x * y * z))
+                    adj_coeffs[i, 11] = g * (SH_C3_2 * y * (4.0 * zz - xx - yy))
+                    adj_coeffs[i, 12] = g * (SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy))
+                    adj_coeffs[i, 13] = g * (SH_C3_4 * x * (4.0 * zz - xx - yy))
+                    adj_coeffs[i, 14] = g * (SH_C3_5 * z * (xx - yy))
+                    adj_coeffs[i, 15] = g * (SH_C3_6 * x * (xx - 3.0 * yy))
     return gd
 
 
@@ -184,7 +184,8 @@ def project_gaussians_adjoint(
     g_colors: wp.array(dtype=wp.vec3),
     g_depths: wp.array(dtype=float),
     want: int,  # WANT_* bits: which of the gradient arrays below are real
-    adj_means: wp.array(dtype=wp.vec3),  # accumulated into
+    adj_means: wp.array(dtype=wp.vec3),  # written for each Gaussian with an upstream gradient (zeros elsewhere: the
+    # caller's, which hands them zero-filled; a write, not an add, saves reading them back)
     adj_quats: wp.array(dtype=wp.vec4),
     adj_scales: wp.array(dtype=wp.vec3),
     adj_coeffs: wp.array2d(dtype=wp.vec3),
@@ -272,7 +273,7 @@ def project_gaussians_adjoint(
             g_dd = g_dd - dd * (wp.dot(g_d, dd) * inv_len * inv_len * inv_len)
         g_mu = g_mu + g_dd
     elif (want & WANT_COEFFS) != 0:
-        adj_coeffs[i, 0] = adj_coeffs[i, 0] + gc
+        adj_coeffs[i, 0] = gc
 
     # A gradient beyond float32 (the chain above overflowing to inf, and inf * 0 making NaN; found on a 1e7-long
     # flat Gaussian at the near plane, before its conic was exact) is dropped (0) when the upstream is finite, never
@@ -281,7 +282,7 @@ def project_gaussians_adjoint(
     if upstream_finite:
         g_mu = finite_or_zero3(g_mu)
     if (want & WANT_MEANS) != 0:
-        adj_means[i] = adj_means[i] + g_mu
+        adj_means[i] = g_mu
     if (want & WANT_SCALES) != 0:
         # M = Rq diag(scales): each scale's gradient is its column of g_M dotted with Rq's
         g_s = wp.vec3(
@@ -293,11 +294,11 @@ def project_gaussians_adjoint(
                                                                                                MAX_SCALE))
         if upstream_finite:
             g_s = finite_or_zero3(g_s)
-        adj_scales[i] = adj_scales[i] + g_s
+        adj_scales[i] = g_s
     if (want & WANT_QUATS) != 0:
         g_Rq = g_M * wp.diag(wp.vec3(sx, sy, sz))
         g_q = quat_rotation_adjoint(q, g_Rq)
         if upstream_finite:
             g_q = finite_or_zero4(g_q)
-        adj_quats[i] = adj_quats[i] + g_q
+        adj_quats[i] = g_q
 

@@ -179,3 +179,23 @@ def test_the_conic_is_the_exact_inverse_of_a_thin_footprint(rows):
     det = np.dot(np.cross(u0, u1), np.cross(u0, u1)) + LOW_PASS * (u0 @ u0 + u1 @ u1) + LOW_PASS**2
     want = np.array([u1 @ u1 + LOW_PASS, -(u0 @ u1), u0 @ u0 + LOW_PASS]) / det
     np.testing.assert_allclose(out.numpy()[0], want, rtol=1e-5, atol=1e-6 * np.abs(want).max())
+
+
+def test_the_written_adjoint_writes_rather_than_adds():
+    """Its callers hand it zero-filled gradients, so it writes each Gaussian's gradients (no read back): a second
+    launch into the same arrays leaves them as the first left them."""
+    sc = scene(3, 200, 16)
+    once = gradients(sc, project.COLOR_SH, 3, written_out=True)
+    n = sc["means"].shape[0]
+    inputs = [cpu(sc["means"], wp.vec3), cpu(sc["quats"], wp.vec4), cpu(sc["scales"], wp.vec3),
+              wp.array(sc["coeffs"], dtype=wp.vec3, device="cpu"), cpu(sc["view"][None], wp.mat44),
+              cpu(sc["intr"][None], wp.vec4)]
+    grads = [cpu(once[0], wp.vec3), cpu(once[1], wp.vec4), cpu(once[2], wp.vec3),
+             wp.array(once[3], dtype=wp.vec3, device="cpu")]  # the first launch's gradients, launched into again
+    g = [cpu(sc["g"][0], wp.vec2), cpu(sc["g"][1], wp.vec3), cpu(sc["g"][2], wp.vec3), cpu(sc["g"][3][:, 0], float)]
+    want = (project_adjoint.WANT_MEANS | project_adjoint.WANT_QUATS | project_adjoint.WANT_SCALES
+            | project_adjoint.WANT_COEFFS)
+    wp.launch(project_adjoint.project_gaussians_adjoint, dim=n,
+              inputs=inputs + [W, H, NEAR, project.COLOR_SH, 3, LOW_PASS] + g + [want] + grads, device="cpu")
+    for name, first, second in zip(("means", "quats", "scales", "coeffs"), once, grads):
+        np.testing.assert_array_equal(second.numpy(), first, err_msg=name)

@@ -280,7 +280,7 @@ def launch_projection_adjoint(ws: Workspace, key: str, s: Settings, n: int, inpu
                               projected_grads) -> None:
     """The projection kernel's generated adjoint, run only for the Gaussians with an upstream gradient
     (`project_gaussians_reached`). outs: arrays its forward replay may write (the forward's own or scratch);
-    input_grads: the gradient arrays of `inputs` (None where not wanted), accumulated into; projected_grads:
+    input_grads: the gradient arrays of `inputs` (None where not wanted), zero-filled by the caller; projected_grads:
     upstream (means2d, conics, colors, depths), also read to pick the Gaussians."""
     g_means2d, g_conics, g_colors, g_depths = projected_grads
     if (current_raster_options().project_adjoint == "written" and input_grads[4] is None and input_grads[5] is None
@@ -295,7 +295,8 @@ def launch_projection_adjoint(ws: Workspace, key: str, s: Settings, n: int, inpu
 def launch_written_projection_adjoint(ws: Workspace, key: str, s: Settings, n: int, inputs, input_grads,
                                       projected_grads) -> None:
     """kernels/project_adjoint.py's adjoint (one camera, no camera gradient): input_grads (means, quats, scales,
-    coeffs; None where not wanted) accumulated into, as by the generated one."""
+    coeffs; None where not wanted), zero-filled by the caller, get the Gaussians' gradients written (the generated
+    adjoint adds into them: the same result from zeros)."""
     want = 0
     grads = []
     for bit, g, dtype, ndim in zip((project_adjoint.WANT_MEANS, project_adjoint.WANT_QUATS,
