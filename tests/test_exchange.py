@@ -6,7 +6,7 @@ from gloo_helpers import run_two_ranks
 
 WORKER = r'''
 import sys, torch, torch.distributed as dist
-from warpgs.train.distributed import shutdown_process_group
+from gloo_helpers import end_worker
 from warpgs.render.exchange import exchange_rows
 dist.init_process_group("gloo")
 rank = dist.get_rank()
@@ -18,7 +18,7 @@ weights = torch.cat([torch.full((len(b), 4), float(10 * j + rank + 1)) for j, b 
 (torch.cat(received) * weights).sum().backward()
 torch.save({"received": [b.detach() for b in received], "grad": rows.grad, "rows": rows.detach()},
            sys.argv[1] + f".rank{rank}")
-shutdown_process_group()
+end_worker()
 '''
 
 

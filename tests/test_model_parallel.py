@@ -40,7 +40,7 @@ def targets():
 
 WORKER = r'''
 import sys, torch, torch.distributed as dist
-from warpgs.train.distributed import shutdown_process_group
+from gloo_helpers import end_worker
 from test_model_parallel import LR, STEPS, cameras, start_model, targets
 from warpgs.train.distributed import Ranks
 from warpgs.train.model_parallel import gather_model, render_shard, shard_model
@@ -59,7 +59,7 @@ for _ in range(STEPS):
 whole = gather_model(shard, ranks)
 if ranks.rank == 0:
     torch.save({n: p.detach() for n, p in whole.params.items()}, sys.argv[1])
-shutdown_process_group()
+end_worker()
 '''
 
 
@@ -144,7 +144,7 @@ def test_the_sharded_render_benchmark_runs_on_two_gloo_ranks(tmp_path, monkeypat
 
 TERMS_WORKER = r'''
 import sys, torch, torch.distributed as dist
-from warpgs.train.distributed import shutdown_process_group
+from gloo_helpers import end_worker
 from test_model_parallel import start_model
 from warpgs.losses import gestalt
 from warpgs.train.distributed import Ranks
@@ -164,7 +164,7 @@ for name in ("opacity", "scale", "count"):
     (value / 2).backward()  # both ranks' losses together are the term once
     result[name] = (value.detach(), {n: p.grad.clone() for n, p in model.params.items() if p.grad is not None})
 torch.save(result, sys.argv[1] + f".rank{ranks.rank}")
-shutdown_process_group()
+end_worker()
 '''
 
 

@@ -85,7 +85,7 @@ def test_blend_splats_refuses_unknown_outputs():
 
 WORKER = r'''
 import sys, torch, torch.distributed as dist
-from warpgs.train.distributed import shutdown_process_group
+from gloo_helpers import end_worker
 from random_scenes import random_scene
 from warpgs.render.sharded import render_sharded
 dist.init_process_group("gloo")
@@ -103,7 +103,7 @@ loss.backward()
 torch.save({"images": {n: getattr(out, n).detach() for n in outputs}, "grads": {k: v.grad for k, v in p.items()},
             "means2d_grad": out.means2d.grad, "sent": out.sent, "seen": out.seen},
            sys.argv[2] + f".rank{rank}")
-shutdown_process_group()
+end_worker()
 '''
 
 
