@@ -4,8 +4,10 @@ launch sequence that carries it up to the tile-pair count (workspace.LaunchSeque
 benchmarks time it with. Torch-free.
 
 Sorting takes two passes: the primitives by depth, then their tile pairs by tile index (stable). The pair count sizes
-the pair sort: read back with one host sync (`sort_into_tiles`), or, for a speculative call, not read at all: the
-pairs go into a room sized from earlier counts (`sort_into_room`, pair_room.py).
+the pair sort: read back with one host sync (`sort_into_tiles`; on GPUs the sort then runs in a room of the count
+padded to a sixteenth of its leading power of two, `padded_capacity`, so nearby views replay one CUDA graph), or, for
+a speculative call, not read at all: the pairs go into a room sized from earlier counts (`sort_into_room`,
+pair_room.py). Both rooms are queued by `queue_room_sort`.
 """
 from __future__ import annotations
 
