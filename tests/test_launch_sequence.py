@@ -48,3 +48,61 @@ def test_key_follows_every_baked_in_value():
 
 
 _HOST = wp.empty(4, dtype=wp.int32, device="cpu")
+
+
+def test_a_graph_captured_before_the_sort_scratch_grows_is_dropped(monkeypatch):
+    """Warp replaces a stream's radix-sort scratch (freeing the old one) when a sort needs more; a graph captured
+    before would sort in freed memory. GraphCache grows the capture stream's scratch before capturing a larger sort,
+    to twice its size, and drops the graphs captured before. (The capture itself needs a GPU: stubbed here.)"""
+    import contextlib
+    from types import SimpleNamespace
+
+    from warpgs.render import workspace
+
+    cache = workspace.GraphCache(SimpleNamespace(stream=None, is_cuda=True))
+    cache.stream_factory = lambda: "capture stream"
+    grown, launched = [], []
+    monkeypatch.setattr(cache, "_grow_sort_scratch", grown.append)
+    monkeypatch.setattr(workspace.wp, "ScopedStream", lambda *a, **k: contextlib.nullcontext())
+    monkeypatch.setattr(workspace.wp, "ScopedCapture",
+                        lambda **k: contextlib.nullcontext(SimpleNamespace(graph=object())))
+    monkeypatch.setattr(workspace.wp, "capture_launch", lambda graph, stream=None: launched.append(graph))
+
+    def run_twice(key, largest):  # the second sight captures
+        for _ in range(2):
+            cache.run(key, [], lambda: None, largest)
+
+    run_twice("small", 1000)
+    assert grown == [2000] and cache.sort_room == 2000 and cache.captures == 1
+    run_twice("medium", 1800)  # fits the room: nothing grows, both graphs kept
+    assert grown == [2000] and len(cache._graphs) == 2
+    run_twice("large", 5000)
+    assert grown == [2000, 10000] and list(cache._graphs) == ["large"]  # the two captured before are gone
+    cache.run("small", [], lambda: None, 1000)  # seen again: launched eagerly, not from the dropped graph
+    assert cache.replays == 0 and len(launched) == 3
+    run_twice("unsorted", 0)
+    assert grown == [2000, 10000] and len(cache._graphs) == 2
+    assert workspace.sort_room_for(0, 0) is None and workspace.sort_room_for(10, 11) == 22
+
+
+def test_a_failed_scratch_reservation_falls_back_to_eager_launches(monkeypatch):
+    """Growing the sort scratch runs where a capture would: if it fails, the render still runs (eagerly, warned),
+    as for a failed capture."""
+    from types import SimpleNamespace
+
+    import pytest
+
+    from warpgs.render import workspace
+
+    cache = workspace.GraphCache(SimpleNamespace(stream=None, is_cuda=True))
+    cache.stream_factory = lambda: "capture stream"
+
+    def fail(room):
+        raise RuntimeError("out of memory")
+
+    monkeypatch.setattr(cache, "_grow_sort_scratch", fail)
+    issued = []
+    with pytest.warns(RuntimeWarning, match="rendering without graphs"):
+        for _ in range(2):
+            cache.run("key", [], lambda: issued.append(1), 1000)
+    assert issued == [1, 1] and cache.broken and cache.captures == 0

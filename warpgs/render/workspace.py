@@ -261,14 +261,16 @@ class GraphCache:
         self.broken = False  # set when a capture failed: this workspace launches eagerly from then on
         self.captures = 0  # counters, for tests and benchmarks
         self.replays = 0
+        self.sort_room = 0  # items the capture stream's radix-sort scratch holds (see reserve_sorts)
 
     def enabled(self) -> bool:
         return GRAPHS_ENABLED and self.device.is_cuda and not self.broken
 
-    def run(self, key: tuple, referents: list, issue) -> None:
+    def run(self, key: tuple, referents: list, issue, largest_sort: int = 0) -> None:
         """Runs `issue()` (launches only: no allocation, no host sync) as a graph when `key` came before, else
-        eagerly. `referents`: the objects whose ids the key holds, kept alive with it. Must be called with the
-        caller's stream current on the device."""
+        eagerly. `referents`: the objects whose ids the key holds, kept alive with it. largest_sort: the most
+        items one radix sort of `issue` sorts (0: none). Must be called with the caller's stream current on the
+        device."""
         stream = self.device.stream
         hit = self._graphs.get(key)
         if hit is not None:
@@ -282,7 +284,7 @@ class GraphCache:
                 self._seen.popitem(last=False)
             issue()
             return
-        graph = self._capture(issue)
+        graph = self._capture(issue, largest_sort)
         if graph is None:
             issue()
             return
@@ -293,10 +295,33 @@ class GraphCache:
         wp.capture_launch(graph, stream=stream)
         self.captures += 1
 
-    def _capture(self, issue):
+    def reserve_sorts(self, largest: int) -> None:
+        """Warp keeps one radix-sort scratch buffer per stream and replaces it, freeing the old one, when a sort needs
+        more: a graph captured before that would sort in freed memory when replayed. So before capturing sorts of up
+        to `largest` items, the capture stream's scratch is made to hold twice the most asked so far (a sort outside
+        any capture, full 32-bit keys: the most passes), and the graphs captured before it grew are dropped."""
+        room = sort_room_for(self.sort_room, largest)
+        if room is None:
+            return
+        self._graphs.clear()  # their sorts read the scratch this replaces
+        self._grow_sort_scratch(room)
+        self.sort_room = room
+
+    def _grow_sort_scratch(self, room: int) -> None:
+        if self._stream is None:
+            self._stream = self.stream_factory()
+        with wp.ScopedStream(self._stream, sync_enter=False):  # allocated, sorted and synchronised on that stream
+            keys = wp.empty(2 * room, dtype=wp.int32, device=self.device)
+            values = wp.empty(2 * room, dtype=wp.int32, device=self.device)
+            wp.utils.radix_sort_pairs(keys, values, room)  # the contents do not matter, the scratch's size does
+            wp.synchronize_stream(self._stream)  # before the arrays go (rare: the scratch at least doubles)
+            del keys, values
+
+    def _capture(self, issue, largest_sort: int = 0):
         if self._stream is None:
             self._stream = self.stream_factory()
         try:
+            self.reserve_sorts(largest_sort)
             with wp.ScopedStream(self._stream, sync_enter=False):
                 with wp.ScopedCapture(device=self.device, stream=self._stream) as capture:
                     issue()
@@ -305,6 +330,12 @@ class GraphCache:
             self.broken = True
             warnings.warn(f"warpgs: CUDA graph capture failed ({exc}); rendering without graphs", RuntimeWarning)
             return None
+
+
+def sort_room_for(room: int, largest: int):
+    """The radix-sort scratch (in items) to reserve before capturing sorts of up to `largest` items when `room` is
+    reserved already: None when it suffices, else twice `largest` (so that it grows rarely)."""
+    return None if largest <= room else 2 * largest
 
 
 _SORT, _SCAN, _ZERO = object(), object(), object()  # op kinds of a LaunchSequence (launch keys are anything else)
@@ -384,7 +415,7 @@ class LaunchSequence:
         else:
             self._host, host_np = ws.pinned_ints(self._read_size) if host is None else (host, None)
             if not self.immediate and ws.graphs.enabled():
-                ws.graphs.run(*self._key(), self._issue)
+                ws.graphs.run(*self._key(), self._issue, self._largest_sort())
             else:
                 self._issue()
             if host is not None:
@@ -413,6 +444,9 @@ class LaunchSequence:
             op[1].zero_()
         else:
             self.ws.launches.launch_params(op[0], op[1], op[2], op[3], op[4])
+
+    def _largest_sort(self) -> int:
+        return max([op[3] for op in self.ops if op[0] is _SORT], default=0)
 
     def _key(self):
         """(key, referents): the key is everything the issued work depends on except memory contents, with arrays
