@@ -123,3 +123,26 @@ def test_the_views_of_a_training_run_share_one_graph(monkeypatch, surfels):
             got = _render(v, surfels)
             assert torch.equal(got[0], want[0])
     assert not graphs.broken and graphs.replays - replays >= 6  # one capture, then replays across the views
+
+
+def test_graphs_captured_before_the_sort_scratch_grew_are_not_replayed(monkeypatch):
+    """A larger render's sorts make the capture stream's radix-sort scratch grow (Warp frees the old one): graphs
+    captured before are dropped, so none sorts in freed memory, and the small scene still renders as it did."""
+    from warpgs.render.device_state import release_workspaces
+
+    release_workspaces()
+    small, large = _scene(n=500, seed=2), _scene(n=20000, seed=3)
+    monkeypatch.setattr(workspace, "GRAPHS_ENABLED", False)
+    want = _render(small)[0]
+    monkeypatch.setattr(workspace, "GRAPHS_ENABLED", True)
+    for _ in range(3):
+        _render(small)
+    graphs = _graphs()
+    room = graphs.sort_room
+    assert room > 0 and graphs.captures > 0
+    for _ in range(3):
+        _render(large)
+    assert graphs.sort_room > room  # grew, and dropped what was captured on the smaller scratch
+    for _ in range(3):
+        assert torch.equal(_render(small)[0], want)
+    assert not graphs.broken
