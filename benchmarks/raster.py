@@ -15,7 +15,7 @@ tile size: render/defaults.py choose_tile_size), outputs RGB + alpha + depth.
                                                           # (rasterize(deterministic=True)), one row each
     python benchmarks/raster.py --checks on,off --graphs on,off ...
                                                           # input checks (check_inputs) and CUDA graphs
-                                                          # (warpgs.render.workspace) each way, one row each
+                                                          # (warpgs.render.graph_cache) each way, one row each
 
 Prints a table and writes benchmarks/results/raster_<device>.json (or $OUT/raster_<device>.json). With --gsplat and
 --rounds > 1 each row also holds gsplat's times per round and the standard error of the per-round ratios
@@ -45,9 +45,12 @@ from warpgs.render import pipeline_gaussians as pipeline
 from warpgs.render.surfels import surfel_work  # noqa: E402
 from warpgs.render.defaults import choose_tile_size  # noqa: E402
 from warpgs.render.gaussians import _intrinsics_vector  # noqa: E402
-from warpgs.render import workspace  # noqa: E402
+try:  # the CUDA-graph switch; older trees (before/after runs) kept it in workspace.py, or had no graphs
+    from warpgs.render import graph_cache as graph_switch  # noqa: E402
+except ImportError:
+    from warpgs.render import workspace as graph_switch  # noqa: E402
 
-HAS_GRAPHS = hasattr(workspace, "GRAPHS_ENABLED")  # older code (before/after runs) has no CUDA graphs
+HAS_GRAPHS = hasattr(graph_switch, "GRAPHS_ENABLED")
 
 OUTPUTS = ("rgb", "alpha", "depth")
 FLOPS_PER_EVALUATION = 20  # q (8), exp (~8 with range reduction), clamp/compare (2), blend 3 colours + depth (8) ~ 20-26
@@ -225,12 +228,12 @@ def main():
                             f, fb = gsplat_times(scene, W, H, device, surfels)
                         else:
                             name, checks, graphs = spec
-                            workspace.GRAPHS_ENABLED = graphs  # no such switch before graphs: then a no-op
+                            graph_switch.GRAPHS_ENABLED = graphs  # no such switch before graphs: then a no-op
                             with variant(name):
                                 f, fb = warpgs_times(scene, W, H, device, repeats, surfels, tile, checks)
                         times[spec][0].append(f)
                         times[spec][1].append(fb)
-                workspace.GRAPHS_ENABLED = HAS_GRAPHS
+                graph_switch.GRAPHS_ENABLED = HAS_GRAPHS
                 g_times = tuple(statistics.median(v) for v in times["gsplat"]) if args.gsplat else None
                 fwd_tile = choose_tile_size(tile, False, on_gpu=device.startswith("cuda"),  # the forward's
                                             primitives_per_pixel=n / (W * H), surfels=surfels)

@@ -57,16 +57,16 @@ def test_a_graph_captured_before_the_sort_scratch_grows_is_dropped(monkeypatch):
     import contextlib
     from types import SimpleNamespace
 
-    from warpgs.render import workspace
+    from warpgs.render import graph_cache
 
-    cache = workspace.GraphCache(SimpleNamespace(stream=None, is_cuda=True))
+    cache = graph_cache.GraphCache(SimpleNamespace(stream=None, is_cuda=True))
     cache.stream_factory = lambda: "capture stream"
     grown, launched = [], []
     monkeypatch.setattr(cache, "_grow_sort_scratch", grown.append)
-    monkeypatch.setattr(workspace.wp, "ScopedStream", lambda *a, **k: contextlib.nullcontext())
-    monkeypatch.setattr(workspace.wp, "ScopedCapture",
+    monkeypatch.setattr(graph_cache.wp, "ScopedStream", lambda *a, **k: contextlib.nullcontext())
+    monkeypatch.setattr(graph_cache.wp, "ScopedCapture",
                         lambda **k: contextlib.nullcontext(SimpleNamespace(graph=object())))
-    monkeypatch.setattr(workspace.wp, "capture_launch", lambda graph, stream=None: launched.append(graph))
+    monkeypatch.setattr(graph_cache.wp, "capture_launch", lambda graph, stream=None: launched.append(graph))
 
     def run_twice(key, largest):  # the second sight captures
         for _ in range(2):
@@ -82,7 +82,7 @@ def test_a_graph_captured_before_the_sort_scratch_grows_is_dropped(monkeypatch):
     assert cache.replays == 0 and len(launched) == 3
     run_twice("unsorted", 0)
     assert grown == [2000, 10000] and len(cache._graphs) == 2
-    assert workspace.sort_room_for(0, 0) is None and workspace.sort_room_for(10, 11) == 22
+    assert graph_cache.sort_room_for(0, 0) is None and graph_cache.sort_room_for(10, 11) == 22
 
 
 def test_a_failed_scratch_reservation_falls_back_to_eager_launches(monkeypatch):
@@ -92,9 +92,9 @@ def test_a_failed_scratch_reservation_falls_back_to_eager_launches(monkeypatch):
 
     import pytest
 
-    from warpgs.render import workspace
+    from warpgs.render import graph_cache
 
-    cache = workspace.GraphCache(SimpleNamespace(stream=None, is_cuda=True))
+    cache = graph_cache.GraphCache(SimpleNamespace(stream=None, is_cuda=True))
     cache.stream_factory = lambda: "capture stream"
 
     def fail(room):

@@ -1,4 +1,4 @@
-"""On a GPU the launches up to a render's sync run as a CUDA graph once the same call repeats (workspace.GraphCache):
+"""On a GPU the launches up to a render's sync run as a CUDA graph once the same call repeats (graph_cache.GraphCache):
 images and gradients must be those of eager launches, a changed input must never replay a stale graph, and bad
 input must still be named. Needs CUDA (the CPU has no graphs); run with a GPU: pytest tests/test_raster_graphs.py."""
 import pytest
@@ -6,7 +6,7 @@ import torch
 
 from random_scenes import random_scene
 from warpgs import rasterize, rasterize_surfels
-from warpgs.render import device_state, workspace
+from warpgs.render import device_state, graph_cache
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
 
@@ -33,9 +33,9 @@ def _graphs():
 @pytest.mark.parametrize("surfels", [False, True])
 def test_graph_replays_match_eager_launches(monkeypatch, surfels):
     s = _scene()
-    monkeypatch.setattr(workspace, "GRAPHS_ENABLED", False)
+    monkeypatch.setattr(graph_cache, "GRAPHS_ENABLED", False)
     eager = _render(s, surfels)
-    monkeypatch.setattr(workspace, "GRAPHS_ENABLED", True)
+    monkeypatch.setattr(graph_cache, "GRAPHS_ENABLED", True)
     graphs = _graphs()
     replays = graphs.replays
     runs = [_render(s, surfels) for _ in range(4)]
@@ -113,9 +113,9 @@ def test_the_views_of_a_training_run_share_one_graph(monkeypatch, surfels):
         v = s["viewmat"].clone()
         v[0, 3] += 0.2 * i  # another camera in another tensor, as each training view holds its own
         views.append(dict(s, viewmat=v, K=s["K"].clone()))
-    monkeypatch.setattr(workspace, "GRAPHS_ENABLED", False)
+    monkeypatch.setattr(graph_cache, "GRAPHS_ENABLED", False)
     eager = [_render(v, surfels) for v in views]
-    monkeypatch.setattr(workspace, "GRAPHS_ENABLED", True)
+    monkeypatch.setattr(graph_cache, "GRAPHS_ENABLED", True)
     graphs = _graphs()
     replays = graphs.replays
     for _ in range(3):
@@ -132,9 +132,9 @@ def test_graphs_captured_before_the_sort_scratch_grew_are_not_replayed(monkeypat
 
     release_workspaces()
     small, large = _scene(n=500, seed=2), _scene(n=20000, seed=3)
-    monkeypatch.setattr(workspace, "GRAPHS_ENABLED", False)
+    monkeypatch.setattr(graph_cache, "GRAPHS_ENABLED", False)
     want = _render(small)[0]
-    monkeypatch.setattr(workspace, "GRAPHS_ENABLED", True)
+    monkeypatch.setattr(graph_cache, "GRAPHS_ENABLED", True)
     for _ in range(3):
         _render(small)
     graphs = _graphs()
