@@ -19,10 +19,8 @@ import time
 import torch
 
 from common import print_table, standard_scenes_module, sync, write_json
-from raster import OUTPUTS, gsplat_calls, round_ratio_se
+from raster import gsplat_calls, round_ratio_se, warpgs_calls
 from variants import describe, variant
-
-from warpgs import rasterize
 
 
 def camera_path(viewmat: torch.Tensor, count: int, step: float = 0.02) -> list:
@@ -38,15 +36,10 @@ def camera_path(viewmat: torch.Tensor, count: int, step: float = 0.02) -> list:
 
 
 def warpgs_view(scene, width, height, backward: bool):
-    means, quats, scales, opacities, colors, _, K = scene
-
+    """One view's render as raster.py times it (its warpgs_calls, with the view's matrix)."""
     def render(viewmat):
-        if not backward:
-            with torch.no_grad():
-                return rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs=OUTPUTS)
-        leaves = [t.detach().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
-        out = rasterize(*leaves, viewmat, K, width, height, outputs=OUTPUTS)
-        (out.rgb.sum() + out.depth.sum()).backward()
+        fwd, fwd_bwd = warpgs_calls(scene[:5] + (viewmat, scene[6]), width, height, False, None)
+        return (fwd_bwd if backward else fwd)()
 
     return render
 

@@ -148,7 +148,7 @@ def depth_local_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor,
     mu_p, var_p = local_stats(torch.where(mask, pred - centre, zero))
     mu_t, var_t = local_stats(torch.where(mask, prior - centre, zero))
     return masked_mean((mu_p - mu_t).abs() + (var_p - var_t).abs(), inner,
-                        None if weight is None else window_min(weight))
+                       None if weight is None else window_min(weight))
 
 
 # ----- from the render and the batch ---------------------------------------------------------------------------
