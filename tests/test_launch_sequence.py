@@ -70,7 +70,7 @@ def test_a_graph_captured_before_the_sort_scratch_grows_is_dropped(monkeypatch):
 
     def run_twice(key, largest):  # the second sight captures
         for _ in range(2):
-            cache.run(key, [], lambda: None, largest)
+            cache.run(key, [], lambda: None, lambda: largest)
 
     run_twice("small", 1000)
     assert grown == [2000] and cache.sort_room == 2000 and cache.captures == 1
@@ -78,7 +78,7 @@ def test_a_graph_captured_before_the_sort_scratch_grows_is_dropped(monkeypatch):
     assert grown == [2000] and len(cache._graphs) == 2
     run_twice("large", 5000)
     assert grown == [2000, 10000] and list(cache._graphs) == ["large"]  # the two captured before are gone
-    cache.run("small", [], lambda: None, 1000)  # seen again: launched eagerly, not from the dropped graph
+    cache.run("small", [], lambda: None, lambda: 1000)  # seen again: launched eagerly, not from the dropped graph
     assert cache.replays == 0 and len(launched) == 3
     run_twice("unsorted", 0)
     assert grown == [2000, 10000] and len(cache._graphs) == 2
@@ -104,5 +104,5 @@ def test_a_failed_scratch_reservation_falls_back_to_eager_launches(monkeypatch):
     issued = []
     with pytest.warns(RuntimeWarning, match="rendering without graphs"):
         for _ in range(2):
-            cache.run("key", [], lambda: issued.append(1), 1000)
+            cache.run("key", [], lambda: issued.append(1), lambda: 1000)
     assert issued == [1, 1] and cache.broken and cache.captures == 0

@@ -41,11 +41,11 @@ class GraphCache:
     def enabled(self) -> bool:
         return GRAPHS_ENABLED and self.device.is_cuda and not self.broken
 
-    def run(self, key: tuple, referents: list, issue, largest_sort: int = 0) -> None:
+    def run(self, key: tuple, referents: list, issue, largest_sort=lambda: 0) -> None:
         """Runs `issue()` (launches only: no allocation, no host sync) as a graph when `key` came before, else
-        eagerly. `referents`: the objects whose ids the key holds, kept alive with it. largest_sort: the most
-        items one radix sort of `issue` sorts (0: none). Must be called with the caller's stream current on the
-        device."""
+        eagerly. `referents`: the objects whose ids the key holds, kept alive with it. largest_sort(): the most
+        items one radix sort of `issue` sorts (0: none), asked only when capturing. Must be called with the
+        caller's stream current on the device."""
         stream = self.device.stream
         hit = self._graphs.get(key)
         if hit is not None:
@@ -96,9 +96,9 @@ class GraphCache:
             wp.synchronize_stream(stream)  # before the arrays go (rare: the scratch at least doubles)
             del keys, values
 
-    def _capture(self, issue, largest_sort: int = 0):
+    def _capture(self, issue, largest_sort):
         try:
-            self.reserve_sorts(largest_sort)
+            self.reserve_sorts(largest_sort())
             stream = self._capture_stream()
             with wp.ScopedStream(stream, sync_enter=False):
                 with wp.ScopedCapture(device=self.device, stream=stream) as capture:

@@ -308,7 +308,7 @@ class LaunchSequence:
         else:
             self._host, host_np = ws.pinned_ints(self._read_size) if host is None else (host, None)
             if not self.immediate and ws.graphs.enabled():
-                ws.graphs.run(*self._key(), self._issue, self._largest_sort())
+                ws.graphs.run(*self._key(), self._issue, self._largest_sort)
             else:
                 self._issue()
             if host is not None:
