@@ -21,6 +21,7 @@ import torch
 from common import print_table, standard_scenes_module, sync, write_json
 from raster import gsplat_calls, round_ratio_se, warpgs_calls
 from variants import describe, variant
+from warpgs.render.device_state import device_state
 
 
 def camera_path(viewmat: torch.Tensor, count: int, step: float = 0.02) -> list:
@@ -113,7 +114,9 @@ def main(argv=None):
     print_table(rows, columns)
     meta = dict(device=args.device, gpu=torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
                 rounds=args.rounds, scenes="shared/bench/scenes.py random_scene", path="raster_views.camera_path",
-                call="rasterize(...) defaults, outputs rgb, alpha, depth")
+                call="rasterize(...) defaults, outputs rgb, alpha, depth",
+                # forward-only renders sorted ahead of their count, and those of them sorted again (pair_sort "ahead")
+                pair_rooms=device_state(torch.device(args.device)).ws.pair_rooms.stats())
     path = write_json(args.out_name or f"raster_views_{args.device.split(':')[0]}", dict(meta=meta, rows=rows))
     print(f"wrote {path}")
     return rows

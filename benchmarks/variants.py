@@ -4,8 +4,8 @@ A variant is `default` (whatever the WARPGS_* variables select) or `fast`, then 
 `fast+bwd=block`, `fast+sbwd=scatter`, `fast+det=on`, `fast+keys=full`, `fast+psort=exact`. Keys: bwd (the 3D GPU
 adjoint: scatter, warp_sums, block), sbwd (the surfel GPU adjoint: warp_sums, scatter, block), det (the deterministic
 adjoint: on, off; a no-op for the CPU's per-thread kernels, deterministic anyway), keys (the GPU tile-key emission's
-search: table, full), padj (the 3D projection's adjoint: written, generated), psort (the GPU pair sort after the
-count's read: padded, exact); see warpgs/render/defaults.py.
+search: table, full), padj (the 3D projection's adjoint: written, generated), psort (the GPU pair sort: ahead,
+padded, exact); see warpgs/render/defaults.py.
 """
 from __future__ import annotations
 

@@ -24,6 +24,8 @@ VARIANTS = {  # name: (environment, test files)
                    "test_absgrad.py"]),
     # the tile-key emission's full search (raster option pair_search; the default narrows it): the op against its oracle
     "pair_full": ({"WARPGS_PAIR_SEARCH": "full"}, ["test_raster_fast_path.py", "test_binning.py"]),
+    # forward-only renders sorting their pairs ahead of their count (the GPU default; needs the cooperative kernels)
+    "sort_ahead": ({}, ["test_sort_ahead.py"]),
     "block": ({"WARPGS_BWD_KERNEL": "block", "WARPGS_BLOCK_REDUCE": "1"},
               ["test_raster_gradients.py",
                "test_raster_knobs.py::test_gaussians_gradients_follow_reference_at_other_thresholds",

@@ -81,8 +81,12 @@ PAIR_SEARCHES = ("table", "full")
 # The tile-pair sort of a GPU render that reads its pair count ("table" search): "padded" sorts a room of the count
 # rounded up to a sixteenth of its leading power of two, sentinels past the pairs (tile_binning.padded_capacity), so
 # renders of nearby views launch the same sequence and it replays as one CUDA graph; "exact" sorts the count itself
-# with its launches issued one by one. Same pairs in the same order (tests/test_binning.py).
-PAIR_SORTS = ("padded", "exact")
+# with its launches issued one by one. "ahead": as "padded", but a forward-only render (no backward follows) sorts
+# into a room sized from earlier such renders before its count is read, and checks the count while the GPU blends
+# (tile_binning.AheadSort; a render whose pairs did not fit is sorted and blended again): the GPU does not wait for
+# the host between the count and the blend. Same pairs in the same order (tests/test_binning.py,
+# tests/test_sort_ahead.py).
+PAIR_SORTS = ("ahead", "padded", "exact")
 PROJECT_ADJOINTS = ("written", "generated")
 
 
@@ -96,7 +100,7 @@ class RasterOptions:
     deterministic: bool = os.environ.get("WARPGS_DETERMINISTIC", "0") == "1"
     pair_search: str = os.environ.get("WARPGS_PAIR_SEARCH", "table")  # both give the same keys (tests/test_binning.py)
     project_adjoint: str = os.environ.get("WARPGS_PROJECT_ADJOINT", "written")  # tests/test_project_adjoint.py
-    pair_sort: str = os.environ.get("WARPGS_PAIR_SORT", "padded")
+    pair_sort: str = os.environ.get("WARPGS_PAIR_SORT", "ahead")
     # GPU renders size their tile-pair sort from earlier calls' counts instead of waiting for their own
     # (render/pair_room.py); a render that did not fit says so in out.pairs_overflowed. Set per call (rasterize,
     # rasterize_surfels).

@@ -33,7 +33,8 @@ from warpgs.render.defaults import DEPTH_EPS, PER_WARP_ADJOINTS, current_raster_
 from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params, projection_color_mode)
-from warpgs.render.tile_binning import Keep, _stage, bin_into_tiles, launch_sequence, pair_order
+from warpgs.render.tile_binning import (Keep, _stage, bin_into_tiles, forward_only_sort, launch_sequence, pair_order,
+                                        settle_ahead)
 from warpgs.render.workspace import LaunchSequence, Workspace
 
 
@@ -125,9 +126,10 @@ def bin_and_blend(ws: Workspace, s: Settings, want: Wanted, projected, opacities
     n = int(depths.shape[0])
     L = ws.launches
     per_call = keep if keep is not None else ws
+    ahead = forward_only_sort(keep, overflow)
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "footprints", binning.tile_footprints, [means2d, cov2d, opacities, valid], depths, s, per_call,
-        on_stage, sequence=sequence, overflow=None if deterministic else overflow)
+        on_stage, sequence=sequence, overflow=None if deterministic else overflow, ahead=ahead)
     pairs = pair_order(ws, s, keep, n, total, sorted_ids) if deterministic else None
 
     npix = s.width * s.height
@@ -135,15 +137,20 @@ def bin_and_blend(ws: Workspace, s: Settings, want: Wanted, projected, opacities
     last = per_call("last", npix, wp.int32)
     color, alpha, depth, inv_depth, out_features, expected_depth = outputs
     kernel, block_dim = _blend_kernel(dev, s, want, backward=False)
-    head = [tile_start, tile_end, sorted_ids, means2d, conics, opacities, colors, depths, features, q_cut]
     tail = [color, transmittance, alpha, depth, expected_depth, inv_depth, out_features, last]
 
-    def work(thread, chunks):  # each chunk writes only its own pixels
-        for c, (first, count) in enumerate(chunks):
-            L.launch(("blend_fwd", thread, c), kernel, count * s.tile_size**2,
-                     head + [_params(ws, s, want, first, DEPTH_EPS)] + tail, block_dim)
+    def blend(tile_start, tile_end, sorted_ids):
+        head = [tile_start, tile_end, sorted_ids, means2d, conics, opacities, colors, depths, features, q_cut]
 
-    run_threads(work, _tile_launches(s, dev))
+        def work(thread, chunks):  # each chunk writes only its own pixels
+            for c, (first, count) in enumerate(chunks):
+                L.launch(("blend_fwd", thread, c), kernel, count * s.tile_size**2,
+                         head + [_params(ws, s, want, first, DEPTH_EPS)] + tail, block_dim)
+
+        run_threads(work, _tile_launches(s, dev))
+
+    blend(tile_start, tile_end, sorted_ids)
+    total, tile_start, sorted_ids = settle_ahead(ahead, total, tile_start, sorted_ids, blend)
     _stage(on_stage, "blend forward")
     return Frame(n=n, total=total, means2d=means2d, conics=conics, depths=depths, colors=colors, q_cut=q_cut,
                  tile_start=tile_start, sorted_ids=sorted_ids, transmittance=transmittance, last=last,

@@ -21,7 +21,8 @@ from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, InputCheck, TileFr
 from warpgs.render.pair_adjoint import choose_kernel
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
-from warpgs.render.tile_binning import Keep, _stage, bin_into_tiles, launch_sequence, pair_order
+from warpgs.render.tile_binning import (Keep, _stage, bin_into_tiles, forward_only_sort, launch_sequence, pair_order,
+                                        settle_ahead)
 from warpgs.render.workspace import Workspace
 
 # Blended images in the order the torch ops return them (and take their gradients): (name, channels, Warp dtype).
@@ -100,10 +101,11 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     if check is not None:
         add_input_check(ws, seq, n, check)
     _stage(None, "surfel project")
+    ahead = forward_only_sort(keep, overflow)
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "surfel_footprints", surfel_project.surfel_footprints,
         [transforms, means2d, opacities, valid, 1.0 / (s.screen_sigma * s.screen_sigma), s.near], depths,
-        s, per_call, sequence=seq, overflow=None if deterministic else overflow)
+        s, per_call, sequence=seq, overflow=None if deterministic else overflow, ahead=ahead)
     pairs = pair_order(ws, s, keep, n, total, sorted_ids) if deterministic else None
 
     npix = s.width * s.height
@@ -113,17 +115,22 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     dist_stats = per_call("dist_stats", npix, wp.vec3) if want.distortion else ws.dummy(wp.vec3)
     color, alpha, depth, inv_depth, normal, median, distortion, out_features, expected_depth = outputs
     kernel, block_dim = _blend_kernel(ws.device, s, want, backward=False)
-    head = [tile_start, tile_end, sorted_ids, transforms, means2d, depths, opacities, colors, normals, features,
-            q_cut]
     tail = [color, transmittance, alpha, depth, expected_depth, inv_depth, normal, median, median_index, distortion,
             dist_stats, out_features, last]
 
-    def work(thread, chunks):  # each chunk writes only its own pixels
-        for c, (first, count) in enumerate(chunks):
-            L.launch(("surfel_blend_fwd", thread, c), kernel, count * s.tile_size**2,
-                     head + [_params(ws, s, want, first, DEPTH_EPS)] + tail, block_dim)
+    def blend(tile_start, tile_end, sorted_ids):
+        head = [tile_start, tile_end, sorted_ids, transforms, means2d, depths, opacities, colors, normals, features,
+                q_cut]
 
-    run_threads(work, _tile_launches(s, ws.device))
+        def work(thread, chunks):  # each chunk writes only its own pixels
+            for c, (first, count) in enumerate(chunks):
+                L.launch(("surfel_blend_fwd", thread, c), kernel, count * s.tile_size**2,
+                         head + [_params(ws, s, want, first, DEPTH_EPS)] + tail, block_dim)
+
+        run_threads(work, _tile_launches(s, ws.device))
+
+    blend(tile_start, tile_end, sorted_ids)
+    total, tile_start, sorted_ids = settle_ahead(ahead, total, tile_start, sorted_ids, blend)
     _stage(None, "surfel blend forward")
     return SurfelFrame(n=n, total=total, transforms=transforms, means2d=means2d, depths=depths, normals=normals,
                        colors=colors, q_cut=q_cut, tile_start=tile_start, sorted_ids=sorted_ids,

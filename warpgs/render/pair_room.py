@@ -23,6 +23,9 @@ from typing import Optional
 import warp as wp
 
 HEADROOM = 1.3  # views of one scene differ in pairs; densification grows them between visits
+# Forward-only renders that sort ahead of their count (tile_binning.AheadSort) redo an overflow instead of dropping a
+# step, and sort every slot of the room: less headroom (a moving camera's counts change a few percent a view).
+AHEAD_HEADROOM = 1.1
 WINDOW = 64  # calls remembered
 SIZES_PER_DOUBLING = 8  # room sizes are 2^(k/8): at most 9% above what the rule asks for
 MIN_ROOM = 1024
@@ -40,8 +43,9 @@ class PairRoom:
     has been seen (the first call then sizes exactly, with its sync). `overflows` / `speculative_calls` count the calls
     whose pairs did not fit and all calls sized from the room, for benchmarks and the trainer's report."""
 
-    def __init__(self):
+    def __init__(self, headroom: float = HEADROOM):
         self.capacity = 0
+        self.headroom = headroom
         self.recent: deque = deque(maxlen=WINDOW)
         self.overflows = 0
         self.speculative_calls = 0
@@ -52,7 +56,7 @@ class PairRoom:
     def observe(self, total: int) -> None:
         """A call's exact pair count: the room follows the recent largest."""
         self.recent.append(int(total))
-        self.capacity = room_size(max(self.recent) * HEADROOM)
+        self.capacity = room_size(max(self.recent) * self.headroom)
 
     def settle(self) -> None:
         """Reads the last speculative call's count (waiting on its event, normally long passed) and notes an
@@ -91,15 +95,17 @@ class PairRoom:
 
 
 class PairRooms:
-    """A workspace's rooms, one per (primitive kind, width, height, tile size)."""
+    """A workspace's rooms, one per (primitive kind, width, height, tile size), and one more per such key for
+    forward-only renders that sort ahead of their count (their counts, e.g. evaluation's, do not size training's
+    room)."""
 
     def __init__(self):
         self.rooms: dict = {}
 
-    def room(self, key: tuple) -> PairRoom:
+    def room(self, key: tuple, headroom: float = HEADROOM) -> PairRoom:
         room = self.rooms.get(key)
         if room is None:
-            room = self.rooms[key] = PairRoom()
+            room = self.rooms[key] = PairRoom(headroom)
         return room
 
     def stats(self) -> dict:

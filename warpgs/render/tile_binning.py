@@ -7,17 +7,20 @@ Sorting takes two passes: the primitives by depth, then their tile pairs by tile
 the pair sort: read back with one host sync (`sort_into_tiles`; on GPUs the sort then runs in a room of the count
 padded to a sixteenth of its leading power of two, `padded_capacity`, so nearby views replay one CUDA graph), or, for
 a speculative call, not read at all: the pairs go into a room sized from earlier counts (`sort_into_room`,
-pair_room.py). Both rooms are queued by `queue_room_sort`.
+pair_room.py). A forward-only render (no backward follows) sorts ahead: into a room sized from earlier such renders,
+queued with the blend before its count is read; the count is then checked while the GPU blends, and a render whose
+pairs did not fit is sorted again exactly and blended again (`AheadSort`). The rooms are queued by `queue_room_sort`.
 """
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import Callable, Optional, Tuple
 
 import warp as wp
 
 from warpgs.kernels import binning, pair_sums
 from warpgs.render.defaults import current_raster_options
 from warpgs.render.pair_adjoint import PairOrder
+from warpgs.render.pair_room import AHEAD_HEADROOM, PairRoom
 from warpgs.render.pipeline_gaussians import Settings, _cooperative
 from warpgs.render.workspace import LaunchSequence, Workspace
 
@@ -31,7 +34,7 @@ SPECULATE_ON_CPU = False
 
 def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, depths, s: Settings, per_call,
                    on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None,
-                   overflow=None):
+                   overflow=None, ahead: Optional["AheadSort"] = None):
     """Every primitive kind's binning: its footprint kernel (inputs `footprint_inputs`, then the image and blend
     settings, writing tile rectangles, tile counts and cut-offs) and `sort_into_tiles`. Returns (counts, q_cut,
     total, tile_start, tile_end, sorted_ids); counts lives in the workspace, q_cut comes from `per_call`.
@@ -46,19 +49,22 @@ def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, 
                                          rects, counts, q_cut])
     _stage(on_stage, key)
     return (counts, q_cut) + sort_into_tiles(ws, rects, counts, depths, s, per_call, on_stage, seq, overflow,
-                                             kind=key)
+                                             kind=key, ahead=ahead)
 
 
 def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
                     on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None,
-                    overflow=None, kind: str = "footprints"):
+                    overflow=None, kind: str = "footprints", ahead: Optional["AheadSort"] = None):
     """(total, tile_start, tile_end, sorted_ids): the (tile, primitive) pairs sorted by tile, then depth, then
     primitive index, and every tile's [start, end) range. tile_start and sorted_ids come from `per_call`.
     sequence: launches queued ahead; everything up to the tile-pair count's read runs with them.
     overflow: a 1-element int32 array, to bin speculatively: on a GPU whose workspace has seen a count of this
     primitive kind (`kind`, its footprint kernel's key) at this image and tile size (and with no input checks
     queued), the pairs are sorted into that room (pair_room.py) without a host sync, total comes back as -1 and
-    overflow[0] says whether pairs were dropped; otherwise the exact path runs and writes 0."""
+    overflow[0] says whether pairs were dropped; otherwise the exact path runs and writes 0.
+    ahead: an empty AheadSort from a render no backward follows: with the pair_sort option "ahead", on a GPU whose
+    workspace has seen such a render of this kind and size, the pairs are sorted into that room without reading
+    the count first; total comes back as -1 and `ahead` holds the pending count (AheadSort.settle)."""
     dev = ws.device
     L = ws.launches
     n = int(counts.shape[0])
@@ -78,18 +84,31 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     if room is not None and (dev.is_cuda or SPECULATE_ON_CPU) and room.capacity > 0 and not seq.has_checks():
         return sort_into_room(ws, room, rects, counts, s, per_call, seq, order, offsets, tile_start, tile_end,
                               overflow, on_stage)
+    options = current_raster_options()
+    ahead_room = None
+    if ahead is not None and options.pair_sort == "ahead" and _cooperative(dev) and (dev.is_cuda or SPECULATE_ON_CPU):
+        ahead_room = ws.pair_rooms.room((kind, s.width, s.height, s.tile_size, "ahead"), AHEAD_HEADROOM)
+        if ahead_room.capacity > 0:
+            sorted_ids = queue_room_sort(ws, seq, ahead_room.capacity, rects, order, offsets, counts, s, per_call,
+                                         tile_start, tile_end)
+            at = seq.read_ints(offsets, n - 1)
+            ahead.queue(seq.run_deferred(), at, ahead_room,
+                        lambda: sort_into_tiles(ws, rects, counts, depths, s, per_call, kind=kind))
+            _stage(on_stage, "sort: ahead of the count")
+            return -1, tile_start, tile_end, sorted_ids
     at = seq.read_ints(offsets, n - 1)
     total = seq.run()[at]  # the one host sync: sizes the pair buffers (and raises for flagged input)
     if room is not None:  # only speculative callers' counts size the room (not evaluation's or a viewer's)
         room.observe(total)
         L.launch("pair_overflow", binning.pair_overflow, 1, [offsets, n, total, overflow])
+    if ahead_room is not None:  # a forward-only render's first at this size: the next one sorts ahead
+        ahead_room.observe(total)
     _stage(on_stage, "sort: prefix sum + sync")
     if total == 0:
         tile_start.zero_()
         tile_end.zero_()
         return 0, tile_start, tile_end, per_call("sorted_ids", 2, wp.int32)
-    options = current_raster_options()
-    if _cooperative(dev) and options.pair_search == "table" and options.pair_sort == "padded":
+    if _cooperative(dev) and options.pair_search == "table" and options.pair_sort != "exact":
         # a thread per (primitive, tile) pair (balanced across the GPU), its primitive found by a binary search
         # narrowed by a coarse table of every 32nd pair's slot; sized to a padded count, so that renders whose
         # counts differ a little (a moving camera) launch the same sequence: one CUDA graph instead of ten launches
@@ -134,6 +153,53 @@ def sort_into_room(ws: Workspace, room, rects, counts, s: Settings, per_call, se
     ws.launches.launch("pair_overflow", binning.pair_overflow, 1, [offsets, n, capacity, overflow])
     _stage(on_stage, "sort: speculative room")
     return -1, tile_start, tile_end, sorted_ids
+
+
+class AheadSort:
+    """A forward-only render's tile-pair sort, queued into a room before its count is read (sort_into_tiles'
+    `ahead`). The render queues its blend, then `settle`s: the host waits for the count's copy only (the GPU is
+    blending meanwhile) and a render whose pairs did not fit the room is sorted again, exactly."""
+
+    def __init__(self):
+        self.pending = False
+        self._collect = self._at = self._room = self._redo = self._capacity = None
+
+    def queue(self, collect: Callable[[], list], at: int, room: PairRoom, redo: Callable[[], tuple]) -> None:
+        """collect(): the sequence's values (LaunchSequence.run_deferred), the count at index `at`; redo(): the exact
+        sort, (total, tile_start, tile_end, sorted_ids)."""
+        self.pending = True
+        self._collect, self._at, self._room, self._redo = collect, at, room, redo
+        self._capacity = room.capacity  # what the queued sort holds
+        room.speculative_calls += 1
+
+    def settle(self) -> Tuple[int, Optional[tuple]]:
+        """(the pair count, None) when the pairs fit the room, else (the count, redo()'s result: blend again with
+        it). Raises for flagged input (the sequence's checks)."""
+        self.pending = False
+        total = int(self._collect()[self._at])
+        self._room.observe(total)
+        if total <= self._capacity:
+            return total, None
+        self._room.overflows += 1
+        return total, self._redo()
+
+
+def forward_only_sort(keep: Optional[Keep], overflow) -> Optional[AheadSort]:
+    """An empty AheadSort for a render no backward follows (keep None) that is not speculative itself (overflow
+    None); sort_into_tiles decides whether it sorts ahead (the option, the device, a room seen before)."""
+    return AheadSort() if keep is None and overflow is None else None
+
+
+def settle_ahead(ahead: Optional[AheadSort], total: int, tile_start, sorted_ids, blend):
+    """After a render queued its blend(tile_start, tile_end, sorted_ids): its (total, tile_start, sorted_ids), the
+    count read now when it sorted ahead, and sorted and blended again when its pairs did not fit."""
+    if ahead is None or not ahead.pending:
+        return total, tile_start, sorted_ids
+    total, redone = ahead.settle()
+    if redone is not None:
+        total, tile_start, tile_end, sorted_ids = redone
+        blend(tile_start, tile_end, sorted_ids)
+    return total, tile_start, sorted_ids
 
 
 def queue_room_sort(ws: Workspace, seq: LaunchSequence, capacity: int, rects, order, offsets, counts, s: Settings,

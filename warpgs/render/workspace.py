@@ -298,24 +298,54 @@ class LaunchSequence:
             return
         self._run(host)
 
+    def run_deferred(self):
+        """Issues the sequence and its reads without waiting for them; returns collect(), which waits for the reads
+        only (not for work queued after them: the GPU keeps busy meanwhile), runs the checks and returns the
+        values as `run` would."""
+        ws = self.ws
+        if ws.device.is_cpu:
+            values = self._host_values()
+            return lambda: self._checked(values)
+        host_np = self._issue_on_gpu(None)
+        event = ws.memo("read_event", lambda: wp.Event(ws.device))
+        ws.device.stream.record_event(event)
+
+        def collect() -> list:
+            wp.synchronize_event(event)
+            return self._checked(host_np[: self._read_size].tolist())
+        return collect
+
     def _run(self, host) -> list:
         ws = self.ws
         if ws.device.is_cpu:
-            self._issue()
-            values = []
-            for a, index, count, _ in self.reads:  # zero-copy views of host memory
-                values.extend(ws.host_view(a)[index: index + count].tolist())
+            return self._checked(self._host_values())
+        host_np = self._issue_on_gpu(host)
+        if host is not None:
+            return []
+        if self.reads:
+            wp.synchronize_stream(ws.device.stream)
+        return self._checked(host_np[: self._read_size].tolist())  # Python ints
+
+    def _host_values(self) -> list:
+        """The CPU: issues the sequence and returns the values read (zero-copy views of host memory)."""
+        self._issue()
+        values = []
+        for a, index, count, _ in self.reads:
+            values.extend(self.ws.host_view(a)[index: index + count].tolist())
+        return values
+
+    def _issue_on_gpu(self, host):
+        """Issues the sequence (as a CUDA graph when it came before) with its reads copied into `host`, or (None)
+        into the workspace's pinned ints, whose numpy view it returns."""
+        ws = self.ws
+        self._host, host_np = ws.pinned_ints(self._read_size) if host is None else (host, None)
+        if not self.immediate and ws.graphs.enabled():
+            ws.graphs.run(*self._key(), self._issue, self._largest_sort)
         else:
-            self._host, host_np = ws.pinned_ints(self._read_size) if host is None else (host, None)
-            if not self.immediate and ws.graphs.enabled():
-                ws.graphs.run(*self._key(), self._issue, self._largest_sort)
-            else:
-                self._issue()
-            if host is not None:
-                return []
-            if self.reads:
-                wp.synchronize_stream(ws.device.stream)
-            values = host_np[: self._read_size].tolist()  # Python ints
+            self._issue()
+        return host_np
+
+    def _checked(self, values: list) -> list:
         for check in self._checks:
             check(values)
         return values
