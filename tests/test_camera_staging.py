@@ -8,6 +8,7 @@ import torch
 from random_scenes import look_at
 from raster_helpers import DEVICE, op_for, op_leaves as _leaves, op_scene as _scene
 from warpgs.render import device_state, validation, workspace
+from warpgs.render.defaults import raster_options
 
 
 def _camera(eye):
@@ -45,13 +46,16 @@ def test_the_launch_sequence_key_does_not_change_with_the_camera(monkeypatch, su
     device_state.release_workspaces()
     s = _scene()
     leaves = [t.detach() for t in _leaves(s, surfels)]
-    for eye, zoom, grey in (((0.3, -0.2, -4.0), 1.0, 0.2), ((-0.5, 0.1, -3.5), 1.1, 0.6)):
-        # a background that wants a gradient while the Gaussians do not: the op runs without autograd
-        background = torch.full((3,), grey, device=DEVICE, requires_grad=True)
-        _forward(s, leaves, _camera(eye), _K(s, zoom), surfels, background)
+    # the exact pair sort: the launches up to the sync are each render's one sequence (the GPU's other pair sorts
+    # add a sequence sized by the count, which differs between the views)
+    with raster_options(pair_sort="exact"):
+        for eye, zoom, grey in (((0.3, -0.2, -4.0), 1.0, 0.2), ((-0.5, 0.1, -3.5), 1.1, 0.6)):
+            # a background that wants a gradient while the Gaussians do not: the op runs without autograd
+            background = torch.full((3,), grey, device=DEVICE, requires_grad=True)
+            _forward(s, leaves, _camera(eye), _K(s, zoom), surfels, background)
     assert len(keys) == 2 and keys[0] == keys[1]
-    staged = device_state.device_state(leaves[0].device)._staged["background"]
-    assert staged.grad_fn is None and not staged.requires_grad  # no autograd chain through the staged copy
+    staged = [buf for buf, _ in device_state.device_state(leaves[0].device)._staged.values()]
+    assert staged and all(b.grad_fn is None and not b.requires_grad for b in staged)  # no autograd chain through them
 
 
 @pytest.mark.parametrize("surfels", [False, True])

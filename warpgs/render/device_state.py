@@ -1,10 +1,10 @@
 """Per (thread, device, torch stream) state of the render ops: the Warp device and the Warp view of torch's stream,
 the workspace (render/workspace.py: scratch buffers, recorded launches, CUDA graphs), descriptors and array views of
-tensors memoised by address, and the small buffers each call's camera is copied into (`staged`)."""
+tensors memoised by address, and the buffer each call's camera is copied into (`staged_together`)."""
 from __future__ import annotations
 
 import threading
-from typing import Dict, Optional
+from typing import Dict
 
 import torch
 import warp as wp
@@ -38,18 +38,28 @@ class DeviceState:
             d = self._descs[key] = _desc(t, dtype)
         return d
 
-    def staged(self, name: str, t: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
-        """t copied into this state's own buffer `name` (made once per shape and dtype, then rewritten in stream
-        order). A render's camera changes every training step; read from fixed buffers it leaves the launch
-        sequence's key (workspace.LaunchSequence) unchanged, so the sequence replays from its CUDA graph."""
-        if t is None:
-            return None
-        buf = self._staged.get(name)
-        if buf is None or buf.shape != t.shape or buf.dtype != t.dtype:
+    def staged_together(self, parts) -> list:
+        """`staged` for several small tensors at once (a render's camera: viewmat, intrinsics, K, background), all
+        float32 on one device: one copy (a concatenation) into one buffer per layout instead of a copy each. Returns
+        views of the buffer shaped like `parts`, the same view objects every call (their descriptors memoise)."""
+        layout = tuple(tuple(t.shape) for t in parts)
+        hit = self._staged.get(layout)
+        if hit is None:
+            numels = [t.numel() for t in parts]
             with torch.inference_mode(False):  # made under inference_mode, a later render outside it could not write it
-                buf = self._staged[name] = torch.empty(t.shape, dtype=t.dtype, device=t.device)
-        buf.copy_(t.detach())  # the values only: a copy that autograd records would chain every render's graph to it
-        return buf
+                buf = torch.empty(sum(numels), dtype=torch.float32, device=parts[0].device)
+            views, at = [], 0
+            for shape, k in zip(layout, numels):
+                views.append(buf[at: at + k].view(shape))
+                at += k
+            hit = self._staged[layout] = (buf, views)
+        flat = [t.reshape(-1) for t in parts]
+        if torch.is_grad_enabled():  # the values only: a copy that autograd records would chain every render's graph
+            with torch.no_grad():
+                torch.cat(flat, out=hit[0])
+        else:
+            torch.cat(flat, out=hit[0])
+        return hit[1]
 
     def tensor(self, a: wp.array) -> torch.Tensor:
         """wp.to_torch(a), memoised like `desc` (for workspace views read every call)."""

@@ -234,14 +234,18 @@ def image_outputs(state: "DeviceState", like: torch.Tensor, settings, wanted, la
 
 
 def staged_camera(state: "DeviceState", viewmat: torch.Tensor, intrinsics: torch.Tensor, check):
-    """(viewmat, intrinsics, check) as the forward's launch sequence reads them: copied into the state's own buffers
-    (`DeviceState.staged`), so the sequence's key does not change with the view. check: None, or the caller's
-    (features, K, background), K and background staged. The backward reads the caller's tensors (saved by the op):
-    the buffers are rewritten by the next render."""
-    if check is not None:
-        features, K, background = check
-        check = (features, state.staged("K", K), state.staged("background", background))
-    return state.staged("viewmat", viewmat), state.staged("intrinsics", intrinsics), check
+    """(viewmat, intrinsics, check) as the forward's launch sequence reads them: copied, in one copy, into a buffer
+    of the state's own (`DeviceState.staged_together`), so the sequence's key does not change with the view. check:
+    None, or the caller's (features, K, background), K and background staged too. The backward reads the caller's
+    tensors (saved by the op): the buffer is rewritten by the next render."""
+    if check is None:
+        return tuple(state.staged_together((viewmat, intrinsics))) + (None,)
+    features, K, background = check
+    if background is None:
+        view, intr, K = state.staged_together((viewmat, intrinsics, K))
+    else:
+        view, intr, K, background = state.staged_together((viewmat, intrinsics, K, background))
+    return view, intr, (features, K, background)
 
 
 def input_check(state: "DeviceState", primitives, viewmat: torch.Tensor, extra, alive: list) -> fast.InputCheck:
