@@ -1,6 +1,6 @@
-"""Forward-only renders that sort their tile pairs ahead of their count (raster option pair_sort "ahead", the default;
-tile_binning.AheadSort): the same images and count as the padded sort when the pairs fit the room, the same again
-after a redo when they do not, input errors still raised, and renders a backward follows never sort ahead.
+"""Renders that sort their tile pairs ahead of their count (raster option pair_sort "ahead", the default;
+tile_binning.AheadSort): the same images, count and gradients as the padded sort when the pairs fit the room, the
+same again after a redo when they do not, input errors still raised; deterministic renders never sort ahead.
 
 GPUs run these kernels; on the CPU they run with WARPGS_CPU_COOPERATIVE=1 (test_raster_gpu_kernels_on_cpu.py's
 "sort_ahead" variant runs this file so) and tile_binning.SPECULATE_ON_CPU: the per-thread CPU kernels never sort
@@ -116,10 +116,43 @@ def test_non_finite_input_is_still_named_when_sorted_ahead(rooms, kind, monkeypa
     assert _ahead_room(rooms, kind).speculative_calls == 1  # it did sort ahead, and still raised
 
 
-def test_renders_a_backward_follows_never_sort_ahead(rooms):
-    scene = random_scene(n=300, width=W, height=H, num_features=1, seed=25)
-    for _ in range(3):
-        out = _render(scene, "gaussians", grad=True)
-        out.rgb.sum().backward()
-        assert out.num_intersections > 0
+@pytest.mark.parametrize("kind", ["gaussians", "surfels"])
+def test_a_render_a_backward_follows_sorts_ahead_with_the_same_gradients(rooms, kind):
+    scene = random_scene(n=300, width=W, height=H, sh_degree=1, num_features=3, seed=25)
+    room = _ahead_room(rooms, kind)
+
+    def render_and_grads(overflow=False):
+        tensors = {k: scene[k].detach().float().to(DEVICE).requires_grad_(True)
+                   for k in ("means", "quats", "scales", "opacities", "colors", "features")}
+        if kind == "surfels":
+            tensors["scales"] = tensors["scales"].detach()[:, :2].contiguous().requires_grad_(True)
+        render = rasterize if kind == "gaussians" else rasterize_surfels
+        if overflow:
+            room.capacity = max(room.capacity // 3, 1)
+        out = render(*(tensors[k] for k in ("means", "quats", "scales", "opacities", "colors")),
+                     scene["viewmat"].float().to(DEVICE), scene["K"].float().to(DEVICE), W, H,
+                     sh_degree=scene["sh_degree"], features=tensors["features"], outputs=OUTPUTS[kind], tile_size=TILE)
+        g = torch.Generator().manual_seed(3)
+        sum((getattr(out, o) * torch.randn(getattr(out, o).shape, generator=g).to(DEVICE)).sum()
+            for o in OUTPUTS[kind]).backward()
+        return out, {k: t.grad for k, t in tensors.items()}
+
+    with raster_options(pair_sort="padded"):
+        ref, ref_grads = render_and_grads()
+    render_and_grads()  # seeds the room
+    for overflow in (False, True):
+        out, grads = render_and_grads(overflow)
+        _assert_same(out, ref, kind)
+        for name, g in ref_grads.items():  # the CPU's atomics add in thread order: to float32 rounding
+            assert torch.allclose(g, grads[name], rtol=1e-5, atol=2e-6 * float(g.abs().max())), name
+    assert room.speculative_calls == 2 and room.overflows == 1
+
+
+def test_deterministic_renders_never_sort_ahead(rooms):
+    scene = random_scene(n=300, width=W, height=H, num_features=1, seed=26)
+    with raster_options(deterministic=True):
+        for _ in range(3):
+            out = _render(scene, "gaussians", grad=True)
+            out.rgb.sum().backward()
+            assert out.num_intersections > 0
     assert _ahead_room(rooms, "gaussians").speculative_calls == 0 and _ahead_room(rooms, "gaussians").capacity == 0

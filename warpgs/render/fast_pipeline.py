@@ -33,7 +33,7 @@ from warpgs.render.defaults import DEPTH_EPS, PER_WARP_ADJOINTS, current_raster_
 from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params, projection_color_mode)
-from warpgs.render.tile_binning import (Keep, _stage, bin_into_tiles, forward_only_sort, launch_sequence, pair_order,
+from warpgs.render.tile_binning import (Keep, _stage, bin_into_tiles, sort_ahead_for, launch_sequence, pair_order,
                                         settle_ahead)
 from warpgs.render.workspace import LaunchSequence, Workspace
 
@@ -126,7 +126,7 @@ def bin_and_blend(ws: Workspace, s: Settings, want: Wanted, projected, opacities
     n = int(depths.shape[0])
     L = ws.launches
     per_call = keep if keep is not None else ws
-    ahead = forward_only_sort(keep, overflow)
+    ahead = sort_ahead_for(overflow, deterministic)
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "footprints", binning.tile_footprints, [means2d, cov2d, opacities, valid], depths, s, per_call,
         on_stage, sequence=sequence, overflow=None if deterministic else overflow, ahead=ahead)

@@ -21,7 +21,7 @@ from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, InputCheck, TileFr
 from warpgs.render.pair_adjoint import choose_kernel
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
-from warpgs.render.tile_binning import (Keep, _stage, bin_into_tiles, forward_only_sort, launch_sequence, pair_order,
+from warpgs.render.tile_binning import (Keep, _stage, bin_into_tiles, sort_ahead_for, launch_sequence, pair_order,
                                         settle_ahead)
 from warpgs.render.workspace import Workspace
 
@@ -101,7 +101,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     if check is not None:
         add_input_check(ws, seq, n, check)
     _stage(None, "surfel project")
-    ahead = forward_only_sort(keep, overflow)
+    ahead = sort_ahead_for(overflow, deterministic)
     counts, q_cut, total, tile_start, tile_end, sorted_ids = bin_into_tiles(
         ws, "surfel_footprints", surfel_project.surfel_footprints,
         [transforms, means2d, opacities, valid, 1.0 / (s.screen_sigma * s.screen_sigma), s.near], depths,

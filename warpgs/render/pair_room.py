@@ -23,8 +23,8 @@ from typing import Optional
 import warp as wp
 
 HEADROOM = 1.3  # views of one scene differ in pairs; densification grows them between visits
-# Forward-only renders that sort ahead of their count (tile_binning.AheadSort) redo an overflow instead of dropping a
-# step, and sort every slot of the room: less headroom (a moving camera's counts change a few percent a view).
+# Renders that sort ahead of their count (tile_binning.AheadSort) redo an overflow instead of dropping a step, and sort
+# every slot of the room: less headroom (a moving camera's counts change a few percent a view).
 AHEAD_HEADROOM = 1.1
 WINDOW = 64  # calls remembered
 SIZES_PER_DOUBLING = 8  # room sizes are 2^(k/8): at most 9% above what the rule asks for
@@ -95,9 +95,8 @@ class PairRoom:
 
 
 class PairRooms:
-    """A workspace's rooms, one per (primitive kind, width, height, tile size), and one more per such key for
-    forward-only renders that sort ahead of their count (their counts, e.g. evaluation's, do not size training's
-    room)."""
+    """A workspace's rooms, one per (primitive kind, width, height, tile size), and one more per such key for the
+    renders that sort ahead of their count (tile_binning.AheadSort)."""
 
     def __init__(self):
         self.rooms: dict = {}

@@ -7,9 +7,9 @@ Sorting takes two passes: the primitives by depth, then their tile pairs by tile
 the pair sort: read back with one host sync (`sort_into_tiles`; on GPUs the sort then runs in a room of the count
 padded to a sixteenth of its leading power of two, `padded_capacity`, so nearby views replay one CUDA graph), or, for
 a speculative call, not read at all: the pairs go into a room sized from earlier counts (`sort_into_room`,
-pair_room.py). A forward-only render (no backward follows) sorts ahead: into a room sized from earlier such renders,
-queued with the blend before its count is read; the count is then checked while the GPU blends, and a render whose
-pairs did not fit is sorted again exactly and blended again (`AheadSort`). The rooms are queued by `queue_room_sort`.
+pair_room.py). Other GPU renders sort ahead: into a room sized from earlier such renders, queued with the blend
+before their count is read; the count is then checked while the GPU blends, and a render whose pairs did not fit is
+sorted again exactly and blended again (`AheadSort`). The rooms are queued by `queue_room_sort`.
 """
 from __future__ import annotations
 
@@ -62,9 +62,9 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     primitive kind (`kind`, its footprint kernel's key) at this image and tile size (and with no input checks
     queued), the pairs are sorted into that room (pair_room.py) without a host sync, total comes back as -1 and
     overflow[0] says whether pairs were dropped; otherwise the exact path runs and writes 0.
-    ahead: an empty AheadSort from a render no backward follows: with the pair_sort option "ahead", on a GPU whose
-    workspace has seen such a render of this kind and size, the pairs are sorted into that room without reading
-    the count first; total comes back as -1 and `ahead` holds the pending count (AheadSort.settle)."""
+    ahead: an empty AheadSort (sort_ahead_for): with the pair_sort option "ahead", on a GPU whose workspace has seen
+    such a render of this kind and size, the pairs are sorted into that room without reading the count first; total
+    comes back as -1 and `ahead` holds the pending count (AheadSort.settle)."""
     dev = ws.device
     L = ws.launches
     n = int(counts.shape[0])
@@ -101,7 +101,7 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     if room is not None:  # only speculative callers' counts size the room (not evaluation's or a viewer's)
         room.observe(total)
         L.launch("pair_overflow", binning.pair_overflow, 1, [offsets, n, total, overflow])
-    if ahead_room is not None:  # a forward-only render's first at this size: the next one sorts ahead
+    if ahead_room is not None:  # the first render of this kind and size: the next one sorts ahead
         ahead_room.observe(total)
     _stage(on_stage, "sort: prefix sum + sync")
     if total == 0:
@@ -156,8 +156,7 @@ def sort_into_room(ws: Workspace, room, rects, counts, s: Settings, per_call, se
 
 
 class AheadSort:
-    """A forward-only render's tile-pair sort, queued into a room before its count is read (sort_into_tiles'
-    `ahead`). The render queues its blend, then `settle`s: the host waits for the count's copy only (the GPU is
+    """A render's tile-pair sort, queued into a room before its count is read (sort_into_tiles' `ahead`). The render queues its blend, then `settle`s: the host waits for the count's copy only (the GPU is
     blending meanwhile) and a render whose pairs did not fit the room is sorted again, exactly."""
 
     def __init__(self):
@@ -184,10 +183,11 @@ class AheadSort:
         return total, self._redo()
 
 
-def forward_only_sort(keep: Optional[Keep], overflow) -> Optional[AheadSort]:
-    """An empty AheadSort for a render no backward follows (keep None) that is not speculative itself (overflow
-    None); sort_into_tiles decides whether it sorts ahead (the option, the device, a room seen before)."""
-    return AheadSort() if keep is None and overflow is None else None
+def sort_ahead_for(overflow, deterministic: bool) -> Optional[AheadSort]:
+    """An empty AheadSort for a render that is neither speculative itself (overflow None) nor deterministic (whose
+    pair order is sized by its count before the blend); sort_into_tiles decides whether it sorts ahead (the option,
+    the device, a room seen before)."""
+    return None if overflow is not None or deterministic else AheadSort()
 
 
 def settle_ahead(ahead: Optional[AheadSort], total: int, tile_start, sorted_ids, blend):
