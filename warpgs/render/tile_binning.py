@@ -89,10 +89,15 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     if ahead is not None and options.pair_sort == "ahead" and _cooperative(dev) and (dev.is_cuda or SPECULATE_ON_CPU):
         ahead_room = ws.pair_rooms.room((kind, s.width, s.height, s.tile_size, "ahead"), AHEAD_HEADROOM)
         if ahead_room.capacity > 0:
-            sorted_ids = queue_room_sort(ws, seq, ahead_room.capacity, rects, order, offsets, counts, s, per_call,
-                                         tile_start, tile_end)
+            # the count's read ends the first sequence, so the host waits for no more than the padded sort's sync
+            # does; the room's sort is a second sequence (graph), queued at once
             at = seq.read_ints(offsets, n - 1)
-            ahead.queue(seq.run_deferred(), at, ahead_room,
+            collect = seq.run_deferred()
+            pairs = launch_sequence(ws, on_stage)
+            sorted_ids = queue_room_sort(ws, pairs, ahead_room.capacity, rects, order, offsets, counts, s, per_call,
+                                         tile_start, tile_end)
+            pairs.run()  # no reads: no sync
+            ahead.queue(collect, at, ahead_room,
                         lambda: sort_into_tiles(ws, rects, counts, depths, s, per_call, kind=kind))
             _stage(on_stage, "sort: ahead of the count")
             return -1, tile_start, tile_end, sorted_ids
