@@ -65,3 +65,17 @@ def op_leaves(scene: dict, surfels: bool) -> list:
     if surfels:
         leaves[2] = scene["scales"][:, :2].clone().requires_grad_(True)
     return leaves
+
+
+def fresh_pair_rooms(monkeypatch):
+    """This thread's workspace on DEVICE with new (empty) pair rooms for the test, the CPU speculating and sorting ahead
+    too (tile_binning.SPECULATE_ON_CPU); what earlier tests left in flight is settled first."""
+    from warpgs.render import tile_binning
+    from warpgs.render.device_state import device_state
+    from warpgs.render.pair_room import PairRooms
+
+    monkeypatch.setattr(tile_binning, "SPECULATE_ON_CPU", True)
+    ws = device_state(torch.device(DEVICE)).ws
+    ws.pair_rooms.stats()
+    monkeypatch.setattr(ws, "pair_rooms", PairRooms())
+    return ws.pair_rooms

@@ -10,12 +10,10 @@ import torch
 import warp as wp
 
 from random_scenes import random_scene
-from raster_helpers import DEVICE
+from raster_helpers import DEVICE, fresh_pair_rooms
 from warpgs import rasterize, rasterize_surfels
-from warpgs.render import tile_binning, validation
+from warpgs.render import validation
 from warpgs.render.defaults import raster_options
-from warpgs.render.device_state import device_state
-from warpgs.render.pair_room import PairRooms
 from warpgs.render.pipeline_gaussians import _cooperative
 
 pytestmark = pytest.mark.skipif(
@@ -30,12 +28,9 @@ OUTPUTS = {"gaussians": ("rgb", "alpha", "depth", "inv_depth", "features"),
 @pytest.fixture
 def rooms(monkeypatch):
     """A workspace that has seen no count yet, sorting ahead on the CPU too."""
-    monkeypatch.setattr(tile_binning, "SPECULATE_ON_CPU", True)
-    ws = device_state(torch.device(DEVICE)).ws
-    ws.pair_rooms.stats()  # settles what earlier tests left in flight
-    monkeypatch.setattr(ws, "pair_rooms", PairRooms())
+    pair_rooms = fresh_pair_rooms(monkeypatch)
     with raster_options(pair_sort="ahead"):  # the default, whatever WARPGS_PAIR_SORT says
-        yield ws.pair_rooms
+        yield pair_rooms
 
 
 def _ahead_room(rooms, kind):

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from random_scenes import random_scene
-from raster_helpers import DEVICE
+from raster_helpers import DEVICE, fresh_pair_rooms
 from warpgs import rasterize, rasterize_surfels
 from warpgs.losses.registry import LossResult
 from warpgs.render import tile_binning
@@ -23,11 +23,7 @@ OUTPUTS = ("rgb", "alpha", "depth", "features")
 @pytest.fixture
 def speculate(monkeypatch):
     """The room of the tests' 64x48 renders at tile 8, in a workspace that has seen no count yet."""
-    monkeypatch.setattr(tile_binning, "SPECULATE_ON_CPU", True)
-    ws = device_state(torch.device(DEVICE)).ws
-    ws.pair_rooms.stats()  # settles what earlier tests left in flight
-    monkeypatch.setattr(ws, "pair_rooms", PairRooms())
-    return ws.pair_rooms.room(("footprints", 64, 48, 8))
+    return fresh_pair_rooms(monkeypatch).room(("footprints", 64, 48, 8))
 
 
 def _render(scene, speculative, outputs=OUTPUTS, tile=8):
