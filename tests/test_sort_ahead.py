@@ -1,5 +1,5 @@
 """Renders that sort their tile pairs ahead of their count (raster option pair_sort "ahead", the default;
-tile_binning.AheadSort): the same images, count and gradients as the padded sort when the pairs fit the room, the
+sort_ahead.AheadSort): the same images, count and gradients as the padded sort when the pairs fit the room, the
 same again after a redo when they do not, input errors still raised; deterministic renders never sort ahead.
 
 GPUs run these kernels; on the CPU they run with WARPGS_CPU_COOPERATIVE=1 (test_raster_gpu_kernels_on_cpu.py's

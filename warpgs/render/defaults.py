@@ -83,7 +83,7 @@ PAIR_SEARCHES = ("table", "full")
 # renders of nearby views launch the same sequence and it replays as one CUDA graph; "exact" sorts the count itself
 # with its launches issued one by one. "ahead": as "padded" for a render's first at its kind and size and for
 # deterministic ones; the others sort into a room sized from earlier renders before their count is read, and check
-# the count while the GPU blends (tile_binning.AheadSort; a render whose pairs did not fit is sorted and blended
+# the count while the GPU blends (sort_ahead.AheadSort; a render whose pairs did not fit is sorted and blended
 # again): the GPU does not wait for the host between the count and the blend. Same pairs in the same order (tests/test_binning.py,
 # tests/test_sort_ahead.py).
 PAIR_SORTS = ("ahead", "padded", "exact")

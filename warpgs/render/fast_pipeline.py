@@ -33,8 +33,8 @@ from warpgs.render.defaults import DEPTH_EPS, PER_WARP_ADJOINTS, current_raster_
 from warpgs.render.pair_adjoint import PairOrder, choose_kernel, run_pair_adjoint
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params, projection_color_mode)
-from warpgs.render.tile_binning import (Keep, _stage, bin_into_tiles, sort_ahead_for, launch_sequence, pair_order,
-                                        settle_ahead)
+from warpgs.render.sort_ahead import settle_ahead, sort_ahead_for
+from warpgs.render.tile_binning import Keep, _stage, bin_into_tiles, launch_sequence, pair_order
 from warpgs.render.workspace import LaunchSequence, Workspace
 
 

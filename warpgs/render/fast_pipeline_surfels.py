@@ -21,8 +21,8 @@ from warpgs.render.fast_pipeline import (FEATURES, OPACITIES, InputCheck, TileFr
 from warpgs.render.pair_adjoint import choose_kernel
 from warpgs.render.pipeline_gaussians import (Settings, Wanted, _block_dims, _block_reduce, _cooperative,
                                               _tile_launches, blend_params)
-from warpgs.render.tile_binning import (Keep, _stage, bin_into_tiles, sort_ahead_for, launch_sequence, pair_order,
-                                        settle_ahead)
+from warpgs.render.sort_ahead import settle_ahead, sort_ahead_for
+from warpgs.render.tile_binning import Keep, _stage, bin_into_tiles, launch_sequence, pair_order
 from warpgs.render.workspace import Workspace
 
 # Blended images in the order the torch ops return them (and take their gradients): (name, channels, Warp dtype).

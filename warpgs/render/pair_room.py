@@ -23,7 +23,7 @@ from typing import Optional
 import warp as wp
 
 HEADROOM = 1.3  # views of one scene differ in pairs; densification grows them between visits
-# Renders that sort ahead of their count (tile_binning.AheadSort) redo an overflow instead of dropping a step, and sort
+# Renders that sort ahead of their count (sort_ahead.AheadSort) redo an overflow instead of dropping a step, and sort
 # every slot of the room: less headroom (a moving camera's counts change a few percent a view).
 AHEAD_HEADROOM = 1.1
 WINDOW = 64  # calls remembered
@@ -96,7 +96,7 @@ class PairRoom:
 
 class PairRooms:
     """A workspace's rooms, one per (primitive kind, width, height, tile size), and one more per such key for the
-    renders that sort ahead of their count (tile_binning.AheadSort)."""
+    renders that sort ahead of their count (sort_ahead.AheadSort)."""
 
     def __init__(self):
         self.rooms: dict = {}

@@ -9,19 +9,20 @@ padded to a sixteenth of its leading power of two, `padded_capacity`, so nearby 
 a speculative call, not read at all: the pairs go into a room sized from earlier counts (`sort_into_room`,
 pair_room.py). Other GPU renders sort ahead: into a room sized from earlier such renders, queued with the blend
 before their count is read; the count is then checked while the GPU blends, and a render whose pairs did not fit is
-sorted again exactly and blended again (`AheadSort`). The rooms are queued by `queue_room_sort`.
+sorted again exactly and blended again (sort_ahead.py). The rooms are queued by `queue_room_sort`.
 """
 from __future__ import annotations
 
-from typing import Callable, Optional, Tuple
+from typing import Callable, Optional
 
 import warp as wp
 
 from warpgs.kernels import binning, pair_sums
 from warpgs.render.defaults import current_raster_options
 from warpgs.render.pair_adjoint import PairOrder
-from warpgs.render.pair_room import AHEAD_HEADROOM, PairRoom
+from warpgs.render.pair_room import AHEAD_HEADROOM
 from warpgs.render.pipeline_gaussians import Settings, _cooperative
+from warpgs.render.sort_ahead import AheadSort
 from warpgs.render.workspace import LaunchSequence, Workspace
 
 Keep = Callable[[str, int, object], wp.array]  # (name, length, dtype) -> a per-call array
@@ -34,7 +35,7 @@ SPECULATE_ON_CPU = False
 
 def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, depths, s: Settings, per_call,
                    on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None,
-                   overflow=None, ahead: Optional["AheadSort"] = None):
+                   overflow=None, ahead: Optional[AheadSort] = None):
     """Every primitive kind's binning: its footprint kernel (inputs `footprint_inputs`, then the image and blend
     settings, writing tile rectangles, tile counts and cut-offs) and `sort_into_tiles`. Returns (counts, q_cut,
     total, tile_start, tile_end, sorted_ids); counts lives in the workspace, q_cut comes from `per_call`.
@@ -54,7 +55,7 @@ def bin_into_tiles(ws: Workspace, key: str, footprint_kernel, footprint_inputs, 
 
 def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
                     on_stage: Optional[Callable[[str], None]] = None, sequence: Optional[LaunchSequence] = None,
-                    overflow=None, kind: str = "footprints", ahead: Optional["AheadSort"] = None):
+                    overflow=None, kind: str = "footprints", ahead: Optional[AheadSort] = None):
     """(total, tile_start, tile_end, sorted_ids): the (tile, primitive) pairs sorted by tile, then depth, then
     primitive index, and every tile's [start, end) range. tile_start and sorted_ids come from `per_call`.
     sequence: launches queued ahead; everything up to the tile-pair count's read runs with them.
@@ -89,18 +90,8 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     if ahead is not None and options.pair_sort == "ahead" and _cooperative(dev) and (dev.is_cuda or SPECULATE_ON_CPU):
         ahead_room = ws.pair_rooms.room((kind, s.width, s.height, s.tile_size, "ahead"), AHEAD_HEADROOM)
         if ahead_room.capacity > 0:
-            # the count's read ends the first sequence, so the host waits for no more than the padded sort's sync
-            # does; the room's sort is a second sequence (graph), queued at once
-            at = seq.read_ints(offsets, n - 1)
-            collect = seq.run_deferred()
-            pairs = launch_sequence(ws, on_stage)
-            sorted_ids = queue_room_sort(ws, pairs, ahead_room.capacity, rects, order, offsets, counts, s, per_call,
-                                         tile_start, tile_end)
-            pairs.run()  # no reads: no sync
-            ahead.queue(collect, at, ahead_room,
-                        lambda: sort_into_tiles(ws, rects, counts, depths, s, per_call, kind=kind))
-            _stage(on_stage, "sort: ahead of the count")
-            return -1, tile_start, tile_end, sorted_ids
+            return sort_ahead(ws, ahead, ahead_room, rects, counts, depths, s, per_call, seq, order, offsets,
+                              tile_start, tile_end, kind, on_stage)
     at = seq.read_ints(offsets, n - 1)
     total = seq.run()[at]  # the one host sync: sizes the pair buffers (and raises for flagged input)
     if room is not None:  # only speculative callers' counts size the room (not evaluation's or a viewer's)
@@ -160,51 +151,21 @@ def sort_into_room(ws: Workspace, room, rects, counts, s: Settings, per_call, se
     return -1, tile_start, tile_end, sorted_ids
 
 
-class AheadSort:
-    """A render's tile-pair sort, queued into a room before its count is read (sort_into_tiles' `ahead`). The render queues its blend, then `settle`s: the host waits for the count's copy only (the GPU is
-    blending meanwhile) and a render whose pairs did not fit the room is sorted again, exactly."""
-
-    def __init__(self):
-        self.pending = False
-        self._collect = self._at = self._room = self._redo = self._capacity = None
-
-    def queue(self, collect: Callable[[], list], at: int, room: PairRoom, redo: Callable[[], tuple]) -> None:
-        """collect(): the sequence's values (LaunchSequence.run_deferred), the count at index `at`; redo(): the exact
-        sort, (total, tile_start, tile_end, sorted_ids)."""
-        self.pending = True
-        self._collect, self._at, self._room, self._redo = collect, at, room, redo
-        self._capacity = room.capacity  # what the queued sort holds
-        room.speculative_calls += 1
-
-    def settle(self) -> Tuple[int, Optional[tuple]]:
-        """(the pair count, None) when the pairs fit the room, else (the count, redo()'s result: blend again with
-        it). Raises for flagged input (the sequence's checks)."""
-        self.pending = False
-        total = int(self._collect()[self._at])
-        self._room.observe(total)
-        if total <= self._capacity:
-            return total, None
-        self._room.overflows += 1
-        return total, self._redo()
-
-
-def sort_ahead_for(overflow, deterministic: bool) -> Optional[AheadSort]:
-    """An empty AheadSort for a render that is neither speculative itself (overflow None) nor deterministic (whose
-    pair order is sized by its count before the blend); sort_into_tiles decides whether it sorts ahead (the option,
-    the device, a room seen before)."""
-    return None if overflow is not None or deterministic else AheadSort()
-
-
-def settle_ahead(ahead: Optional[AheadSort], total: int, tile_start, sorted_ids, blend):
-    """After a render queued its blend(tile_start, tile_end, sorted_ids): its (total, tile_start, sorted_ids), the
-    count read now when it sorted ahead, and sorted and blended again when its pairs did not fit."""
-    if ahead is None or not ahead.pending:
-        return total, tile_start, sorted_ids
-    total, redone = ahead.settle()
-    if redone is not None:
-        total, tile_start, tile_end, sorted_ids = redone
-        blend(tile_start, tile_end, sorted_ids)
-    return total, tile_start, sorted_ids
+def sort_ahead(ws: Workspace, ahead: AheadSort, room, rects, counts, depths, s: Settings, per_call,
+               seq: LaunchSequence, order, offsets, tile_start, tile_end, kind: str, on_stage=None):
+    """sort_into_tiles' path ahead of the count: the count's read ends `seq` (so the host will wait for no more than
+    the padded sort's sync does), the room's sort follows as a second sequence (graph) queued at once, and `ahead`
+    holds the pending count with the exact sort to redo should the pairs not fit."""
+    n = int(counts.shape[0])
+    at = seq.read_ints(offsets, n - 1)
+    collect = seq.run_deferred()
+    pairs = launch_sequence(ws, on_stage)
+    sorted_ids = queue_room_sort(ws, pairs, room.capacity, rects, order, offsets, counts, s, per_call, tile_start,
+                                 tile_end)
+    pairs.run()  # no reads: no sync
+    ahead.queue(collect, at, room, lambda: sort_into_tiles(ws, rects, counts, depths, s, per_call, kind=kind))
+    _stage(on_stage, "sort: ahead of the count")
+    return -1, tile_start, tile_end, sorted_ids
 
 
 def queue_room_sort(ws: Workspace, seq: LaunchSequence, capacity: int, rects, order, offsets, counts, s: Settings,
