@@ -89,9 +89,8 @@ def forward(ws: Workspace, s: Settings, want: Wanted, inputs, opacities, feature
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth accumulation, inv_depth, features, expected depth)
     arrays the blend writes (1-element dummies for outputs not asked for; features zeroed beforehand for the
-    per-thread CPU kernel; the expected depth, the accumulation over alpha, is written with the rest of the pixel),
-    or a function that makes them, called once the launches up to the count are queued; features in the layout of
-    `feature_layout`. keep=None: everything in the workspace (no backward follows).
+    per-thread CPU kernel; the expected depth, the accumulation over alpha, is written with the rest of the pixel);
+    features in the layout of `feature_layout`. keep=None: everything in the workspace (no backward follows).
     on_stage(name), if given, is called after each stage (benchmarks/profile_stages.py times them).
     check: the input checks to run, whose error is raised at the tile-pair count's sync (before anything is sized
     from the count). deterministic: keep what a fixed-order (run-to-run identical) GPU backward needs (pair_order).
@@ -136,7 +135,7 @@ def bin_and_blend(ws: Workspace, s: Settings, want: Wanted, projected, opacities
     npix = s.width * s.height
     transmittance = per_call("transmittance", npix, float)
     last = per_call("last", npix, wp.int32)
-    color, alpha, depth, inv_depth, out_features, expected_depth = outputs() if callable(outputs) else outputs
+    color, alpha, depth, inv_depth, out_features, expected_depth = outputs
     kernel, block_dim = _blend_kernel(dev, s, want, backward=False)
     tail = [color, transmittance, alpha, depth, expected_depth, inv_depth, out_features, last]
 

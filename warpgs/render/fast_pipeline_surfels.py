@@ -79,8 +79,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     """Projects, bins, sorts and blends. inputs: (means, quats, scales, coeffs, viewmat, intrinsics) as the
     projection kernel takes them; outputs: (color, alpha, depth accumulation, inv_depth, normal, median, distortion,
     features, expected depth) arrays the blend writes (1-element dummies for outputs not asked for; features zeroed
-    beforehand for the per-thread CPU kernel; the expected depth is the accumulation over alpha), or a function that
-    makes them, called once the launches up to the count are queued. keep=None:
+    beforehand for the per-thread CPU kernel; the expected depth is the accumulation over alpha). keep=None:
     everything in the workspace (no backward follows). check: the input checks, raised at the tile-pair count's sync
     (fast_pipeline.InputCheck). deterministic: keep what a fixed-order GPU
     backward needs (tile_binning.pair_order). overflow: a 1-element int32 array to bin speculatively into
@@ -114,8 +113,7 @@ def forward(ws: Workspace, s: Settings, want: SurfelWanted, inputs, opacities, f
     last = per_call("last", npix, wp.int32)
     median_index = per_call("median_index", npix, wp.int32) if want.median else ws.dummy(wp.int32)
     dist_stats = per_call("dist_stats", npix, wp.vec3) if want.distortion else ws.dummy(wp.vec3)
-    color, alpha, depth, inv_depth, normal, median, distortion, out_features, expected_depth = (
-        outputs() if callable(outputs) else outputs)
+    color, alpha, depth, inv_depth, normal, median, distortion, out_features, expected_depth = outputs
     kernel, block_dim = _blend_kernel(ws.device, s, want, backward=False)
     tail = [color, transmittance, alpha, depth, expected_depth, inv_depth, normal, median, median_index, distortion,
             dist_stats, out_features, last]

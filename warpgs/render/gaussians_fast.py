@@ -286,18 +286,16 @@ class FastRasterizeFunction(torch.autograd.Function):
         w_feat = _features_arg(features, nf, layout, state)
 
         keep = ws.lease_frame() if any_grad else None  # back to the pool with ctx.state
-        # made when the blend is queued, after the launches up to the pair count: the host makes them while the GPU
-        # projects and bins instead of before
-        made = functools.cache(lambda: image_outputs(state, means, settings, wanted, layout, keep))
+        (color, alpha, depth, inv_depth, feats), zacc, outputs = image_outputs(state, means, settings, wanted,
+                                                                               layout, keep)
 
         alive = []
         checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), view,
                                                         check, alive)
         overflowed, overflow = overflow_flag(state, options, means)
         with state.scope():
-            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, lambda: made()[2], keep, check=checks,
+            frame = fast.forward(ws, settings, wanted, inputs, w_opac, w_feat, outputs, keep, check=checks,
                                  deterministic=options.deterministic, overflow=overflow)
-            (color, alpha, depth, inv_depth, feats), zacc, _ = made()
             visible = state.tensor(frame.counts) > 0
             if means2d_probe is not None:  # gives the probe the projected centres; its grad is dL/dmeans2d
                 means2d_probe.data.copy_(state.tensor(frame.means2d).view(-1, 2))

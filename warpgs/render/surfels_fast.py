@@ -3,8 +3,6 @@
 reads lives in a buffer set lent to the render for exactly as long as its autograd graph."""
 from __future__ import annotations
 
-import functools
-
 import torch
 import warp as wp
 
@@ -42,24 +40,20 @@ class FastSurfelsFunction(torch.autograd.Function):
         view, intr, check = staged_camera(state, viewmat, intrinsics, check)
         inputs = projection_inputs(state, (means, quats, scales, coeffs, view, intr), wp.vec2)
 
+        empty = means.new_empty(0)
+        images = [means.new_empty(H, W, c) if image_wanted(wanted, name) else empty for name, c, _ in IMAGES]
+        # the per-thread CPU kernels accumulate features in place; the cooperative ones write every pixel
+        feats = ((means.new_zeros if layout == "rows" else means.new_empty)(H, W, nf)) if nf else empty
+        outputs = [desc(img.view(npix, c) if c > 1 else img.view(npix), dtype) if image_wanted(wanted, name)
+                   else ws.dummy(dtype) for img, (name, c, dtype) in zip(images, IMAGES)]
+        outputs.append(_features_arg(feats.view(npix, nf), nf, layout, state))
         keep = ws.lease_frame() if any_grad else None  # back to the pool with ctx.state
-
-        @functools.cache  # made when the blend is queued: the host makes them while the GPU projects and bins
-        def made():
-            empty = means.new_empty(0)
-            images = [means.new_empty(H, W, c) if image_wanted(wanted, name) else empty for name, c, _ in IMAGES]
-            # the per-thread CPU kernels accumulate features in place; the cooperative ones write every pixel
-            feats = ((means.new_zeros if layout == "rows" else means.new_empty)(H, W, nf)) if nf else empty
-            outputs = [desc(img.view(npix, c) if c > 1 else img.view(npix), dtype) if image_wanted(wanted, name)
-                       else ws.dummy(dtype) for img, (name, c, dtype) in zip(images, IMAGES)]
-            outputs.append(_features_arg(feats.view(npix, nf), nf, layout, state))
-            # the blend accumulates depth in `zacc` (the adjoint reads it) and writes the depth image, zacc over
-            # alpha, beside it
-            outputs.append(outputs[DEPTH])
-            zacc = ws.dummy(float)
-            if wanted.depth:
-                zacc = outputs[DEPTH] = (keep if keep is not None else ws)("zacc", npix, float)
-            return images, feats, zacc, outputs
+        # the blend accumulates depth in `zacc` (the adjoint reads it) and writes the depth image, zacc over alpha,
+        # beside it
+        outputs.append(outputs[DEPTH])
+        zacc = ws.dummy(float)
+        if wanted.depth:
+            zacc = outputs[DEPTH] = (keep if keep is not None else ws)("zacc", npix, float)
 
         alive = []
         checks = None if check is None else input_check(state, (means, quats, scales, opacities, coeffs), view,
@@ -67,9 +61,8 @@ class FastSurfelsFunction(torch.autograd.Function):
         overflowed, overflow = overflow_flag(state, options, means)
         with state.scope():
             frame = fast.forward(ws, settings, wanted, inputs, desc(opacities, wp.float32),
-                                 _features_arg(features, nf, layout, state), lambda: made()[3], keep, checks,
+                                 _features_arg(features, nf, layout, state), outputs, keep, checks,
                                  options.deterministic, overflow)
-            images, feats, zacc, _ = made()
             visible = state.tensor(frame.counts) > 0
         count = frame.total  # a plain int (-1: not read, speculative): autograd passes it through
         ctx.mark_non_differentiable(visible)
