@@ -6,7 +6,8 @@ Conventions follow gsplat so users can swap: OpenCV camera (x right, y down, z f
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+import functools
+from dataclasses import dataclass, fields
 from typing import Optional, Sequence
 
 import torch
@@ -45,13 +46,16 @@ class RenderOutput:
     seen: Optional[torch.Tensor] = None  # ... and [R, N] those each camera's blend binned (its `visible`)
 
 
+@functools.lru_cache(maxsize=64)  # a loop renders with the same few: one object each (nothing changes a Settings)
 def raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,
-                    transmittance_min, alpha_max=DEFAULT_ALPHA_MAX) -> pipeline.Settings:
+                    transmittance_min, alpha_max=DEFAULT_ALPHA_MAX, low_pass=DEFAULT_LOW_PASS,
+                    screen_sigma=DEFAULT_SURFEL_SCREEN_SIGMA) -> pipeline.Settings:
     """The pipeline's Settings from a render call's arguments (sh_degree None: plain colours)."""
     return pipeline.Settings(width=int(width), height=int(height), near=float(near), far=float(far),
                              tile_size=int(tile_size), max_sigmas=float(max_sigmas),
                              sh_degree=-1 if sh_degree is None else int(sh_degree), alpha_min=float(alpha_min),
-                             transmittance_min=float(transmittance_min), alpha_max=float(alpha_max))
+                             transmittance_min=float(transmittance_min), alpha_max=float(alpha_max),
+                             low_pass=float(low_pass), screen_sigma=float(screen_sigma))
 
 
 def _zero_grad(t: torch.Tensor) -> torch.Tensor:
@@ -230,8 +234,8 @@ def rasterize(
 
     n = means.shape[0]
     coeffs, feats = op_inputs(means, colors, features, outputs)
-    settings = replace(raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,
-                                       transmittance_min, alpha_max), low_pass=float(low_pass))
+    settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,
+                               transmittance_min, alpha_max, low_pass=low_pass)
     wanted = pipeline.Wanted(color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
                              num_features=feats.shape[1], absgrad=bool(absgrad))
     overflowed = None

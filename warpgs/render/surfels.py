@@ -7,7 +7,6 @@ third rotation column is the normal) and the extra outputs normal, median_depth 
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Optional, Sequence
 
 import torch
@@ -95,9 +94,8 @@ def rasterize_surfels(
 
     n = means.shape[0]
     coeffs, feats = op_inputs(means, colors, features, outputs)
-    settings = dataclasses.replace(raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree,
-                                                   alpha_min, transmittance_min, alpha_max),
-                                   screen_sigma=float(screen_sigma))
+    settings = raster_settings(width, height, near, far, tile_size, max_sigmas, sh_degree, alpha_min,
+                               transmittance_min, alpha_max, screen_sigma=screen_sigma)
     wanted = SurfelWanted(
         color="rgb" in outputs, depth="depth" in outputs, inv_depth="inv_depth" in outputs,
         normal="normal" in outputs, median="median_depth" in outputs, distortion="distortion" in outputs,
