@@ -39,9 +39,11 @@ class DeviceState:
         return d
 
     def staged_together(self, parts) -> list:
-        """`staged` for several small tensors at once (a render's camera: viewmat, intrinsics, K, background), all
-        float32 on one device: one copy (a concatenation) into one buffer per layout instead of a copy each. Returns
-        views of the buffer shaped like `parts`, the same view objects every call (their descriptors memoise)."""
+        """Small float32 tensors of this device (a render's camera: viewmat, intrinsics, K, background) copied, in one
+        concatenation, into this state's own buffer for their shapes (made once, then rewritten in stream order).
+        A render's camera changes every training step; read from a fixed buffer it leaves the launch sequence's key
+        (workspace.LaunchSequence) unchanged, so the sequence replays from its CUDA graph. Returns views of the
+        buffer shaped like `parts`, the same view objects every call (their descriptors memoise)."""
         layout = tuple(tuple(t.shape) for t in parts)
         hit = self._staged.get(layout)
         if hit is None:

@@ -10,8 +10,8 @@ allocates and clears memory, every wrapper builds a descriptor. Three things her
   graph still needs it.
 - `LaunchCache`: one recorded `wp.Launch` per launch site; a call updates only the parameters that changed since
   the last one (workspace views keep their descriptor objects, so they are skipped by identity) and replays it.
-- `LaunchSequence`: the launches up to a render's one host sync (or, speculative, with no sync: `run_unwaited`),
-  issued together; on a GPU they become one CUDA graph once the same sequence (same arrays, sizes and scalars) comes
+- `LaunchSequence`: the launches up to a render's one host sync (or, speculative, with no sync: `run_unwaited`; or
+  read later, while the GPU works on what was queued after: `run_deferred`), issued together; on a GPU they become one CUDA graph once the same sequence (same arrays, sizes and scalars) comes
   a second time (graph_cache.py).
 
 `benchmarks/micro_overhead.py` measures the pieces (CPU, this machine): `wp.launch` with 23 arguments 22 us
