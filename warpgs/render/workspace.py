@@ -11,8 +11,8 @@ allocates and clears memory, every wrapper builds a descriptor. Three things her
 - `LaunchCache`: one recorded `wp.Launch` per launch site; a call updates only the parameters that changed since
   the last one (workspace views keep their descriptor objects, so they are skipped by identity) and replays it.
 - `LaunchSequence`: the launches up to a render's one host sync (or, speculative, with no sync: `run_unwaited`; or
-  read later, while the GPU works on what was queued after: `run_deferred`), issued together; on a GPU they become one CUDA graph once the same sequence (same arrays, sizes and scalars) comes
-  a second time (graph_cache.py).
+  read later, while the GPU works on what was queued after: `run_deferred`), issued together; on a GPU they become
+  one CUDA graph once the same sequence (same arrays, sizes and scalars) comes a second time (graph_cache.py).
 
 `benchmarks/micro_overhead.py` measures the pieces (CPU, this machine): `wp.launch` with 23 arguments 22 us
 against 5 us for a replay, `set_param_at_index` 0.7 us, `wp.from_torch` 4.5 us (1.8 us as a bare descriptor).
