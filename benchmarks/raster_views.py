@@ -3,7 +3,7 @@ views that each change the tile-pair count a little, where `benchmarks/raster.py
 (no gradient, as a viewer renders) and forward+backward; renderer variants (benchmarks/variants.py) and, with
 --gsplat on CUDA, gsplat's rasterization on the same views, interleaved in rounds in one process.
 
-    python benchmarks/raster_views.py --device cuda --gsplat --sizes 100000,1000000 --variants fast,fast+psort=exact
+    python benchmarks/raster_views.py --device cuda --gsplat --sizes 100000,1000000 --variants fast,fast+psort=padded
 
 Each round renders the path twice per system and times the second pass (the first lets each system settle: caches,
 CUDA graphs); a round's figure is the median ms per view. Prints a table and writes
