@@ -151,3 +151,17 @@ def test_deterministic_renders_never_sort_ahead(rooms):
             out.rgb.sum().backward()
             assert out.num_intersections > 0
     assert _ahead_room(rooms, "gaussians").speculative_calls == 0 and _ahead_room(rooms, "gaussians").capacity == 0
+
+
+def test_a_room_much_larger_than_the_last_count_is_not_sorted_whole(rooms):
+    big = random_scene(n=300, width=W, height=H, num_features=1, seed=27)
+    small = random_scene(n=300, width=W, height=H, num_features=1, seed=27)
+    small["scales"] = small["scales"] * 0.05  # the same Gaussians, each on a tile or two: far fewer pairs
+    room = _ahead_room(rooms, "gaussians")
+    _render(big, "gaussians")
+    _render(small, "gaussians")  # sorted ahead in the big room (its last count was the big one)
+    assert room.speculative_calls == 1
+    ref = _padded(small, "gaussians")
+    assert room.capacity > 2 * ref.num_intersections
+    _assert_same(_render(small, "gaussians"), ref, "gaussians")  # reads its count first instead
+    assert room.speculative_calls == 1

@@ -26,6 +26,10 @@ HEADROOM = 1.3  # views of one scene differ in pairs; densification grows them b
 # Renders that sort ahead of their count (sort_ahead.AheadSort) redo an overflow instead of dropping a step, and sort
 # every slot of the room: less headroom (a moving camera's counts change a few percent a view).
 AHEAD_HEADROOM = 1.1
+# ... and sort ahead only while the room is at most this multiple of the last count: after a view with many more pairs
+# (a viewer zoomed out, then in), the room keeps the largest of the last WINDOW counts, and sorting it whole would
+# cost more than the count's wait it saves; such renders read their count first (and the room shrinks as it ages).
+AHEAD_MAX_ROOM = 2.0
 WINDOW = 64  # calls remembered
 SIZES_PER_DOUBLING = 8  # room sizes are 2^(k/8): at most 9% above what the rule asks for
 MIN_ROOM = 1024
@@ -57,6 +61,10 @@ class PairRoom:
         """A call's exact pair count: the room follows the recent largest."""
         self.recent.append(int(total))
         self.capacity = room_size(max(self.recent) * self.headroom)
+
+    def suits_last(self, most: float) -> bool:
+        """Whether the room is sized (capacity > 0) and at most `most` times the last count it saw (or MIN_ROOM)."""
+        return 0 < self.capacity <= max(most * (self.recent[-1] if self.recent else 0), MIN_ROOM)
 
     def settle(self) -> None:
         """Reads the last speculative call's count (waiting on its event, normally long passed) and notes an

@@ -20,7 +20,7 @@ import warp as wp
 from warpgs.kernels import binning, pair_sums
 from warpgs.render.defaults import current_raster_options
 from warpgs.render.pair_adjoint import PairOrder
-from warpgs.render.pair_room import AHEAD_HEADROOM
+from warpgs.render.pair_room import AHEAD_HEADROOM, AHEAD_MAX_ROOM
 from warpgs.render.pipeline_gaussians import Settings, _cooperative
 from warpgs.render.sort_ahead import AheadSort
 from warpgs.render.workspace import LaunchSequence, Workspace
@@ -64,8 +64,9 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     queued), the pairs are sorted into that room (pair_room.py) without a host sync, total comes back as -1 and
     overflow[0] says whether pairs were dropped; otherwise the exact path runs and writes 0.
     ahead: an empty AheadSort (sort_ahead_for): with the pair_sort option "ahead", on a GPU whose workspace has seen
-    such a render of this kind and size, the pairs are sorted into that room without reading the count first; total
-    comes back as -1 and `ahead` holds the pending count (AheadSort.settle)."""
+    such a render of this kind and size (and whose room is not much larger than the last count, AHEAD_MAX_ROOM), the
+    pairs are sorted into that room without reading the count first; total comes back as -1 and `ahead` holds the
+    pending count (AheadSort.settle)."""
     dev = ws.device
     L = ws.launches
     n = int(counts.shape[0])
@@ -89,7 +90,7 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     ahead_room = None
     if ahead is not None and options.pair_sort == "ahead" and _cooperative(dev) and (dev.is_cuda or SPECULATE_ON_CPU):
         ahead_room = ws.pair_rooms.room((kind, s.width, s.height, s.tile_size, "ahead"), AHEAD_HEADROOM)
-        if ahead_room.capacity > 0:
+        if ahead_room.suits_last(AHEAD_MAX_ROOM):
             return sort_ahead(ws, ahead, ahead_room, rects, counts, depths, s, per_call, seq, order, offsets,
                               tile_start, tile_end, kind, on_stage)
     at = seq.read_ints(offsets, n - 1)
@@ -97,7 +98,7 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     if room is not None:  # only speculative callers' counts size the room (not evaluation's or a viewer's)
         room.observe(total)
         L.launch("pair_overflow", binning.pair_overflow, 1, [offsets, n, total, overflow])
-    if ahead_room is not None:  # the first render of this kind and size: the next one sorts ahead
+    if ahead_room is not None:  # a render of a new kind or size, or after a much larger count: the next may sort ahead
         ahead_room.observe(total)
     _stage(on_stage, "sort: prefix sum + sync")
     if total == 0:
