@@ -81,11 +81,11 @@ PAIR_SEARCHES = ("table", "full")
 # The tile-pair sort of a GPU render that reads its pair count ("table" search): "padded" sorts a room of the count
 # rounded up to a sixteenth of its leading power of two, sentinels past the pairs (tile_binning.padded_capacity), so
 # renders of nearby views launch the same sequence and it replays as one CUDA graph; "exact" sorts the count itself
-# with its launches issued one by one. "ahead": as "padded" for a render's first at its kind and size and for
-# deterministic ones; the others sort into a room sized from earlier renders before their count is read, and check
-# the count while the GPU blends (sort_ahead.AheadSort; a render whose pairs did not fit is sorted and blended
-# again): the GPU does not wait for the host between the count and the blend. Same pairs in the same order (tests/test_binning.py,
-# tests/test_sort_ahead.py).
+# with its launches issued one by one. "ahead": as "padded" for a render's first at its kind and size, for
+# deterministic ones and where the room is over twice the last count; the others sort into a room sized from earlier
+# renders before their count is read, and check the count while the GPU blends (sort_ahead.AheadSort; a render whose
+# pairs did not fit is sorted and blended again): the GPU does not wait for the host between the count and the blend.
+# Same pairs in the same order (tests/test_binning.py, tests/test_sort_ahead.py).
 PAIR_SORTS = ("ahead", "padded", "exact")
 PROJECT_ADJOINTS = ("written", "generated")
 

@@ -3,9 +3,10 @@
 A GPU render learns its (tile, primitive) pair count only after projecting and binning; waiting for it before queuing
 the pair sort and the blend leaves the GPU idle while the host does that. A render that sorts ahead queues the sort
 into a room sized from earlier renders' counts (pair_room.py) and its blend first, then reads the count while the
-GPU blends: if the pairs did not fit, it sorts them again exactly and blends again, so its images and gradients are
-those of the exact sort either way. tile_binning.sort_into_tiles decides when a render may (the option, the device,
-a room seen before); this module holds the pending count and the redo.
+GPU blends: if the pairs did not fit, it sorts them again in a room that holds them and blends again, so its images
+and gradients are those of the exact sort either way. tile_binning.sort_into_tiles decides when a render may (the
+option, the device, a room seen before and not much larger than the last count); this module holds the pending count
+and the redo.
 """
 from __future__ import annotations
 
@@ -17,15 +18,15 @@ from warpgs.render.pair_room import PairRoom
 class AheadSort:
     """A render's tile-pair sort, queued into a room before its count is read (tile_binning.sort_into_tiles'
     `ahead`). The render queues its blend, then `settle`s: the host waits for the count's copy only (the GPU is
-    blending meanwhile), and a render whose pairs did not fit the room is sorted again, exactly."""
+    blending meanwhile), and a render whose pairs did not fit the room is sorted again in one that holds them."""
 
     def __init__(self):
         self.pending = False
         self._collect = self._at = self._room = self._redo = self._capacity = None
 
-    def queue(self, collect: Callable[[], list], at: int, room: PairRoom, redo: Callable[[], tuple]) -> None:
-        """collect(): the sequence's values (LaunchSequence.run_deferred), the count at index `at`; redo(): the exact
-        sort, (total, tile_start, tile_end, sorted_ids)."""
+    def queue(self, collect: Callable[[], list], at: int, room: PairRoom, redo: Callable[[int], tuple]) -> None:
+        """collect(): the sequence's values (LaunchSequence.run_deferred), the count at index `at`; redo(count): the
+        sort again in a room that holds the count, (tile_start, tile_end, sorted_ids)."""
         self.pending = True
         self._collect, self._at, self._room, self._redo = collect, at, room, redo
         self._capacity = room.capacity  # what the queued sort holds
@@ -40,7 +41,7 @@ class AheadSort:
         if total <= self._capacity:
             return total, None
         self._room.overflows += 1
-        return total, self._redo()
+        return total, self._redo(total)
 
 
 def sort_ahead_for(overflow, deterministic: bool) -> Optional[AheadSort]:
@@ -57,6 +58,6 @@ def settle_ahead(ahead: Optional[AheadSort], total: int, tile_start, sorted_ids,
         return total, tile_start, sorted_ids
     total, redone = ahead.settle()
     if redone is not None:
-        total, tile_start, tile_end, sorted_ids = redone
+        tile_start, tile_end, sorted_ids = redone
         blend(tile_start, tile_end, sorted_ids)
     return total, tile_start, sorted_ids

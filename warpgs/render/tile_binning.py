@@ -91,8 +91,8 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
     if ahead is not None and options.pair_sort == "ahead" and _cooperative(dev) and (dev.is_cuda or SPECULATE_ON_CPU):
         ahead_room = ws.pair_rooms.room((kind, s.width, s.height, s.tile_size, "ahead"), AHEAD_HEADROOM)
         if ahead_room.suits_last(AHEAD_MAX_ROOM):
-            return sort_ahead(ws, ahead, ahead_room, rects, counts, depths, s, per_call, seq, order, offsets,
-                              tile_start, tile_end, kind, on_stage)
+            return sort_ahead(ws, ahead, ahead_room, rects, counts, s, per_call, seq, order, offsets, tile_start,
+                              tile_end, on_stage)
     at = seq.read_ints(offsets, n - 1)
     total = seq.run()[at]  # the one host sync: sizes the pair buffers (and raises for flagged input)
     if room is not None:  # only speculative callers' counts size the room (not evaluation's or a viewer's)
@@ -109,10 +109,8 @@ def sort_into_tiles(ws: Workspace, rects, counts, depths, s: Settings, per_call,
         # a thread per (primitive, tile) pair (balanced across the GPU), its primitive found by a binary search
         # narrowed by a coarse table of every 32nd pair's slot; sized to a padded count, so that renders whose
         # counts differ a little (a moving camera) launch the same sequence: one CUDA graph instead of ten launches
-        pairs = launch_sequence(ws, on_stage)
-        sorted_ids = queue_room_sort(ws, pairs, padded_capacity(total), rects, order, offsets, counts, s, per_call,
-                                     tile_start, tile_end)
-        pairs.run()  # no reads: no sync
+        sorted_ids = sort_in_room(ws, padded_capacity(total), rects, order, offsets, counts, s, per_call, tile_start,
+                                  tile_end, on_stage)
         _stage(on_stage, "sort: pairs (padded room)")
         return total, tile_start, tile_end, sorted_ids
     tile_bits = max(1, (s.num_tiles - 1).bit_length())
@@ -152,21 +150,34 @@ def sort_into_room(ws: Workspace, room, rects, counts, s: Settings, per_call, se
     return -1, tile_start, tile_end, sorted_ids
 
 
-def sort_ahead(ws: Workspace, ahead: AheadSort, room, rects, counts, depths, s: Settings, per_call,
-               seq: LaunchSequence, order, offsets, tile_start, tile_end, kind: str, on_stage=None):
+def sort_ahead(ws: Workspace, ahead: AheadSort, room, rects, counts, s: Settings, per_call, seq: LaunchSequence,
+               order, offsets, tile_start, tile_end, on_stage=None):
     """sort_into_tiles' path ahead of the count: the count's read ends `seq` (so the host will wait for no more than
     the padded sort's sync does), the room's sort follows as a second sequence (graph) queued at once, and `ahead`
-    holds the pending count with the exact sort to redo should the pairs not fit."""
+    holds the pending count with the sort to redo, in a room padded from the count, should the pairs not fit."""
     n = int(counts.shape[0])
     at = seq.read_ints(offsets, n - 1)
     collect = seq.run_deferred()
-    pairs = launch_sequence(ws, on_stage)
-    sorted_ids = queue_room_sort(ws, pairs, room.capacity, rects, order, offsets, counts, s, per_call, tile_start,
-                                 tile_end)
-    pairs.run()  # no reads: no sync
-    ahead.queue(collect, at, room, lambda: sort_into_tiles(ws, rects, counts, depths, s, per_call, kind=kind))
+    sorted_ids = sort_in_room(ws, room.capacity, rects, order, offsets, counts, s, per_call, tile_start, tile_end,
+                              on_stage)
+
+    def redo(total: int):  # the depth order and prefix sums the first sort read are still in place
+        return tile_start, tile_end, sort_in_room(ws, padded_capacity(total), rects, order, offsets, counts, s,
+                                                  per_call, tile_start, tile_end, on_stage)
+
+    ahead.queue(collect, at, room, redo)
     _stage(on_stage, "sort: ahead of the count")
     return -1, tile_start, tile_end, sorted_ids
+
+
+def sort_in_room(ws: Workspace, capacity: int, rects, order, offsets, counts, s: Settings, per_call, tile_start,
+                 tile_end, on_stage=None):
+    """`queue_room_sort` as a launch sequence of its own (one CUDA graph once it repeats), issued at once (it reads
+    nothing back: no sync). Returns sorted_ids."""
+    pairs = launch_sequence(ws, on_stage)
+    sorted_ids = queue_room_sort(ws, pairs, capacity, rects, order, offsets, counts, s, per_call, tile_start, tile_end)
+    pairs.run()
+    return sorted_ids
 
 
 def queue_room_sort(ws: Workspace, seq: LaunchSequence, capacity: int, rects, order, offsets, counts, s: Settings,
