@@ -20,7 +20,8 @@ A scene is a folder (LLFF or COLMAP), optionally `PATH@N` for data.downscale N (
 protocols; bonsai800's 800x533 photos at @2 are FSGS's images_8 size). benchmarks/sparse_data.py prepares copies.
 
 Settings (benchmarks/ablation.py's REAL_SETTINGS: the presets sparse_llff_baseline and sparse_llff, with one term or
-part removed, or `unpool`, the preset with proximity-guided unpooling): any comma-separated keys, or the groups
+part removed, or the preset with one addition beyond the paper: `unpool` (proximity-guided unpooling), `virtual`
+(virtual views), `depth_patch` (patch-normalised depth)): any comma-separated keys, or the groups
 main (baseline, full), terms (w/o each Marr and Gestalt term), paper (main + terms: the rows of the paper's Table
 2), all. The depth prior of each scene and protocol is
 estimated once (from its training views, as data.depth_priors=estimate does) and shared by every run that uses it.

@@ -297,6 +297,9 @@ def _check_cross(cfg: Config) -> None:
     if not 0.0 < cfg.train.surfel_screen_sigma < float("inf"):
         raise ConfigError("train.surfel_screen_sigma", f"expected a positive number of pixels, got "
                           f"{cfg.train.surfel_screen_sigma}")
+    for key in ("virtual_rgb", "virtual_depth"):
+        if not 0.0 <= getattr(cfg.train, key) < float("inf"):
+            raise ConfigError(f"train.{key}", f"expected a weight >= 0, got {getattr(cfg.train, key)}")
     if cfg.train.max_sigmas < 0:
         raise ConfigError("train.max_sigmas", f"expected >= 0 (0: exact footprint), got {cfg.train.max_sigmas}")
     problem = alpha_clamp_problem(cfg.train.alpha_min, cfg.train.alpha_max)

@@ -121,6 +121,12 @@ class TrainConfig:
     # Coarse-to-fine: [[step, factor], ...], training views at 1/factor of their resolution from each step on (e.g.
     # [[0, 4], [1000, 2], [3000, 1]]); evaluation and outputs stay at full resolution (train/resolution.py).
     resolution_schedule: Optional[List[Any]] = None
+    # Few-view training: every this many steps also render a camera between two training cameras and fit it to the
+    # depth prior's confident pixels (model.prior_points_confidence) seen from there (train/virtual_views.py; needs
+    # depth priors); 0: off. The weights of its colour and inverse-depth L1:
+    virtual_views: int = 0
+    virtual_rgb: float = 1.0
+    virtual_depth: float = 1.0
 
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""
@@ -194,7 +200,7 @@ CHOICES = {
 AUTO_BOOLS = {"train.fused_ssim"}  # true, false or "auto"
 POSITIVE = {"data.width", "data.height", "data.downscale", "data.n_train", "model.init_points", "model.init_knn",
             "train.steps", "train.tile_size", "train.batch_size", "train.dist_timeout"}
-NON_NEGATIVE = {"model.sh_interval", "model.background_points", "model.prior_points", "train.checkpoint_every", "train.log_every", "train.threads", "eval.every",
+NON_NEGATIVE = {"model.sh_interval", "model.background_points", "model.prior_points", "train.checkpoint_every", "train.log_every", "train.threads", "train.virtual_views", "eval.every",
                 "eval.max_views"}
 # Mappings whose keys are free (user names), not fields.
 FREE_MAPPINGS = {"losses", "extensions", "model.features", "optim.extras_lr"}

@@ -10,6 +10,7 @@ from warpgs.train.batch import (BatchScalars, HostScalars, ViewPass, batch_resul
                                 device_batch_result, local_sums, scalar_names, without_graph)
 from warpgs.train.optim import means_lr_at, update_learning_rates
 from warpgs.train.step_info import StepInfo
+from warpgs.train.virtual_views import virtual_loss
 
 
 def train_step(trainer) -> dict:
@@ -30,6 +31,9 @@ def train_step(trainer) -> dict:
     for view in mine:
         # Through the method, so a Trainer subclass that overrides view_pass is honoured.
         passes.append(trainer.view_pass(view, step, views_in_loss=len(drawn), densify=densify, first=not passes))
+    every = cfg.train.virtual_views
+    if every and step % every == 0 and trainer.virtual_views is not None:
+        virtual_pass(trainer, step)
     phases.mark("render_backward")
     names = scalar_names(passes)
     stop = False
@@ -135,6 +139,16 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
             g = model.means.grad
             p.means_grad = g.clone() if before is None else g - before
     return p
+
+
+def virtual_pass(trainer, step: int) -> None:
+    """Render the step's virtual view (train.virtual_views) and back-propagate its loss into the parameters'
+    .grad beside the training views'; every rank renders the same one, so each adds its share."""
+    t = trainer.config.train
+    view = trainer.virtual_views.draw(step)
+    out = trainer.render(view, ("rgb", "alpha", "inv_depth"), trainer.make_batch(view, step), step=step)
+    loss = virtual_loss(out, view, t.virtual_rgb, t.virtual_depth)
+    (loss / trainer.ranks.world_size if trainer.ranks.enabled else loss).backward()
 
 
 def speculative_pairs(trainer) -> bool:

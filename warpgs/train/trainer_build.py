@@ -28,6 +28,7 @@ from warpgs.train.schedule import AutoStop, validation_split
 from warpgs.train.state import RunCounters
 from warpgs.train.strategy import DensifyStrategy
 from warpgs.train.views import TrainViews
+from warpgs.train.virtual_views import virtual_views_for
 
 
 class TrainerBuild:
@@ -127,13 +128,20 @@ class TrainerBuild:
         self.strategy.initialize(self.model)
 
     def _set_up_views_and_evaluation(self, cfg: Config) -> None:
-        """Training views (and train.steps=auto's validation split), the evaluator, counters and the lock."""
+        """Training views (and train.steps=auto's validation split), the virtual views (train.virtual_views), the
+        evaluator, counters and the lock."""
         self.views = TrainViews(self.scene, self.device, seed=cfg.train.seed, preload=cfg.data.preload)
         self.scaled_views = ScaledViews(cfg.train.resolution_schedule)  # train.resolution_schedule (coarse to fine)
         if self.auto_steps:  # validation views from the training views (never the test views)
             self.strategy.schedule.auto = AutoStop(cfg.schedule)
             self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth)[1])
         self.best_state = BestState() if self.auto_steps and cfg.schedule.keep_best else None
+        self.virtual_views = None  # train.virtual_views: cameras between the training ones (train/virtual_views.py)
+        if cfg.train.virtual_views:
+            if self.model_parallel:
+                raise ValueError("train.virtual_views: not with train.parallel=model (use the default data parallel)")
+            self.virtual_views = virtual_views_for(self.scene, self.views.indices, cfg.model.prior_points_confidence,
+                                                   self.device, cfg.train.seed)
         self.evaluator = Evaluator(self.scene, cfg.eval, self.device, self.out_dir,
                                    render=lambda v: self.render(v, ("rgb",)).rgb, views=self.views,
                                    ranks=self.ranks, render_round=self._render_round if self.model_parallel else None)

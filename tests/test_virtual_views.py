@@ -1,0 +1,126 @@
+"""Virtual views (train.virtual_views, train/virtual_views.py): cameras between two training cameras, the lifted
+prior's nearest point per pixel as their target, and the trainer's extra pass."""
+import math
+
+import numpy as np
+import pytest
+import torch
+from test_sparse_train import run
+
+from warpgs.train.virtual_views import VirtualViews, between, rotation_exp, rotation_log, splat_points, virtual_loss
+
+W, H, F = 32, 24, 30.0
+K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
+
+
+def _viewmat(angle: float, axis, centre) -> np.ndarray:
+    rot = rotation_exp(angle * np.asarray(axis, np.float64) / np.linalg.norm(axis))
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = -rot @ np.asarray(centre, np.float64)
+    return out
+
+
+def test_a_virtual_camera_lies_between_its_two_cameras():
+    a = _viewmat(0.1, [0, 1, 0], [-1.0, 0.0, 0.0])
+    b = _viewmat(-0.5, [1, 1, 0], [1.0, 0.4, 0.2])
+    np.testing.assert_allclose(between(a, b, 0.0), a, atol=1e-12)
+    np.testing.assert_allclose(between(a, b, 1.0), b, atol=1e-12)
+    mid = between(a, b, 0.5)
+    centre = -mid[:3, :3].T @ mid[:3, 3]
+    np.testing.assert_allclose(centre, [0.0, 0.2, 0.1], atol=1e-12)
+    # Halfway along the rotation: the same angle from each end, half the whole.
+    whole = np.linalg.norm(rotation_log(a[:3, :3].T @ b[:3, :3]))
+    to_a = np.linalg.norm(rotation_log(a[:3, :3].T @ mid[:3, :3]))
+    to_b = np.linalg.norm(rotation_log(mid[:3, :3].T @ b[:3, :3]))
+    assert whole > 0.3 and to_a == pytest.approx(whole / 2, abs=1e-9) and to_b == pytest.approx(whole / 2, abs=1e-9)
+    assert np.allclose(mid[:3, :3] @ mid[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+def _plane_points(depth: float, colour):
+    """One point per pixel of the identity camera, on the plane z = depth, at the pixel centres."""
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    z = torch.full_like(u, depth)
+    xyz = torch.stack([(u - W / 2) / F * z, (v - H / 2) / F * z, z], -1).reshape(-1, 3)
+    return xyz, torch.tensor(colour, dtype=torch.float32).expand(len(xyz), 3).clone()
+
+
+def test_points_seen_from_their_own_camera_give_back_their_depth_and_colour():
+    xyz, rgb = _plane_points(4.0, [0.2, 0.5, 0.9])
+    image, inv, mask = splat_points(xyz, rgb, torch.eye(4), K, W, H)
+    assert bool(mask.all())
+    torch.testing.assert_close(inv, torch.full((H, W, 1), 0.25))
+    torch.testing.assert_close(image, rgb.view(H, W, 3))
+
+
+def test_the_nearest_point_wins_and_a_far_point_seen_through_a_gap_is_dropped():
+    far, far_rgb = _plane_points(8.0, [1.0, 0.0, 0.0])
+    near, near_rgb = _plane_points(4.0, [0.0, 1.0, 0.0])
+    hole = torch.ones(H, W, dtype=torch.bool)
+    hole[10, 12] = False  # the near surface misses one pixel
+    image, inv, mask = splat_points(torch.cat([far, near[hole.view(-1)]]),
+                                    torch.cat([far_rgb, near_rgb[hole.view(-1)]]), torch.eye(4), K, W, H)
+    assert float(inv[0, 0]) == pytest.approx(0.25) and image[0, 0].tolist() == [0.0, 1.0, 0.0]
+    assert not bool(mask[10, 12]) and int(mask.sum()) == H * W - 1
+    # Behind the camera or off the image: no target.
+    behind = torch.tensor([[0.0, 0.0, -1.0], [100.0, 0.0, 1.0]])
+    _, _, none = splat_points(behind, torch.ones(2, 3), torch.eye(4), K, W, H)
+    assert not bool(none.any())
+
+
+def test_draws_repeat_by_step_and_need_two_cameras():
+    xyz, rgb = _plane_points(4.0, [0.5, 0.5, 0.5])
+    cams = [(_viewmat(0.0, [0, 1, 0], [x, 0.0, 0.0]), K.numpy(), W, H) for x in (-0.2, 0.0, 0.2)]
+    sampler = VirtualViews(cams, xyz, rgb, seed=3)
+    one, again, other = sampler.draw(7), sampler.draw(7), sampler.draw(8)
+    assert torch.equal(one.viewmat, again.viewmat) and not torch.equal(one.viewmat, other.viewmat)
+    centre = -(one.viewmat[:3, :3].T @ one.viewmat[:3, 3])
+    assert -0.2 <= float(centre[0]) <= 0.2 and abs(float(centre[1])) < 1e-6
+    assert bool(one.mask.any()) and one.image.shape == (H, W, 3)
+    with pytest.raises(ValueError, match="train.virtual_views: needs at least 2"):
+        VirtualViews(cams[:1], xyz, rgb)
+
+
+class _Out:
+    def __init__(self, rgb, inv, alpha):
+        self.rgb, self.inv_depth, self.alpha = rgb, inv, alpha
+
+
+def test_the_loss_is_an_l1_over_the_pixels_with_a_target():
+    xyz, rgb = _plane_points(4.0, [0.2, 0.5, 0.9])
+    cams = [(np.eye(4), K.numpy(), W, H), (_viewmat(0.0, [0, 1, 0], [0.01, 0, 0]), K.numpy(), W, H)]
+    view = VirtualViews(cams, xyz, rgb).draw(0)
+    m = view.mask.float()
+    rendered = (view.image + 0.1).requires_grad_(True)
+    inv = (view.inv_depth - 0.05).requires_grad_(True)
+    loss = virtual_loss(_Out(rendered, inv, torch.ones(H, W, 1)), view, 2.0, 3.0)
+    assert float(loss.detach()) == pytest.approx(2.0 * 0.1 + 3.0 * 0.05, rel=1e-4)
+    loss.backward()
+    assert bool((rendered.grad[~view.mask.expand(H, W, 3)] == 0).all()) and float(rendered.grad.abs().sum()) > 0
+    torch.testing.assert_close(inv.grad, -3.0 * m / m.sum())
+
+
+def test_the_trainer_adds_a_virtual_pass_that_moves_the_model(tmp_path):
+    base = run(tmp_path / "off", steps=4)
+    trainer = run(tmp_path / "on", "train.virtual_views=1", "train.virtual_rgb=1", "train.virtual_depth=1", steps=4)
+    assert base.virtual_views is None and trainer.virtual_views is not None
+    assert len(trainer.virtual_views.points) > 100
+    # The same first step but for the virtual view's gradient.
+    before = trainer.model.means.detach().clone()
+    assert torch.equal(before, base.model.means.detach())
+    for t in (base, trainer):
+        info = t.train_step()
+        assert math.isfinite(info["loss"])
+    assert not torch.equal(trainer.model.means.detach(), base.model.means.detach())
+    for _ in range(3):
+        assert math.isfinite(trainer.train_step()["loss"])
+
+
+def test_virtual_views_need_depth_priors_and_valid_weights(tmp_path):
+    with pytest.raises(ValueError, match="train.virtual_views: the scene .* has no depth priors"):
+        run(tmp_path / "a", "train.virtual_views=1", "data.depth_priors=null", "losses.depth=0",
+            "losses.depth_grad=0", "losses.depth_local=0")
+    with pytest.raises(ValueError, match="train.virtual_depth"):
+        run(tmp_path / "b", "train.virtual_views=1", "train.virtual_depth=-1")
+    with pytest.raises(ValueError, match="train.virtual_views"):
+        run(tmp_path / "c", "train.virtual_views=-2")
