@@ -208,7 +208,8 @@ def test_the_real_ablation_removes_each_term_once():
 
     keys = [s[0] for s in ablation.REAL_SETTINGS]
     assert keys[0] == "baseline" and keys[-1] == "full" and len(set(keys)) == len(keys)
-    added = {"unpool": ["strategy.unpool_every=1"],  # the preset plus one thing beyond the paper
+    # the preset plus one thing beyond the paper
+    added = {"unpool": ["strategy.unpool_every=1"], "virtual": ["train.virtual_views=1"],
              "depth_patch": ["losses.depth_patch.weight=0.1", "losses.depth_patch.schedule=[exp, 1.0, 0.01, 0, 10000]"]}
     removed = [o for key, _, preset, overrides, _ in ablation.REAL_SETTINGS if preset == "sparse_llff"
                and key not in added for o in overrides if o not in ablation.PAPER_TERMS]
