@@ -82,8 +82,8 @@ def test_draws_repeat_by_step_and_need_two_cameras():
 
 
 class _Out:
-    def __init__(self, rgb, inv, alpha):
-        self.rgb, self.inv_depth, self.alpha = rgb, inv, alpha
+    def __init__(self, rgb, inv):
+        self.rgb, self.inv_depth = rgb, inv
 
 
 def test_the_loss_is_an_l1_over_the_pixels_with_a_target():
@@ -93,7 +93,7 @@ def test_the_loss_is_an_l1_over_the_pixels_with_a_target():
     m = view.mask.float()
     rendered = (view.image + 0.1).requires_grad_(True)
     inv = (view.inv_depth - 0.05).requires_grad_(True)
-    loss = virtual_loss(_Out(rendered, inv, torch.ones(H, W, 1)), view, 2.0, 3.0)
+    loss = virtual_loss(_Out(rendered, inv), view, 2.0, 3.0)
     assert float(loss.detach()) == pytest.approx(2.0 * 0.1 + 3.0 * 0.05, rel=1e-4)
     loss.backward()
     assert bool((rendered.grad[~view.mask.expand(H, W, 3)] == 0).all()) and float(rendered.grad.abs().sum()) > 0

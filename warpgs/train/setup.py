@@ -219,20 +219,28 @@ def prior_points(scene, n: int, min_confidence: float, seed: int = 0):
     """(xyz, rgb, description) of n points lifted from the training views' depth priors at pixels of at least
     min_confidence (model.prior_points): the dense 2.5D sketch as a starting point where triangulating a few
     views finds only hundreds of points. A scene without priors is an error naming the key."""
-    from warpgs.data.sfm import init_points as ip
-
-    if not scene.has("depth_prior", scene.train):
-        raise ValueError(f"model.prior_points={n}: the scene at {scene.root} has no depth priors for its training "
-                         f"views (set data.depth_priors, e.g. 'estimate', or model.prior_points=0)")
-    try:
-        cloud = ip.points_from_depth(scene, n=n, source="prior", seed=seed + 1, min_confidence=min_confidence)
-    except ValueError:
-        raise ValueError(f"model.prior_points: no training-view prior pixel has confidence >= "
-                         f"{min_confidence} (lower model.prior_points_confidence)") from None
+    cloud = lifted_prior(scene, scene.train, n, min_confidence, seed + 1, "model.prior_points",
+                         f"model.prior_points={n}")
     xyz, rgb = cloud.tensors()
     has_confidence = any(scene.prior_confidence_np(v) is not None for v in scene.train)
     which = f"confidence >= {min_confidence:g}" if has_confidence else "the prior files carry no confidence: any valid pixel"
     return xyz.float(), rgb.float(), f"{len(xyz)} from depth priors ({which})"
+
+
+def lifted_prior(scene, views, n: int, min_confidence: float, seed: int, key: str, named: str):
+    """A PointCloud of n pixels of the views' depth priors of at least min_confidence, lifted with their colours
+    (init_points.points_from_depth). Errors name the config `key` (shown as `named`): a scene without priors, or no
+    pixel that confident."""
+    from warpgs.data.sfm import init_points as ip
+
+    if not scene.has("depth_prior", views):
+        raise ValueError(f"{named}: the scene at {scene.root} has no depth priors for its training views (set "
+                         f"data.depth_priors, e.g. 'estimate', or {key}=0)")
+    try:
+        return ip.points_from_depth(scene, n=n, views=views, source="prior", seed=seed, min_confidence=min_confidence)
+    except ValueError:
+        raise ValueError(f"{key}: no training-view prior pixel has confidence >= {min_confidence} (lower "
+                         f"model.prior_points_confidence)") from None
 
 
 def background_points(scene, points: torch.Tensor, n: int, radius: float, seed: int = 0):

@@ -31,8 +31,7 @@ def train_step(trainer) -> dict:
     for view in mine:
         # Through the method, so a Trainer subclass that overrides view_pass is honoured.
         passes.append(trainer.view_pass(view, step, views_in_loss=len(drawn), densify=densify, first=not passes))
-    every = cfg.train.virtual_views
-    if every and step % every == 0 and trainer.virtual_views is not None:
+    if trainer.virtual_views is not None and step % cfg.train.virtual_views == 0:
         virtual_pass(trainer, step)
     phases.mark("render_backward")
     names = scalar_names(passes)
@@ -146,9 +145,8 @@ def virtual_pass(trainer, step: int) -> None:
     .grad beside the training views'; every rank renders the same one, so each adds its share."""
     t = trainer.config.train
     view = trainer.virtual_views.draw(step)
-    out = trainer.render(view, ("rgb", "alpha", "inv_depth"), trainer.make_batch(view, step), step=step)
-    loss = virtual_loss(out, view, t.virtual_rgb, t.virtual_depth)
-    (loss / trainer.ranks.world_size if trainer.ranks.enabled else loss).backward()
+    out = trainer.render(view, ("rgb", "inv_depth"), trainer.make_batch(view, step), step=step)
+    (virtual_loss(out, view, t.virtual_rgb, t.virtual_depth) / trainer.ranks.world_size).backward()
 
 
 def speculative_pairs(trainer) -> bool:

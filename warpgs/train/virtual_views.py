@@ -14,11 +14,14 @@ neighbourhood. Cameras are drawn from (seed, step), so a resumed run draws the s
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from warpgs.losses.marr import masked_mean
+from warpgs.train.setup import lifted_prior
 
 SEE_THROUGH = 0.9  # a virtual pixel's inverse depth over the largest in its 5x5 neighbourhood, at least
 NEIGHBOURHOOD = 5
@@ -128,33 +131,18 @@ class VirtualViews:
 def virtual_loss(out, view: VirtualView, rgb_weight: float, depth_weight: float) -> torch.Tensor:
     """rgb_weight * mean |rendered colour - target| + depth_weight * mean |rendered inverse depth - target| over
     the view's pixels with a target (0, still connected to the graph, when it has none)."""
-    m = view.mask.to(out.alpha.dtype)
-    count = m.sum().clamp_min(1.0)
-    loss = out.alpha.sum() * 0.0
-    if rgb_weight:
-        loss = loss + rgb_weight * ((out.rgb - view.image).abs() * m).sum() / (3.0 * count)
-    if depth_weight:
-        loss = loss + depth_weight * ((out.inv_depth - view.inv_depth).abs() * m).sum() / count
-    return loss
+    return (rgb_weight * masked_mean((out.rgb - view.image).abs(), view.mask)
+            + depth_weight * masked_mean((out.inv_depth - view.inv_depth).abs(), view.mask))
 
 
 def virtual_views_for(scene, train_views: Sequence[int], min_confidence: float, device,
-                      seed: int) -> Optional[VirtualViews]:
+                      seed: int) -> VirtualViews:
     """The sampler over these training views, with every prior pixel of confidence >= min_confidence lifted (at
     most MAX_POINTS). A scene without depth priors is an error naming the key."""
-    from warpgs.data.sfm.init_points import points_from_depth
-
     views = list(train_views)
-    if not scene.has("depth_prior", views):
-        raise ValueError(f"train.virtual_views: the scene at {scene.root} has no depth priors for its training views "
-                         f"(set data.depth_priors, e.g. 'estimate', or train.virtual_views=0)")
     pixels = sum(scene.cameras[v].width * scene.cameras[v].height for v in views)
-    try:
-        cloud = points_from_depth(scene, n=min(pixels, MAX_POINTS), views=views, source="prior", seed=seed + 2,
-                                  min_confidence=min_confidence)
-    except ValueError:
-        raise ValueError(f"train.virtual_views: no training-view prior pixel has confidence >= {min_confidence} "
-                         f"(lower model.prior_points_confidence)") from None
+    cloud = lifted_prior(scene, views, min(pixels, MAX_POINTS), min_confidence, seed + 2, "train.virtual_views",
+                         "train.virtual_views")
     xyz, rgb = cloud.tensors()
     cameras = [(scene.cameras[v].viewmat, scene.cameras[v].K, scene.cameras[v].width, scene.cameras[v].height)
                for v in views]
