@@ -7,7 +7,8 @@ import pytest
 import torch
 from test_sparse_train import run
 
-from warpgs.train.virtual_views import VirtualViews, between, rotation_exp, rotation_log, splat_points, virtual_loss
+from warpgs.train.virtual_views import (VirtualViews, between, neighbour_pairs, rotation_exp, rotation_log, splat_points,
+                                        virtual_loss)
 
 W, H, F = 32, 24, 30.0
 K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
@@ -79,6 +80,35 @@ def test_draws_repeat_by_step_and_need_two_cameras():
     assert bool(one.mask.any()) and one.image.shape == (H, W, 3)
     with pytest.raises(ValueError, match="train.virtual_views: needs at least 2"):
         VirtualViews(cams[:1], xyz, rgb)
+
+
+def _ring(n: int, radius: float = 2.0):
+    """n cameras on a circle in the x-z plane, each looking at its centre (a 360° capture)."""
+    out = []
+    for i in range(n):
+        angle = 2 * math.pi * i / n
+        rot = rotation_exp(np.array([0.0, math.pi + angle, 0.0]))  # +z (the view direction) turned towards the centre
+        centre = radius * np.array([math.sin(angle), 0.0, math.cos(angle)])
+        vm = np.eye(4)
+        vm[:3, :3], vm[:3, 3] = rot.T, -rot.T @ centre
+        out.append(vm)
+    return out
+
+
+def test_virtual_cameras_around_a_360_capture_stay_between_adjacent_cameras():
+    ring = _ring(8)
+    # Each camera looks at the centre: the origin lies on its optical axis, in front of it.
+    assert all(vm[2, 3] > 0 and np.allclose(vm[:2, 3], 0.0, atol=1e-9) for vm in ring)
+    pairs = neighbour_pairs(ring)
+    assert sorted(pairs) == sorted([(a, (a + d) % 8) for a in range(8) for d in (1, 7)])
+    assert sorted(neighbour_pairs(ring[:3])) == [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)]  # three: any two
+    xyz, rgb = _plane_points(4.0, [0.5, 0.5, 0.5])
+    sampler = VirtualViews([(vm, K.numpy(), W, H) for vm in ring], xyz, rgb, seed=1)
+    chord = 2 * 2.0 * math.sin(math.pi / 8)
+    for step in range(40):  # never through the middle of the ring, where a random pair's chord would pass
+        vm = sampler.draw(step).viewmat.double().numpy()
+        centre = -vm[:3, :3].T @ vm[:3, 3]
+        assert np.linalg.norm(centre) >= math.sqrt(4.0 - chord ** 2 / 4) - 1e-6
 
 
 class _Out:

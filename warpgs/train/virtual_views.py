@@ -1,8 +1,9 @@
 """Virtual views for few-view training (train.virtual_views; FSGS's pseudo views, our formulation).
 
 With three training views a model can fit every training pixel and still hold floaters that only a new viewpoint
-shows. Every `train.virtual_views` steps the trainer also renders a camera placed between two training cameras
-(position and rotation interpolated at a random fraction) and fits it to the depth prior's confident pixels of
+shows. Every `train.virtual_views` steps the trainer also renders a camera placed between a training camera and one
+of its `NEIGHBOURS` nearest (position and rotation interpolated at a random fraction; with three views, any two;
+around a 360° capture, adjacent ones, never across the object) and fits it to the depth prior's confident pixels of
 all training views, lifted to 3D and projected into it: each virtual pixel takes the nearest lifted point's colour
 and inverse depth. The loss is an L1 on colour and on inverse depth over the pixels that got a point
 (`train.virtual_rgb`, `train.virtual_depth` weigh them).
@@ -26,6 +27,7 @@ from warpgs.train.setup import lifted_prior
 SEE_THROUGH = 0.9  # a virtual pixel's inverse depth over the largest in its 5x5 neighbourhood, at least
 NEIGHBOURHOOD = 5
 MAX_POINTS = 2_000_000  # lifted prior pixels kept (all confident pixels of a few training views fit)
+NEIGHBOURS = 2  # a virtual camera lies between a training camera and one of this many nearest (by centre)
 
 
 @dataclass
@@ -76,6 +78,16 @@ def between(viewmat_a: np.ndarray, viewmat_b: np.ndarray, t: float) -> np.ndarra
     return out
 
 
+def neighbour_pairs(viewmats: Sequence[np.ndarray], neighbours: int = NEIGHBOURS) -> list[tuple[int, int]]:
+    """(a, b) for every camera a and each of its `neighbours` nearest cameras b by centre distance (ties: lower
+    index first)."""
+    centres = np.stack([-v[:3, :3].T @ v[:3, 3] for v in viewmats])
+    dist = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    np.fill_diagonal(dist, np.inf)
+    k = min(neighbours, len(viewmats) - 1)
+    return [(a, int(b)) for a in range(len(viewmats)) for b in np.argsort(dist[a], kind="stable")[:k]]
+
+
 def splat_points(points: torch.Tensor, colors: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int,
                  height: int, near: float = 1e-3):
     """(image [H, W, 3], inverse depth [H, W, 1], mask [H, W, 1]) of the nearest point in each pixel, pixels
@@ -110,13 +122,14 @@ class VirtualViews:
                              f"{len(cameras)}")
         self.cameras = [(np.asarray(v, np.float64), np.asarray(k, np.float64), int(w), int(h))
                         for v, k, w, h in cameras]
+        self.pairs = neighbour_pairs([v for v, _, _, _ in self.cameras])
         self.points, self.colors = points, colors
         self.seed = int(seed)
 
     def draw(self, step: int) -> VirtualView:
         """The virtual view of `step` (the same for the same seed and step)."""
         rng = np.random.default_rng([self.seed, int(step)])
-        a, b = rng.choice(len(self.cameras), size=2, replace=False)
+        a, b = self.pairs[int(rng.integers(len(self.pairs)))]
         t = float(rng.uniform(0.0, 1.0))
         view_a, K, width, height = self.cameras[a]
         viewmat = between(view_a, self.cameras[b][0], t)
