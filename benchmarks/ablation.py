@@ -82,9 +82,10 @@ REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
                      ([] if t == "scale" else PAPER_TERMS) + [f"losses.{t}=0"], {}) for t in REAL_TERMS]
                  + [("wo_prior_points", "w/o prior points", "sparse_llff", PAPER_TERMS + ["model.prior_points=0"], {}),
                     ("wo_confidence", "w/o confidence", "sparse_llff", PAPER_TERMS, {"confidence_power": 0.0}),
-                    # beyond the paper: the preset with one addition, or without the one it ships (issue 30 item 5)
+                    # beyond the paper: the preset with one addition (issue 30 item 5)
                     ("unpool", "the preset + unpooling (FSGS)", "sparse_llff", ["strategy.unpool_every=1"], {}),
-                    ("wo_virtual", "the preset w/o virtual views", "sparse_llff", ["train.virtual_views=0"], {}),
+                    ("virtual", "the preset + virtual views (FSGS's pseudo views)", "sparse_llff",
+                     ["train.virtual_views=1"], {}),
                     ("depth_patch", "the preset + patch-normalised depth (DNGaussian)", "sparse_llff",
                      ["losses.depth_patch.weight=0.1", "losses.depth_patch.schedule=[exp, 1.0, 0.01, 0, 10000]"], {}),
                     ("full", "Ours (full: the paper's six terms)", "sparse_llff", PAPER_TERMS, {})])

@@ -175,17 +175,15 @@ def test_the_preset_pair_differs_only_in_the_method():
     assert base.data.depth_priors in (None, "none") and method.data.depth_priors == "estimate"
     assert set(base.losses) == {"l1", "dssim"}
     assert set(method.losses) == {"l1", "dssim", "depth", "depth_grad", "depth_local", "opacity", "scale", "count"}
-    # The method also starts from points lifted from its prior and fits virtual views to it; the baseline, which has
-    # none, starts from the triangulated points alone.
+    # The method also starts from points lifted from its prior; the baseline, which has none, from the
+    # triangulated points alone.
     assert method.model.prior_points > 0 and base.model.prior_points == 0
-    assert method.train.virtual_views > 0 and base.train.virtual_views == 0
     a, b = method.to_dict(), base.to_dict()
     for cfg in (a, b):
         cfg.pop("losses")
         cfg["data"].pop("depth_priors")
         cfg["model"].pop("prior_points")
         cfg["model"].pop("prior_points_confidence")
-        cfg["train"].pop("virtual_views")
     assert a == b
 
 
@@ -210,8 +208,8 @@ def test_the_real_ablation_removes_each_term_once():
 
     keys = [s[0] for s in ablation.REAL_SETTINGS]
     assert keys[0] == "baseline" and keys[-1] == "full" and len(set(keys)) == len(keys)
-    # the preset plus one thing beyond the paper, or without the one it ships
-    added = {"unpool": ["strategy.unpool_every=1"], "wo_virtual": ["train.virtual_views=0"],
+    # the preset plus one thing beyond the paper
+    added = {"unpool": ["strategy.unpool_every=1"], "virtual": ["train.virtual_views=1"],
              "depth_patch": ["losses.depth_patch.weight=0.1", "losses.depth_patch.schedule=[exp, 1.0, 0.01, 0, 10000]"]}
     removed = [o for key, _, preset, overrides, _ in ablation.REAL_SETTINGS if preset == "sparse_llff"
                and key not in added for o in overrides if o not in ablation.PAPER_TERMS]
@@ -225,7 +223,6 @@ def test_the_real_ablation_removes_each_term_once():
     assert all(o[:1] == ablation.PAPER_TERMS for k, o in settings.items() if k != "wo_scale" and k not in added)
     assert settings["wo_scale"] == ["losses.scale=0"]
     assert all(settings[k] == o for k, o in added.items())
-    assert load_config(ROOT / "configs" / "sparse_llff.yaml").train.virtual_views == 1  # what wo_virtual removes
     # The initialisation's share: 3DGS with the method's initial points and prior, none of its losses.
     plus = [s for s in ablation.REAL_SETTINGS if s[0] == "baseline_prior_points"]
     assert plus and plus[0][2] == "sparse_llff_baseline" and ablation.uses_prior(*plus[0][2:4])
