@@ -7,8 +7,8 @@ import pytest
 import torch
 from test_sparse_train import run
 
-from warpgs.train.virtual_views import (VirtualViews, between, neighbour_pairs, rotation_exp, rotation_log, splat_points,
-                                        virtual_loss)
+from warpgs.train.virtual_views import (VirtualViews, between, neighbour_pairs, rotation_exp, rotation_log,
+                                        splat_points, virtual_loss)
 
 W, H, F = 32, 24, 30.0
 K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])

@@ -121,9 +121,9 @@ class TrainConfig:
     # Coarse-to-fine: [[step, factor], ...], training views at 1/factor of their resolution from each step on (e.g.
     # [[0, 4], [1000, 2], [3000, 1]]); evaluation and outputs stay at full resolution (train/resolution.py).
     resolution_schedule: Optional[List[Any]] = None
-    # Few-view training: every this many steps also render a camera between two near training cameras and fit it to the
-    # depth prior's confident pixels (model.prior_points_confidence) seen from there (train/virtual_views.py; needs
-    # depth priors); 0: off. The weights of its colour and inverse-depth L1:
+    # Few-view training: every this many steps also render a camera between two near training cameras and fit it to
+    # the depth prior's confident pixels (model.prior_points_confidence) seen from there (train/virtual_views.py;
+    # needs depth priors); 0: off. The weights of its colour and inverse-depth L1:
     virtual_views: int = 0
     virtual_rgb: float = 1.0
     virtual_depth: float = 1.0
