@@ -15,9 +15,12 @@ train: warpgs.data.formats.splits.llff_split, FSGS's and DNGaussian's reader):
   llff3    3 training views at 1/8 resolution (images_8): the FSGS / DNGaussian LLFF protocol
   m360_24  24 training views (FSGS's Mip-NeRF 360 protocol; FSGS reads images_8, i.e. ~390x260 for bonsai)
   m360_3   3 training views of the same captures
+  lf3x3    a light field (warpgs.data.formats.lightfield): its 3x3 sub-grid spread over the array trains, every
+           other view tests (the paper's protocol); benchmarks/stanford_lightfield.py prepares Stanford's archive
 --n-train N keeps a protocol's rule with another count (its run files are then named <protocol>_nN_...).
-A scene is a folder (LLFF or COLMAP), optionally `PATH@N` for data.downscale N (default: 8 for llff3, 1 for the 360
-protocols; bonsai800's 800x533 photos at @2 are FSGS's images_8 size). benchmarks/sparse_data.py prepares copies.
+A scene is a folder (LLFF, COLMAP or a light field), optionally `PATH@N` for data.downscale N (default: 8 for llff3,
+1 for the 360 protocols, 4 for lf3x3; bonsai800's 800x533 photos at @2 are FSGS's images_8 size).
+benchmarks/sparse_data.py prepares copies.
 
 Settings (benchmarks/ablation.py's REAL_SETTINGS: the presets sparse_llff_baseline and sparse_llff, with one term or
 part removed, or the preset with one addition beyond the paper: `unpool` (proximity-guided unpooling), `virtual`
@@ -136,6 +139,8 @@ def parse(argv):
     if args.n_train is not None:  # the protocol's split rule with another count (e.g. FSGS-style 12 views)
         if args.n_train < 1:
             raise SystemExit(f"--n-train: expected at least 1, got {args.n_train}")
+        if protocol.split == "grid":
+            raise SystemExit(f"--n-train: protocol {args.protocol} trains on its light field's 3x3 grid")
         protocol = Protocol(args.n_train, protocol.downscale, f"{protocol.about}, with {args.n_train} training views")
     args.proto = protocol
     # Names of run files and priors: the protocol, and the training-view count when it is not the protocol's.

@@ -20,11 +20,20 @@ class Protocol:
     n_train: int
     downscale: int  # default data.downscale of its scenes
     about: str
+    split: str = "llff"  # data.split: "llff" (n_train views spread evenly, every 8th held out) or a light
+    # field's "grid" (its 3x3 sub-grid trains, every other view tests; n_train is then the grid's 9)
+
+    def data_overrides(self) -> list[str]:
+        """The config's data.split and data.n_train for this protocol."""
+        n_train = "null" if self.split == "grid" else self.n_train
+        return [f"data.split={self.split}", f"data.n_train={n_train}"]
 
 
 PROTOCOLS = {"llff3": Protocol(3, 8, "LLFF, 3 training views, 1/8 resolution (FSGS / DNGaussian)"),
              "m360_24": Protocol(24, 1, "360°, 24 training views (FSGS's Mip-NeRF 360 protocol)"),
-             "m360_3": Protocol(3, 1, "360°, 3 training views")}
+             "m360_3": Protocol(3, 1, "360°, 3 training views"),
+             "lf3x3": Protocol(9, 4, "light field, a 3x3 camera array spread over the array trains, every other "
+                                     "view tests (the Marr-Gestalt paper's protocol)", split="grid")}
 
 
 @dataclass(frozen=True)
@@ -77,6 +86,8 @@ def plan(protocol: str, scenes: list[SceneSpec], settings: list[str], seeds: lis
 def load(scene: SceneSpec, protocol: Protocol):
     from warpgs.data import load_scene
 
+    if protocol.split == "grid":
+        return load_scene(scene.path, split="grid", downscale=scene.downscale)
     return load_scene(scene.path, split="llff", n_train=protocol.n_train, downscale=scene.downscale)
 
 

@@ -52,6 +52,45 @@ def test_planar_grid_poses_from_baseline(tmp_path):
         assert cam.fx == 50.0 and (cam.width, cam.height) == (40, 30)
 
 
+def _project(cam, point):
+    p = cam.K @ (cam.viewmat[:3, :3] @ point + cam.viewmat[:3, 3])
+    return p[:2] / p[2]
+
+
+def test_rectified_array_from_measured_centres(tmp_path):
+    """A rectified array (Stanford's archive): measured centres, and principal points shifted so that the
+    reference plane projects alike in every view, while a nearer point moves against the camera."""
+    root = _planar_folder(tmp_path / "lf")
+    spec = json.loads((root / "lightfield.json").read_text())
+    del spec["baseline"]
+    centres = {f"r{r}_c{c}.png": [0.1 * c + 0.01 * r, 0.2 * r - 0.005 * c] for r in range(3) for c in range(3)}
+    spec.update(centres=centres, reference_depth=2.0)
+    (root / "lightfield.json").write_text(json.dumps(spec))
+    scene = load_scene(root)
+    on_plane, near = np.array([0.3, -0.1, 2.0]), np.array([0.3, -0.1, 1.0])
+    ref = scene.cameras[scene.index("r0_c0.png")]
+    for name, (x, y) in centres.items():
+        cam = scene.cameras[scene.index(name)]
+        np.testing.assert_allclose(cam.center, [x, y, 0.0], atol=1e-12)
+        np.testing.assert_allclose(_project(cam, on_plane), _project(ref, on_plane), atol=1e-9)
+        # fx * centre * (1/z0 - 1/z): the near point moves left as the camera moves right
+        shift = _project(cam, near) - _project(ref, near)
+        np.testing.assert_allclose(shift, 50.0 * (np.array([x, y]) - centres["r0_c0.png"]) * (1 / 2.0 - 1 / 1.0),
+                                   atol=1e-9)
+    # Downscaling keeps the plane's agreement (the shifted principal points scale with the image).
+    half = load_scene(root, downscale=2)
+    np.testing.assert_allclose(_project(half.cameras[0], on_plane), _project(half.cameras[5], on_plane), atol=1e-9)
+    spec["centres"].pop("r2_c2.png")
+    (root / "lightfield.json").write_text(json.dumps(spec))
+    with pytest.raises(SceneError, match="no centre for r2_c2.png"):
+        load_scene(root)
+    spec["centres"]["r2_c2.png"] = [0.2, 0.4]
+    spec["reference_depth"] = -1
+    (root / "lightfield.json").write_text(json.dumps(spec))
+    with pytest.raises(SceneError, match="reference_depth"):
+        load_scene(root)
+
+
 def test_grid_positions_from_file_names_and_explicit_views(tmp_path):
     root = _planar_folder(tmp_path / "numbered", name="{r:02d}_{c:02d}.png")
     scene = load_lightfield(root)

@@ -124,6 +124,23 @@ def test_tables_pair_seeds_and_average_scenes(capsys):
     assert "| w/o DGR | 22.00 | -0.11 | 0.728 | 0.222 | not run |" in printed
 
 
+def test_the_light_field_protocol_trains_on_the_3x3_grid(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path))
+    scene = synthetic_dir("lightfield")  # a 3x3 array plus off-grid views
+    out = tmp_path / "out"
+    common = ["--protocol", "lf3x3", "--scenes", f"{scene}@1", "--settings", "baseline", "--steps", "4", "--budget",
+              "1000", "--threads", "1", "--out", str(out)]
+    sparse.main(common + ["--name", "t_lf"])
+    run = json.loads((out / "runs" / f"lf3x3_{scene.name}_baseline_s0.json").read_text())
+    grid = load_scene(scene)  # the light field's own grid protocol
+    assert run["train_index"] == grid.train and run["test_index"] == grid.test and len(run["train"]) == 9
+    assert "data.split=grid" in run["overrides"] and "data.n_train=null" in run["overrides"]
+    assert math.isfinite(run["psnr"])
+    assert sparse_runs.PROTOCOLS["llff3"].data_overrides() == ["data.split=llff", "data.n_train=3"]
+    with pytest.raises(SystemExit, match="3x3 grid"):
+        sparse.main(common + ["--n-train", "4", "--dry-run"])
+
+
 def test_settings_groups_and_bad_input():
     assert sparse_runs.expand_settings("main") == ["baseline", "wo_scale", "full"]  # wo_scale: the preset
     assert sparse_runs.expand_settings("paper")[1:-1] == [f"wo_{t}" for t in ("depth", "depth_grad", "depth_local",

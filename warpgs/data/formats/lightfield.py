@@ -4,8 +4,11 @@ A light-field folder is an images/ folder plus grid positions, from either
   lightfield.json  {"rows": R, "cols": C, "views": {"<image name>": [row, col], ...},
                     "baseline": [bx, by], "intrinsics": {"fx":..., "fy":..., "cx":..., "cy":...}}
   (fractional positions are off-grid views), or image names such as r2_c1.png / 02_01.png (row, col).
-Poses come from, in order: a COLMAP model or transforms.json in the folder; a planar grid built from
-"baseline" + "intrinsics" (parallel optical axes, +col to the right, +row downwards); otherwise SfM.
+Poses come from, in order: a COLMAP model or transforms.json in the folder; a planar array built from
+"intrinsics" and either "baseline" (centres on the grid, +col to the right, +row downwards) or "centres"
+({"<image name>": [x, y]}, measured centres on the array's plane, +y downwards), parallel optical axes; otherwise SfM.
+Rectified arrays (e.g. Stanford's archive: every view warped so that one plane has no parallax) also give
+"reference_depth": that plane's depth; each view's principal point is then shifted so that it projects alike in all.
 """
 from __future__ import annotations
 
@@ -81,21 +84,46 @@ def grid_protocol_split(positions: dict, names: list[str], k: int = 3) -> tuple[
     return train, test
 
 
-def _planar_grid_scene(root: Path, spec: dict, positions: dict, downscale: int, undistort: bool) -> Scene:
-    """Poses of an ideal array: identical orientation, centres on a plane at (col * bx, row * by, 0)."""
-    path = root / LIGHTFIELD_FILE
+def _array_centres(path: Path, spec: dict, positions: dict) -> dict[str, tuple[float, float]]:
+    """Each view's centre on the array's plane: measured ("centres") or on the grid ("baseline")."""
     try:
-        bx, by = (float(b) for b in spec["baseline"])
+        if "centres" in spec:
+            centres = {str(n): (float(xy[0]), float(xy[1])) for n, xy in spec["centres"].items()}
+        else:
+            bx, by = (float(b) for b in spec["baseline"])
+            centres = {n: (c * bx, r * by) for n, (r, c) in positions.items()}
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        raise SceneError(path, 'a planar array needs "baseline": [bx, by] or "centres": {name: [x, y]}') from exc
+    missing = sorted(set(positions) - set(centres))
+    if missing:
+        raise SceneError(path, f'"centres" has no centre for {missing[0]} ({len(missing)} views missing)')
+    return centres
+
+
+def _planar_grid_scene(root: Path, spec: dict, positions: dict, downscale: int, undistort: bool) -> Scene:
+    """Poses of a planar array: identical orientation, centres on the plane z = 0 (_array_centres); with
+    "reference_depth" z0, rectified views: the principal point shifted by f * centre / z0, so points at depth z0
+    land on the same pixel in every view."""
+    path = root / LIGHTFIELD_FILE
+    centres = _array_centres(path, spec, positions)
+    try:
         intr = spec["intrinsics"]
-        K = intrinsics_matrix(float(intr["fx"]), float(intr["fy"]), float(intr["cx"]), float(intr["cy"]))
+        fx, fy, cx, cy = (float(intr[k]) for k in ("fx", "fy", "cx", "cy"))
+        z0 = float(spec["reference_depth"]) if "reference_depth" in spec else None
     except (KeyError, TypeError, ValueError) as exc:
-        raise SceneError(path, 'planar grid poses need "baseline": [bx, by] and "intrinsics": {fx, fy, cx, cy}') from exc
+        raise SceneError(path, 'a planar array needs "intrinsics": {fx, fy, cx, cy} (and a number for '
+                               '"reference_depth", if given)') from exc
+    if z0 is not None and not (np.isfinite(z0) and z0 > 0):
+        raise SceneError(path, f'"reference_depth" must be a positive depth, got {z0}')
     cameras = []
-    for name, (r, c) in sorted(positions.items()):
+    for name in sorted(positions):
+        x, y = centres[name]
         image = root / "images" / name
         w, h = image_size(image)
+        shift = (0.0, 0.0) if z0 is None else (fx * x / z0, fy * y / z0)
+        K = intrinsics_matrix(fx, fy, cx + shift[0], cy + shift[1])
         view = np.eye(4)
-        view[:3, 3] = [-c * bx, -r * by, 0.0]  # centre at (c bx, r by, 0), axes aligned with the world
+        view[:3, 3] = [-x, -y, 0.0]  # centre at (x, y, 0), axes aligned with the world
         cameras.append(Camera(K, view, w, h, name=name, image_path=image))
     names = [c.name for c in cameras]
     return Scene(cameras, discover_view_files(root, names, [c.image_path for c in cameras]), root=root,
@@ -129,7 +157,7 @@ def load_lightfield(root: PathLike, *, protocol: str = "grid", k: int = 3, downs
         scene = colmap.load_colmap(root, split=split, validate=False, **common)
     elif transforms.find_transforms(root):
         scene = transforms.load_transforms(root, split=split, validate=False, **common)
-    elif "baseline" in spec:
+    elif "baseline" in spec or "centres" in spec:
         scene = _planar_grid_scene(root, spec, positions, **common)
     elif run_sfm_if_needed:
         from warpgs.data.sfm.run import run_sfm
@@ -137,7 +165,8 @@ def load_lightfield(root: PathLike, *, protocol: str = "grid", k: int = 3, downs
         run_sfm(root / "images", root, image_names=sorted(positions))
         scene = colmap.load_colmap(root, split=split, validate=False, **common)
     else:
-        raise SceneError(root, "no poses: add a COLMAP model, transforms.json or baseline+intrinsics, or allow SfM")
+        raise SceneError(root, "no poses: add a COLMAP model, transforms.json or baseline (or centres) + intrinsics, "
+                               "or allow SfM")
     if protocol == "grid":
         try:
             scene = scene.with_split(*grid_protocol_split(positions, scene.names, k))
