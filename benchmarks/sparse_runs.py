@@ -23,9 +23,14 @@ class Protocol:
     split: str = "llff"  # data.split: "llff" (n_train views spread evenly, every 8th held out) or a light
     # field's "grid" (its 3x3 sub-grid trains, every other view tests; n_train is then the grid's 9)
 
+    @property
+    def n_train_arg(self) -> Optional[int]:
+        """load_scene's n_train: none for a light field's grid, whose training views are the grid itself."""
+        return None if self.split == "grid" else self.n_train
+
     def data_overrides(self) -> list[str]:
         """The config's data.split and data.n_train for this protocol."""
-        n_train = "null" if self.split == "grid" else self.n_train
+        n_train = "null" if self.n_train_arg is None else self.n_train_arg
         return [f"data.split={self.split}", f"data.n_train={n_train}"]
 
 
@@ -86,9 +91,7 @@ def plan(protocol: str, scenes: list[SceneSpec], settings: list[str], seeds: lis
 def load(scene: SceneSpec, protocol: Protocol):
     from warpgs.data import load_scene
 
-    if protocol.split == "grid":
-        return load_scene(scene.path, split="grid", downscale=scene.downscale)
-    return load_scene(scene.path, split="llff", n_train=protocol.n_train, downscale=scene.downscale)
+    return load_scene(scene.path, split=protocol.split, n_train=protocol.n_train_arg, downscale=scene.downscale)
 
 
 def prior_folder(out: Path, protocol: str, scene: SceneSpec) -> Path:

@@ -75,7 +75,8 @@ def train_one(args, run: Run) -> dict:
     loaded = load(run.scene, args.proto)
     reference, reference_from = reference_depth(run.scene, loaded)
     steps, budget = run_steps(args), run_budget(args)
-    base = [f"data.path={run.scene.path}", *args.proto.data_overrides(), f"data.downscale={run.scene.downscale}"] + ([f"strategy.max_primitives={budget}"] if budget else [])
+    base = ([f"data.path={run.scene.path}", *args.proto.data_overrides(), f"data.downscale={run.scene.downscale}"]
+            + ([f"strategy.max_primitives={budget}"] if budget else []))
     extra = (ablation.setting_overrides_for_run(preset, setting_overrides, budget, base + list(args.overrides))
              + ([f"data.depth_priors={prior_folder(Path(args.out), run.protocol, run.scene)}"]
                 if needs_prior(run, args.overrides) else []))

@@ -65,11 +65,16 @@ def rotation_exp(v: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * skew + (1.0 - np.cos(angle)) * (skew @ skew)
 
 
+def camera_centre(viewmat: np.ndarray) -> np.ndarray:
+    """The camera's centre in world space, from its world-to-camera matrix."""
+    return -viewmat[:3, :3].T @ viewmat[:3, 3]
+
+
 def between(viewmat_a: np.ndarray, viewmat_b: np.ndarray, t: float) -> np.ndarray:
     """The world-to-camera matrix a fraction t of the way from camera a to camera b: the centre on the segment
     between theirs, the rotation on the shortest arc between theirs (t=0: a, t=1: b)."""
     rot_a, rot_b = viewmat_a[:3, :3], viewmat_b[:3, :3]
-    centre_a, centre_b = -rot_a.T @ viewmat_a[:3, 3], -rot_b.T @ viewmat_b[:3, 3]
+    centre_a, centre_b = camera_centre(viewmat_a), camera_centre(viewmat_b)
     rot = rot_a @ rotation_exp(t * rotation_log(rot_a.T @ rot_b))
     centre = (1.0 - t) * centre_a + t * centre_b
     out = np.eye(4)
@@ -81,7 +86,7 @@ def between(viewmat_a: np.ndarray, viewmat_b: np.ndarray, t: float) -> np.ndarra
 def neighbour_pairs(viewmats: Sequence[np.ndarray], neighbours: int = NEIGHBOURS) -> list[tuple[int, int]]:
     """(a, b) for every camera a and each of its `neighbours` nearest cameras b by centre distance (ties: lower
     index first)."""
-    centres = np.stack([-v[:3, :3].T @ v[:3, 3] for v in viewmats])
+    centres = np.stack([camera_centre(v) for v in viewmats])
     dist = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
     np.fill_diagonal(dist, np.inf)
     k = min(neighbours, len(viewmats) - 1)
