@@ -10,7 +10,7 @@ from typing import Optional
 import ablation
 from sparse_tables import SETTINGS, TERMS
 
-GROUPS = {"main": ["baseline", "wo_scale", "full"],  # wo_scale: the preset as shipped (ablation.py)
+GROUPS = {"main": ["baseline", "preset", "full"],
            "terms": TERMS, "paper": ["baseline", *TERMS, "full"], "all": list(SETTINGS)}
 FULL_STEPS = ablation.FULL_STEPS["real"]  # the presets' train.steps, on either device (CPU: with a smaller budget)
 

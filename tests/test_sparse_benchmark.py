@@ -142,7 +142,7 @@ def test_the_light_field_protocol_trains_on_the_3x3_grid(tmp_path, capsys, monke
 
 
 def test_settings_groups_and_bad_input():
-    assert sparse_runs.expand_settings("main") == ["baseline", "wo_scale", "full"]  # wo_scale: the preset
+    assert sparse_runs.expand_settings("main") == ["baseline", "preset", "full"]
     assert sparse_runs.expand_settings("paper")[1:-1] == [f"wo_{t}" for t in ("depth", "depth_grad", "depth_local",
                                                                           "opacity", "scale", "count")]
     assert set(sparse_tables.PAPER_TABLE2) == set(sparse_runs.expand_settings("paper"))

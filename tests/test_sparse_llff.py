@@ -215,13 +215,14 @@ def test_the_real_ablation_removes_each_term_once():
                and key not in added for o in overrides if o not in ablation.PAPER_TERMS]
     assert removed == [f"losses.{t}=0" for t in ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")] \
         + ["model.prior_points=0"]
-    # The preset leaves the paper's scale term out: "full" (the paper's objective) and every row but wo_scale, the
-    # preset itself, put it back.
+    # The preset leaves the paper's opacity and scale terms out: "full" (the paper's objective) and every "w/o" row
+    # put them back; the "preset" row is the preset itself.
     settings = {k: o for k, _, preset, o, _ in ablation.REAL_SETTINGS if preset == "sparse_llff"}
-    assert load_config(ROOT / "configs" / "sparse_llff.yaml").losses["scale"] == 0
-    assert settings["full"] == ablation.PAPER_TERMS == ["losses.scale=0.008"]
-    assert all(o[:1] == ablation.PAPER_TERMS for k, o in settings.items() if k != "wo_scale" and k not in added)
-    assert settings["wo_scale"] == ["losses.scale=0"]
+    losses = load_config(ROOT / "configs" / "sparse_llff.yaml").losses
+    assert losses["scale"] == 0 and losses["opacity"] == 0
+    assert settings["full"] == ablation.PAPER_TERMS == ["losses.opacity=0.05", "losses.scale=0.008"]
+    assert all(o[:2] == ablation.PAPER_TERMS for k, o in settings.items() if k != "preset" and k not in added)
+    assert settings["preset"] == [] and settings["wo_scale"] == ablation.PAPER_TERMS + ["losses.scale=0"]
     assert all(settings[k] == o for k, o in added.items())
     # The initialisation's share: 3DGS with the method's initial points and prior, none of its losses.
     plus = [s for s in ablation.REAL_SETTINGS if s[0] == "baseline_prior_points"]

@@ -127,6 +127,9 @@ class TrainConfig:
     virtual_views: int = 0
     virtual_rgb: float = 1.0
     virtual_depth: float = 1.0
+    # Each step, after the optimizers, every opacity times (1 - opacity_decay): a sparsity prior that Adam does not
+    # rescale, unlike the `opacity` loss (train/opacity_decay.py says why that matters); 0: off.
+    opacity_decay: float = 0.0
 
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""

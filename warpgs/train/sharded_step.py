@@ -16,6 +16,7 @@ from warpgs.train.batch import (HostScalars, ViewPass, batch_result, batch_summa
                                  without_graph)
 from warpgs.train.guard import NonFiniteError
 from warpgs.train.model_parallel import render_shard, require_gaussians
+from warpgs.train.opacity_decay import decay_opacities
 from warpgs.train.step import end_step, set_step_schedule
 
 
@@ -73,6 +74,7 @@ def train_step_sharded(trainer) -> dict:
                                                        "names the first offender)")
     for opt in trainer.optimizers:
         opt.step()
+    decay_opacities(model, cfg.train.opacity_decay)  # per row: each rank its own
     phases.mark("optimizer")
     report = None
     if densify:  # each owner its own rows in every camera, after the optimizer step as in train/step.py

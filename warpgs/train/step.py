@@ -8,6 +8,7 @@ import time
 from warpgs.train import setup as train_setup
 from warpgs.train.batch import (BatchScalars, HostScalars, ViewPass, batch_result, batch_summary,
                                 device_batch_result, local_sums, scalar_names, without_graph)
+from warpgs.train.opacity_decay import decay_opacities
 from warpgs.train.optim import means_lr_at, update_learning_rates
 from warpgs.train.step_info import StepInfo
 from warpgs.train.virtual_views import virtual_loss
@@ -58,6 +59,7 @@ def train_step(trainer) -> dict:
     for opt in trainer.optimizers:
         opt.step()
     trainer.step_guard.after_optimizers(trainer.optimizers)
+    decay_opacities(model, cfg.train.opacity_decay)
     phases.mark("optimizer")
     report = None
     if densify:  # after the optimizer step, as 3DGS: the screen radii are those of the updated model
