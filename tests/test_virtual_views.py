@@ -147,7 +147,7 @@ def test_the_trainer_adds_a_virtual_pass_that_moves_the_model(tmp_path):
 
 
 def test_virtual_views_need_depth_priors_and_valid_weights(tmp_path):
-    with pytest.raises(ValueError, match="train.virtual_views: the scene .* has no depth priors"):
+    with pytest.raises(ValueError, match="data.depth_priors: 'none', but train.virtual_views read depth priors"):
         run(tmp_path / "a", "train.virtual_views=1", "data.depth_priors=null", "losses.depth=0",
             "losses.depth_grad=0", "losses.depth_local=0")
     with pytest.raises(ValueError, match="train.virtual_depth"):

@@ -32,9 +32,10 @@ class DataConfig:
     split: Optional[str] = None  # None: split.json when present else all train (light fields: "grid"); "llff", "all"
     n_train: Optional[int] = None  # keep this many training views (evenly spread)
     downscale: int = 1  # serve images at 1/downscale (1, 2, 4, 8)
-    depth_priors: Optional[str] = "auto"  # "auto": the scene's prior files if any; "none"; "estimate": plane-sweep
-    #                                       stereo aligned to the SfM points, written to <output>/depth_priors;
-    #                                       or a folder of priors
+    depth_priors: Optional[str] = "auto"  # "auto": the scene's prior files if any, else estimated when the config
+    #                                       reads priors (train/setup.py what_reads_priors); "none"; "estimate":
+    #                                       plane-sweep stereo aligned to the SfM points, written to
+    #                                       <output>/depth_priors; or a folder of priors
     depth_prior_options: Dict[str, Any] = field(default_factory=dict)  # with "estimate": PlaneSweepStereo's keyword
     #                                arguments, e.g. {window: 7, num_planes: 192} (warpgs/data/depth/plane_sweep.py)
     depth_prior_fill: float = 0.0  # with "estimate": fill the pixels the stereo left invalid (edge-aware, from the

@@ -12,6 +12,7 @@ from warpgs.losses.registry import (
     register_loss,
     registered_losses,
     render_output,
+    required_batch_fields,
     required_outputs,
     resolve_losses,
     unregister_loss,
@@ -23,6 +24,6 @@ from warpgs.losses import depth_patch  # noqa: F401  (registers "depth_patch", o
 
 __all__ = [
     "DEFAULT_LOSSES", "KNOWN_OUTPUTS", "LossResult", "LossTerm", "Schedule", "batch_field", "compute_losses",
-    "get_loss", "parse_schedule", "register_loss", "registered_losses", "render_output", "required_outputs",
-    "resolve_losses", "unregister_loss",
+    "get_loss", "parse_schedule", "register_loss", "registered_losses", "render_output", "required_batch_fields",
+    "required_outputs", "resolve_losses", "unregister_loss",
 ]

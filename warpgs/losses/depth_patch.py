@@ -19,7 +19,7 @@ from typing import Optional, Tuple
 import torch
 import torch.nn.functional as F
 
-from warpgs.losses.marr import DEPTH_SCHEDULE, OUTPUTS, depth_inputs, masked_mean
+from warpgs.losses.marr import DEPTH_SCHEDULE, OUTPUTS, PRIOR_KEY, depth_inputs, masked_mean
 from warpgs.losses.registry import register_loss
 
 PATCH = 8  # block side in pixels
@@ -73,7 +73,7 @@ def _up(t: torch.Tensor, patch: int) -> torch.Tensor:
     return t.repeat_interleave(patch, dim=-2).repeat_interleave(patch, dim=-1)
 
 
-@register_loss("depth_patch", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
+@register_loss("depth_patch", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE, batch=(PRIOR_KEY,))
 def depth_patch(render_out, batch, model, step) -> torch.Tensor:
     """L_patch = mean |norm_P(D̂) - norm_P(D*)| over PATCH x PATCH blocks (DNGaussian's local depth normalisation)."""
     pred, prior, mask, weight = depth_inputs(render_out, batch)

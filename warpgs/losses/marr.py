@@ -240,19 +240,19 @@ def depth_inputs(render_out, batch):
     return pred, prior, mask, prior_weight(batch, pred)
 
 
-@register_loss("depth", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
+@register_loss("depth", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE, batch=(PRIOR_KEY,))
 def depth(render_out, batch, model, step) -> torch.Tensor:
     """L_D = mean |D̂ - D*| over valid prior pixels (paper eq. 4)."""
     return depth_l1(*depth_inputs(render_out, batch))
 
 
-@register_loss("depth_grad", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
+@register_loss("depth_grad", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE, batch=(PRIOR_KEY,))
 def depth_grad(render_out, batch, model, step) -> torch.Tensor:
     """L_grad = mean |∇D̂ - ∇D*| (paper eq. 5)."""
     return depth_gradient_l1(*depth_inputs(render_out, batch))
 
 
-@register_loss("depth_local", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE)
+@register_loss("depth_local", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE, batch=(PRIOR_KEY,))
 def depth_local(render_out, batch, model, step) -> torch.Tensor:
     """L_local = mean |μ_D̂ - μ_D*| + |σ²_D̂ - σ²_D*| over 3x3 windows (paper eqs. 6-8)."""
     return depth_local_l1(*depth_inputs(render_out, batch))

@@ -97,6 +97,7 @@ class LossTerm:
     outputs: Tuple[str, ...]
     weight: float = 1.0
     schedule: Optional[Callable[[int, int], float]] = None
+    batch: Tuple[str, ...] = ()  # batch fields it reads that the scene must supply (e.g. "inv_depth_prior")
 
     def weight_at(self, step: int, max_steps: int) -> float:
         return self.weight * (1.0 if self.schedule is None else float(self.schedule(step, max_steps)))
@@ -139,11 +140,12 @@ def _with_step(fn: Callable) -> Callable:
 
 
 def register_loss(name: str, outputs: Iterable[str] = ("rgb",), weight: float = 1.0,
-                  schedule: ScheduleSpec = None, *, overwrite: bool = False):
+                  schedule: ScheduleSpec = None, *, batch: Iterable[str] = (), overwrite: bool = False):
     """Decorator: register `fn(render_out, batch, model, step) -> scalar tensor` under `name`.
 
     outputs: the render outputs it reads (only these are rendered for it); weight/schedule: defaults that a
-    config may override. Re-registering a name needs overwrite=True.
+    config may override; batch: the batch fields it needs from the scene (the trainer prepares them, e.g. estimates
+    depth priors, before the first step). Re-registering a name needs overwrite=True.
     """
     if not isinstance(name, str) or not name:
         raise ValueError(f"name: expected a non-empty string, got {name!r}")
@@ -157,7 +159,7 @@ def register_loss(name: str, outputs: Iterable[str] = ("rgb",), weight: float = 
             raise ValueError(f"{label}: expected a callable, got {fn!r}")
         if name in _REGISTRY and not overwrite:
             raise ValueError(f"name: a loss {name!r} is already registered (pass overwrite=True to replace it)")
-        _REGISTRY[name] = LossTerm(name, _with_step(fn), outs, w, sched)
+        _REGISTRY[name] = LossTerm(name, _with_step(fn), outs, w, sched, tuple(batch))
         return fn
 
     return decorate
@@ -211,7 +213,7 @@ def resolve_losses(config: Union[None, Mapping[str, object], Iterable[str]] = No
         elif spec is not None:
             weight = _check_weight(key, spec)
         if weight > 0:
-            terms.append(LossTerm(name, base.fn, base.outputs, weight, schedule))
+            terms.append(LossTerm(name, base.fn, base.outputs, weight, schedule, base.batch))
     if not terms:
         raise ValueError("losses: every term has weight 0; nothing to optimise")
     return terms
@@ -224,6 +226,16 @@ def required_outputs(terms: Iterable[LossTerm], always: Iterable[str] = ()) -> T
         if term.weight > 0:
             wanted.update(term.outputs)
     return tuple(o for o in KNOWN_OUTPUTS if o in wanted) + tuple(sorted(wanted - set(KNOWN_OUTPUTS)))
+
+
+def required_batch_fields(terms: Iterable[LossTerm]) -> Dict[str, List[str]]:
+    """{batch field: the names of the (active) terms that read it}."""
+    needed: Dict[str, List[str]] = {}
+    for term in terms:
+        if term.weight > 0:
+            for field_name in term.batch:
+                needed.setdefault(field_name, []).append(term.name)
+    return needed
 
 
 @dataclass

@@ -83,7 +83,7 @@ class Trainer(TrainerBuild):
         self.log = TrainLog(self.out_dir, kind=cfg.train.log if self.ranks.is_main else "none",
                             every=cfg.train.log_every)  # files open in fit()
         with self.clock.stage("load_scene"):  # with estimated depth priors
-            self._load_scene(cfg, scene)
+            self._load_scene(cfg, scene, terms)
         self.guard = NonFiniteGuard(self.named_parameters)
         self.step_guard = StepGuard(self.guard)  # the training step's use of it (deferred on a GPU)
         self.phases = PhaseTimer(self.device, cfg.train.profile_phases)
