@@ -74,9 +74,10 @@ _METHOD_MODEL = load_config(ROOT / "configs" / "sparse_llff.yaml").model
 PRIOR_POINTS = _METHOD_MODEL.prior_points  # the method's count, and the prior confidence it lifts them from
 PRIOR_CONFIDENCE = _METHOD_MODEL.prior_points_confidence
 REAL_TERMS = ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")
-# The paper's terms that the preset leaves out, at the paper's weights (sparse_lightfield is the paper's objective).
+# The paper's objective from the preset: the terms it leaves out at the paper's weights (sparse_lightfield is the
+# paper's objective), and without what it adds (virtual views, on at few views).
 _PAPER_WEIGHTS = load_config(ROOT / "configs" / "sparse_lightfield.yaml").losses
-PAPER_TERMS = [f"losses.{t}={_PAPER_WEIGHTS[t]}" for t in ("opacity", "scale")]
+PAPER_TERMS = [f"losses.{t}={_PAPER_WEIGHTS[t]}" for t in ("opacity", "scale")] + ["train.virtual_views=0"]
 REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
                  + [("baseline_prior_points", "3DGS + prior points", "sparse_llff_baseline",
                      [f"model.prior_points={PRIOR_POINTS}", f"model.prior_points_confidence={PRIOR_CONFIDENCE}"], {})]
@@ -86,8 +87,9 @@ REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
                     ("wo_confidence", "w/o confidence", "sparse_llff", PAPER_TERMS, {"confidence_power": 0.0}),
                     # beyond the paper: the preset with one addition (issue 30 item 5)
                     ("unpool", "the preset + unpooling (FSGS)", "sparse_llff", ["strategy.unpool_every=1"], {}),
-                    ("virtual", "the preset + virtual views (FSGS's pseudo views)", "sparse_llff",
+                    ("virtual", "the preset + virtual views at any view count (FSGS's pseudo views)", "sparse_llff",
                      ["train.virtual_views=1"], {}),
+                    ("wo_virtual", "the preset without virtual views", "sparse_llff", ["train.virtual_views=0"], {}),
                     ("depth_patch", "the preset + patch-normalised depth (DNGaussian)", "sparse_llff",
                      ["losses.depth_patch.weight=0.1", "losses.depth_patch.schedule=[exp, 1.0, 0.01, 0, 10000]"], {}),
                     ("full", "Ours (full: the paper's six terms)", "sparse_llff", PAPER_TERMS, {})])

@@ -154,3 +154,20 @@ def test_virtual_views_need_depth_priors_and_valid_weights(tmp_path):
         run(tmp_path / "b", "train.virtual_views=1", "train.virtual_depth=-1")
     with pytest.raises(ValueError, match="train.virtual_views"):
         run(tmp_path / "c", "train.virtual_views=-2")
+
+
+def test_auto_turns_virtual_views_on_with_few_training_views_only(tmp_path):
+    from warpgs.train.virtual_views import AUTO_MAX_VIEWS, virtual_every
+
+    assert [virtual_every("auto", n) for n in (2, 3, AUTO_MAX_VIEWS, AUTO_MAX_VIEWS + 1, 9, 24)] == [1, 1, 1, 0, 0, 0]
+    assert virtual_every(0, 3) == 0 and virtual_every(4, 30) == 4
+    # The tiny light field trains on its 3x3 array: 9 views, so "auto" leaves them off; with 3 of them, on.
+    nine = run(tmp_path / "nine", "train.virtual_views=auto", steps=2)
+    assert nine.virtual_every == 0 and nine.virtual_views is None
+    dropped = [nine.scene.names[v] for v in nine.scene.train[3:]]
+    three = run(tmp_path / "three", "train.virtual_views=auto", f"data.exclude=[{', '.join(dropped)}]", steps=2)
+    assert len(three.views.indices) == 3 and three.virtual_every == 1 and three.virtual_views is not None
+    assert math.isfinite(three.train_step()["loss"])
+    for bad in ("sometimes", -1):
+        with pytest.raises(ValueError, match="train.virtual_views"):
+            run(tmp_path / "bad", f"train.virtual_views={bad}")

@@ -88,6 +88,8 @@ def _check_value(key: str, value, tp):
     args = typing.get_args(tp)
     if key == "train.steps":
         return _check_steps(key, value)
+    if key == "train.virtual_views":
+        return _check_virtual_views(key, value)
     if key in AUTO_BOOLS:
         return _check_auto_bool(key, value)
     if tp is Any:
@@ -180,6 +182,19 @@ def _check_steps(key: str, value):
     if steps < 1:
         raise ConfigError(key, f"expected a positive integer or 'auto', got {value!r}")
     return steps
+
+
+def _check_virtual_views(key: str, value):
+    """A period in steps (0: off), or "auto" (train/virtual_views.py: every step with few training views)."""
+    if isinstance(value, str) and value.strip().lower() == "auto":
+        return "auto"
+    try:
+        every = _as_number(key, value, int)
+    except ConfigError:
+        raise ConfigError(key, f"expected a step period >= 0 or 'auto', got {value!r}") from None
+    if every < 0:
+        raise ConfigError(key, f"expected a step period >= 0 or 'auto', got {value!r}")
+    return every
 
 
 def _check_auto_bool(key: str, value):

@@ -124,8 +124,9 @@ class TrainConfig:
     resolution_schedule: Optional[List[Any]] = None
     # Few-view training: every this many steps also render a camera between two near training cameras and fit it to
     # the depth prior's confident pixels (model.prior_points_confidence) seen from there (train/virtual_views.py;
-    # needs depth priors); 0: off. The weights of its colour and inverse-depth L1:
-    virtual_views: int = 0
+    # needs depth priors); 0: off; "auto": every step when the run has at most virtual_views.AUTO_MAX_VIEWS training
+    # views, else off. The weights of its colour and inverse-depth L1:
+    virtual_views: Union[int, str] = 0
     virtual_rgb: float = 1.0
     virtual_depth: float = 1.0
     # Each step, after the optimizers, every opacity times (1 - opacity_decay): a sparsity prior that Adam does not
@@ -204,7 +205,7 @@ CHOICES = {
 AUTO_BOOLS = {"train.fused_ssim"}  # true, false or "auto"
 POSITIVE = {"data.width", "data.height", "data.downscale", "data.n_train", "model.init_points", "model.init_knn",
             "train.steps", "train.tile_size", "train.batch_size", "train.dist_timeout"}
-NON_NEGATIVE = {"model.sh_interval", "model.background_points", "model.prior_points", "train.checkpoint_every", "train.log_every", "train.threads", "train.virtual_views", "eval.every",
+NON_NEGATIVE = {"model.sh_interval", "model.background_points", "model.prior_points", "train.checkpoint_every", "train.log_every", "train.threads", "eval.every",
                 "eval.max_views"}
 # Mappings whose keys are free (user names), not fields.
 FREE_MAPPINGS = {"losses", "extensions", "model.features", "optim.extras_lr"}

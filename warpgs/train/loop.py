@@ -80,8 +80,9 @@ class TrainingLoop:
                                  log_every=cfg.train.log_every)
         if tr.step == 0 or tr.init_source != "checkpoint":
             self.say(f"warpgs: {tr.scene.summary()}")
+            virtual = f"; virtual views every {tr.virtual_every} step(s)" if tr.virtual_views is not None else ""
             self.say(f"warpgs: {tr.num_primitives} {tr.model.kind} from {tr.init_source}; "
-                     f"losses {tr.loss_set.names} render {list(tr.outputs)}; "
+                     f"losses {tr.loss_set.names} render {list(tr.outputs)}{virtual}; "
                      f"{self._length()} on {tr.device}; output {tr.out_dir}")
             if cfg.data.path is not None and not tr.quiet:  # once per training run: not on resume, render or eval
                 train_setup.warn_pose_jumps(tr.scene, self.say)

@@ -54,7 +54,7 @@ def what_reads_priors(cfg: Config, terms) -> str:
 
     readers = [f"losses.{name}" for name in required_batch_fields(terms).get(PRIOR_KEY, [])]
     readers += [key for key, on in (("model.prior_points", cfg.model.prior_points > 0),
-                                    ("train.virtual_views", cfg.train.virtual_views > 0)) if on]
+                                    ("train.virtual_views", cfg.train.virtual_views != 0)) if on]
     return ", ".join(readers)
 
 

@@ -32,7 +32,7 @@ def train_step(trainer) -> dict:
     for view in mine:
         # Through the method, so a Trainer subclass that overrides view_pass is honoured.
         passes.append(trainer.view_pass(view, step, views_in_loss=len(drawn), densify=densify, first=not passes))
-    if trainer.virtual_views is not None and step % cfg.train.virtual_views == 0:
+    if trainer.virtual_views is not None and step % trainer.virtual_every == 0:
         virtual_pass(trainer, step)
     phases.mark("render_backward")
     names = scalar_names(passes)

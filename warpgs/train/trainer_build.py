@@ -28,7 +28,7 @@ from warpgs.train.schedule import AutoStop, validation_split
 from warpgs.train.state import RunCounters
 from warpgs.train.strategy import DensifyStrategy
 from warpgs.train.views import TrainViews
-from warpgs.train.virtual_views import virtual_views_for
+from warpgs.train.virtual_views import virtual_every, virtual_views_for
 
 
 class TrainerBuild:
@@ -138,7 +138,8 @@ class TrainerBuild:
             self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth)[1])
         self.best_state = BestState() if self.auto_steps and cfg.schedule.keep_best else None
         self.virtual_views = None  # train.virtual_views: cameras between the training ones (train/virtual_views.py)
-        if cfg.train.virtual_views:
+        self.virtual_every = virtual_every(cfg.train.virtual_views, len(self.views.indices))
+        if self.virtual_every:
             if self.model_parallel:
                 raise ValueError("train.virtual_views: not with train.parallel=model (use the default data parallel)")
             self.virtual_views = virtual_views_for(self.scene, self.views.indices, cfg.model.prior_points_confidence,
