@@ -55,3 +55,14 @@ def test_none_with_a_reader_is_refused_at_set_up(tmp_path):
         Trainer(CONFIGS / "sparse_baseline.yaml", quiet=True, overrides=[
             f"data.path={tiny_lightfield()}", "data.depth_priors=none", "model.prior_points=100",
             "train.device=cpu", "train.steps=2", "train.progress=false", f"output.dir={tmp_path}"])
+
+
+def test_virtual_views_on_auto_read_priors_only_when_they_turn_on():
+    from warpgs.config import load_config
+    from warpgs.train.setup import what_reads_priors
+
+    cfg = load_config(CONFIGS / "sparse_llff.yaml")
+    terms = resolve_losses({"l1": 1.0})
+    cfg.model.prior_points = 0
+    assert what_reads_priors(cfg, terms, 3) == "train.virtual_views"
+    assert what_reads_priors(cfg, terms, 24) == ""

@@ -8,7 +8,7 @@ import re
 import shutil
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -46,33 +46,38 @@ def scene_label(data: DataConfig) -> str:
     return re.sub(r"[^\w.-]+", "_", name) or "scene"
 
 
-def what_reads_priors(cfg: Config, terms) -> str:
+def what_reads_priors(cfg: Config, terms, num_train_views: int) -> str:
     """What in the config reads the scene's depth priors, for messages ("" if nothing): loss terms that declare the
-    prior batch field (register_loss(batch=...)), model.prior_points and train.virtual_views."""
+    prior batch field (register_loss(batch=...)), model.prior_points and train.virtual_views (with "auto", when it
+    is on for this many training views)."""
     from warpgs.losses import required_batch_fields
     from warpgs.losses.marr import PRIOR_KEY
+    from warpgs.train.virtual_views import virtual_every
 
     readers = [f"losses.{name}" for name in required_batch_fields(terms).get(PRIOR_KEY, [])]
     readers += [key for key, on in (("model.prior_points", cfg.model.prior_points > 0),
-                                    ("train.virtual_views", cfg.train.virtual_views != 0)) if on]
+                                    ("train.virtual_views", virtual_every(cfg.train.virtual_views, num_train_views)))
+                if on]
     return ", ".join(readers)
 
 
-def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None, needs_priors: str = ""):
+def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None,
+                        readers: Optional[Callable[[int], str]] = None):
     """The scene a config names (data.path None: the built-in synthetic scene, generated once and cached).
     data.depth_priors "estimate" runs the built-in plane-sweep stereo on the training views, aligns it to the SfM
     points and writes the priors to <out_dir>/depth_priors (never into the scene's own folder); a later Trainer on
     the same output folder (resume, warpgs-render/eval) reuses them, and one with another output folder copies them
     from the user's cache when the images, cameras, views, points and settings are the same (_estimated_priors).
-    needs_priors: what in the config reads depth priors ("" if nothing): with "auto" a scene without priors for its
-    training views then gets estimated ones, as with "estimate"; with "none" that is an error, named here rather
-    than at the first step."""
+    readers(number of training views): what in the config reads depth priors ("" if nothing; what_reads_priors):
+    with "auto" a scene without priors for its training views then gets estimated ones, as with "estimate"; with
+    "none" that is an error, named here rather than at the first step."""
     from warpgs.data import compute_depth_priors, default_scene, load_scene
     from warpgs.data.exclude import excluding
 
     path = default_scene(data.synthetic, data.width, data.height) if data.path is None else Path(data.path)
     scene = excluding(load_scene(path, split=data.split, n_train=data.n_train, downscale=data.downscale), data.exclude)
     prior = data.depth_priors
+    needs_priors = readers(len(scene.train)) if readers is not None else ""
     if needs_priors and prior == "auto" and not scene.has("depth_prior", scene.train):
         print(f"depth priors: the scene at {scene.root} has none for its training views and {needs_priors} read "
               f"them: estimating them (data.depth_priors=auto; 'none' or a folder to choose otherwise)",
@@ -80,7 +85,7 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None, needs_
         prior = "estimate"
     if needs_priors and prior in (None, "none"):
         raise ValueError(f"data.depth_priors: 'none', but {needs_priors} read depth priors (use 'auto' or "
-                         f"'estimate', or set their weights to 0)")
+                         f"'estimate', or turn those off)")
     if prior in (None, "none"):
         if scene.has("depth_prior"):
             scene = copy.copy(scene)

@@ -62,10 +62,12 @@ class TrainerBuild:
 
     def _load_scene(self, cfg: Config, scene, terms) -> None:
         """The scene (given, or loaded by rank 0 first), its extents, focal length, background and step bound."""
-        needs_priors = train_setup.what_reads_priors(cfg, terms)
+        def readers(num_train_views: int) -> str:
+            return train_setup.what_reads_priors(cfg, terms, num_train_views)
+
         # Rank 0 first: loading can write caches (the built-in scene, estimated depth priors) the others then read.
         self.scene = scene if scene is not None else self.ranks.rank0_first(
-            lambda: train_setup.load_training_scene(cfg.data, self.out_dir, needs_priors), "loading the scene")
+            lambda: train_setup.load_training_scene(cfg.data, self.out_dir, readers), "loading the scene")
         self.extent = train_setup.scene_extent(self.scene, cfg.train.scene_extent)
         # The training images' focal length: renders scale the screen-space filter from it (model/rendering.py).
         self.training_focal = train_setup.training_focal(self.scene)
