@@ -16,6 +16,8 @@ import torch
 from warpgs.config.loader import BACKGROUNDS, Config, DataConfig
 from warpgs.model.gaussians import MODEL_KINDS, GaussianModel
 from warpgs.model.rendering import focal_length
+from warpgs.train.lifted_prior import lifted_prior
+from warpgs.train.virtual_views import virtual_every
 
 
 def resolve_device(name: str) -> torch.device:
@@ -52,7 +54,6 @@ def what_reads_priors(cfg: Config, terms, num_train_views: int) -> str:
     is on for this many training views)."""
     from warpgs.losses import required_batch_fields
     from warpgs.losses.marr import PRIOR_KEY
-    from warpgs.train.virtual_views import virtual_every
 
     readers = [f"losses.{name}" for name in required_batch_fields(terms).get(PRIOR_KEY, [])]
     readers += [key for key, on in (("model.prior_points", cfg.model.prior_points > 0),
@@ -253,22 +254,6 @@ def prior_points(scene, n: int, min_confidence: float, seed: int = 0):
     has_confidence = any(scene.prior_confidence_np(v) is not None for v in scene.train)
     which = f"confidence >= {min_confidence:g}" if has_confidence else "the prior files carry no confidence: any valid pixel"
     return xyz.float(), rgb.float(), f"{len(xyz)} from depth priors ({which})"
-
-
-def lifted_prior(scene, views, n: int, min_confidence: float, seed: int, key: str, named: str):
-    """A PointCloud of n pixels of the views' depth priors of at least min_confidence, lifted with their colours
-    (init_points.points_from_depth). Errors name the config `key` (shown as `named`): a scene without priors, or no
-    pixel that confident."""
-    from warpgs.data.sfm import init_points as ip
-
-    if not scene.has("depth_prior", views):
-        raise ValueError(f"{named}: the scene at {scene.root} has no depth priors for its training views (set "
-                         f"data.depth_priors, e.g. 'estimate', or {key}=0)")
-    try:
-        return ip.points_from_depth(scene, n=n, views=views, source="prior", seed=seed, min_confidence=min_confidence)
-    except ValueError:
-        raise ValueError(f"{key}: no training-view prior pixel has confidence >= {min_confidence} (lower "
-                         f"model.prior_points_confidence)") from None
 
 
 def background_points(scene, points: torch.Tensor, n: int, radius: float, seed: int = 0):

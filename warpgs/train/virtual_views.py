@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from warpgs.losses.marr import masked_mean
-from warpgs.train.setup import lifted_prior
+from warpgs.train.lifted_prior import lifted_prior
 
 SEE_THROUGH = 0.9  # a virtual pixel's inverse depth over the largest in its 5x5 neighbourhood, at least
 NEIGHBOURHOOD = 5
