@@ -171,3 +171,12 @@ def test_auto_turns_virtual_views_on_with_few_training_views_only(tmp_path):
     for bad in ("sometimes", -1):
         with pytest.raises(ValueError, match="train.virtual_views"):
             run(tmp_path / "bad", f"train.virtual_views={bad}")
+
+
+def test_the_start_line_says_whether_auto_turned_virtual_views_on():
+    from warpgs.train.virtual_views import AUTO_MAX_VIEWS, virtual_views_note
+
+    off = virtual_views_note("auto", 0, AUTO_MAX_VIEWS + 1)
+    assert "off" in off and f"{AUTO_MAX_VIEWS + 1} training views" in off and f"at most {AUTO_MAX_VIEWS}" in off
+    assert virtual_views_note("auto", 1, 3) == virtual_views_note(1, 1, 3) == "; virtual views every 1 step(s)"
+    assert virtual_views_note(0, 0, 3) == ""  # not asked for: nothing to explain

@@ -20,6 +20,7 @@ from warpgs.train import setup as train_setup
 from warpgs.train.distributed import DistributedError
 from warpgs.train.evaluation import scores_over_ranks
 from warpgs.train.guard import NonFiniteError
+from warpgs.train.virtual_views import virtual_views_note
 from warpgs.utils.atomic_file import atomic_write_bytes
 from warpgs.utils.progress import Progress
 
@@ -80,7 +81,7 @@ class TrainingLoop:
                                  log_every=cfg.train.log_every)
         if tr.step == 0 or tr.init_source != "checkpoint":
             self.say(f"warpgs: {tr.scene.summary()}")
-            virtual = f"; virtual views every {tr.virtual_every} step(s)" if tr.virtual_views is not None else ""
+            virtual = virtual_views_note(cfg.train.virtual_views, tr.virtual_every, len(tr.views.indices))
             self.say(f"warpgs: {tr.num_primitives} {tr.model.kind} from {tr.init_source}; "
                      f"losses {tr.loss_set.names} render {list(tr.outputs)}{virtual}; "
                      f"{self._length()} on {tr.device}; output {tr.out_dir}")

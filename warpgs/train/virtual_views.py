@@ -41,6 +41,16 @@ def virtual_every(setting, num_train_views: int) -> int:
     return int(setting)
 
 
+def virtual_views_note(setting, every: int, num_train_views: int) -> str:
+    """The start line's words on virtual views: their period when on, why not when "auto" left them off, else ""."""
+    if every:
+        return f"; virtual views every {every} step(s)"
+    if setting == "auto":
+        return (f"; virtual views off (train.virtual_views=auto: {num_train_views} training views, on with at most "
+                f"{AUTO_MAX_VIEWS})")
+    return ""
+
+
 @dataclass
 class VirtualView:
     """A camera between two training cameras and its targets: what Trainer.make_batch and Trainer.render take."""
