@@ -171,30 +171,27 @@ def _as_number(key: str, value, kind):
     return float(value)
 
 
-def _check_steps(key: str, value):
-    """A positive step count, or "auto" (train/schedule.py)."""
+def _int_or_auto(key: str, value, least: int, expected: str):
+    """"auto", or an integer >= least; anything else is an error saying `expected`."""
     if isinstance(value, str) and value.strip().lower() == "auto":
         return "auto"
     try:
-        steps = _as_number(key, value, int)
+        number = _as_number(key, value, int)
     except ConfigError:
-        raise ConfigError(key, f"expected a positive integer or 'auto', got {value!r}") from None
-    if steps < 1:
-        raise ConfigError(key, f"expected a positive integer or 'auto', got {value!r}")
-    return steps
+        raise ConfigError(key, f"expected {expected} or 'auto', got {value!r}") from None
+    if number < least:
+        raise ConfigError(key, f"expected {expected} or 'auto', got {value!r}")
+    return number
+
+
+def _check_steps(key: str, value):
+    """A positive step count, or "auto" (train/schedule.py)."""
+    return _int_or_auto(key, value, 1, "a positive integer")
 
 
 def _check_virtual_views(key: str, value):
     """A period in steps (0: off), or "auto" (train/virtual_views.py: every step with few training views)."""
-    if isinstance(value, str) and value.strip().lower() == "auto":
-        return "auto"
-    try:
-        every = _as_number(key, value, int)
-    except ConfigError:
-        raise ConfigError(key, f"expected a step period >= 0 or 'auto', got {value!r}") from None
-    if every < 0:
-        raise ConfigError(key, f"expected a step period >= 0 or 'auto', got {value!r}")
-    return every
+    return _int_or_auto(key, value, 0, "a step period >= 0")
 
 
 def _check_auto_bool(key: str, value):
