@@ -13,16 +13,14 @@ So two renders in flight (two forwards, then their backwards in any order) share
 """
 from __future__ import annotations
 
-import functools
-import math
-
 import torch
 import warp as wp
 
 from warpgs.render import fast_pipeline as fast
 from warpgs.render.camera_rows import camera_rows
-from warpgs.render.device_state import DeviceState, device_state
+from warpgs.render.device_state import DeviceState, backward_state, device_state
 from warpgs.render.differentiable_once import differentiable_once
+from warpgs.render.gradient_block import FEATURES, OPACITIES, GradientBlock
 from warpgs.render.pipeline_gaussians import _cooperative
 from warpgs.render.validation import raise_flagged
 
@@ -134,32 +132,6 @@ def projection_adjoint(state: "DeviceState", backward, frame, settings, tensors,
         rows.add_into(grads[6], grads[7])
 
 
-def gradient_buffers(saved, camera_shapes, needs):
-    """(grads, opacity gradient, feature gradient): the op's eight input gradients (zeros where `needs`, else None)
-    from its saved (means, quats, scales, opacities, coeffs, features, ...) and the camera's shapes, and the two
-    buffers the blend adjoint always writes (the gradients themselves where wanted). All are contiguous views of
-    one zeroed block: on a GPU one allocation and one fill instead of one of each per input."""
-    shapes = [tuple(t.shape) for t in saved[:6]] + [tuple(s) for s in camera_shapes]
-    taken = [need or i in (3, 5) for i, need in enumerate(needs)]  # opacities and features: always written
-    sizes = [math.prod(shape) if take else 0 for shape, take in zip(shapes, taken)]
-    block = saved[0].new_zeros(sum(sizes))
-    views, offset = [], 0
-    for shape, size, take in zip(shapes, sizes, taken):
-        views.append(block.as_strided(shape, _contiguous_strides(shape), offset) if take else None)
-        offset += size
-    grads = [v if need else None for v, need in zip(views, needs)]
-    return grads, views[3], views[5]
-
-
-@functools.lru_cache(maxsize=256)  # a handful of shapes per model; saves a loop per gradient per backward
-def _contiguous_strides(shape) -> tuple:
-    strides, step = [], 1
-    for d in reversed(shape):
-        strides.append(step)
-        step *= max(d, 1)
-    return tuple(reversed(strides))
-
-
 def upstream_gradient(state: "DeviceState", layout: str, alive: list, g, name: str, shape, dtype, rows_dtype=None):
     """The upstream gradient of an output in the kernels' layout (a descriptor of a contiguous copy, appended to
     `alive`, which must outlive the launches); a shared zero buffer when autograd has none (the loss did not use
@@ -182,11 +154,15 @@ def upstream_features(state: "DeviceState", layout: str, alive: list, g, npix: i
 
 def feature_gradient_arg(g_features: torch.Tensor, num_features: int, layout: str, state: "DeviceState"):
     """Where the blend adjoint accumulates the feature gradients ([rows, C] floats on the CPU, vectors on GPUs)."""
+    return feature_gradient_at(g_features.data_ptr(), g_features.shape[0], num_features, layout, state)
+
+
+def feature_gradient_at(address: int, rows: int, num_features: int, layout: str, state: "DeviceState"):
+    """`feature_gradient_arg` of [rows, num_features] float32 gradients at a device address."""
     if num_features and layout == "rows":
-        return wp.array(ptr=g_features.data_ptr(), dtype=wp.float32, shape=tuple(g_features.shape),
-                        device=state.wdev)
+        return wp.array(ptr=address, dtype=wp.float32, shape=(rows, num_features), device=state.wdev)
     if num_features:
-        return state.array(g_features, g_features.shape[0], fast.blend_gpu.feature_vector_type(num_features))
+        return state.array_at(address, rows, fast.blend_gpu.feature_vector_type(num_features))
     return _features_arg(None, 0, layout, state)
 
 
@@ -308,7 +284,7 @@ class FastRasterizeFunction(torch.autograd.Function):
             ctx.absgrad = getattr(means2d_probe, "absgrad", None) if wanted.absgrad else None
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
-        ctx.device = device
+            ctx.forward_state = state
         return color, alpha, depth, inv_depth, feats, visible, count, overflowed
 
     @staticmethod
@@ -316,27 +292,28 @@ class FastRasterizeFunction(torch.autograd.Function):
     def backward(ctx, g_color, g_alpha, g_depth, g_inv, g_feat, _g_visible, _g_count, _g_overflowed):
         fast._stage(None, "between (loss, autograd)")
         frame, keep, zacc, settings, wanted, options, needs, layout = take_backward_state(ctx)
-        means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors
-        device = ctx.device
-        state = device_state(device)
+        saved = ctx.saved_tensors  # unpacked once: each read of ctx.saved_tensors unpacks them again
+        means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = saved
+        state = backward_state(ctx.forward_state)
         ws = state.ws
         nf = wanted.num_features
 
-        grads, g_opac, g_features = gradient_buffers(ctx.saved_tensors, ctx.camera_shapes, needs)
-
+        # the blend adjoint is launched before the gradients' torch views are made: the GPU waits for that launch
+        gradients = GradientBlock(saved, ctx.camera_shapes, needs)
         desc = state.desc
         alive = []  # descriptors hold no reference: contiguous copies must outlive the launches
 
         w_opac = desc(opacities, wp.float32)
         w_feat = _features_arg(features, nf, layout, state)
-        adj_opac = state.array(g_opac, g_opac.shape[0], wp.float32)
-        adj_feat = feature_gradient_arg(g_features, nf, layout, state)
+        adj_opac = state.array_at(gradients.address(OPACITIES), opacities.shape[0], wp.float32)
+        adj_feat = feature_gradient_at(gradients.address(FEATURES), features.shape[0], nf, layout, state)
         probe_grad = None
         with state.scope():
             upstream = blend_upstream(state, layout, alive, settings, wanted,
                                       (g_color, g_alpha, g_depth, g_inv, g_feat))
             projected = fast.blend_backward(ws, frame, settings, wanted, w_opac, w_feat, upstream,
                                             adj_opac, adj_feat, features.shape[0], options.backward_kernel, zacc=zacc)
+            grads, g_opac, g_features = gradients.views()
             if wanted.absgrad:  # Σ over pixels of |dL/dmeans2d|, into the probe's buffer (rasterize(absgrad=True))
                 absgrad = projected.pop()
                 if ctx.absgrad is not None:

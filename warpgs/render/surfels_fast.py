@@ -10,9 +10,10 @@ from warpgs.render import fast_pipeline_surfels as fast
 from warpgs.render.differentiable_once import differentiable_once
 from warpgs.render.fast_pipeline_surfels import IMAGES, image_wanted
 from warpgs.render.fast_pipeline import feature_layout
-from warpgs.render.device_state import device_state
-from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, feature_gradient_arg,
-                                          gradient_buffers, input_check, overflow_flag, projection_adjoint,
+from warpgs.render.gradient_block import FEATURES, OPACITIES, GradientBlock
+from warpgs.render.device_state import backward_state, device_state
+from warpgs.render.gaussians_fast import (_features_arg, detached_inputs, feature_gradient_at, input_check,
+                                          overflow_flag, projection_adjoint,
                                           projection_inputs, staged_camera, take_backward_state,
                                           upstream_features, upstream_gradient)
 
@@ -71,20 +72,22 @@ class FastSurfelsFunction(torch.autograd.Function):
         if any_grad:
             ctx.state = (frame, keep, zacc, settings, wanted, options, needs, layout)
             ctx.save_for_backward(means, quats, scales, opacities, coeffs, features, viewmat, intrinsics)
-        ctx.device = means.device
+            ctx.forward_state = state
         return tuple(images) + (feats, visible, count, overflowed)
 
     @staticmethod
     @differentiable_once("the surfel render (rasterize_surfels)")
     def backward(ctx, *upstream):  # the images', then features', visible's, count's and the overflow flag's
         frame, keep, zacc, settings, wanted, options, needs, layout = take_backward_state(ctx)
-        means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = ctx.saved_tensors
-        state = device_state(ctx.device)
+        saved = ctx.saved_tensors  # unpacked once: each read of ctx.saved_tensors unpacks them again
+        means, quats, scales, opacities, coeffs, features, viewmat, intrinsics = saved
+        state = backward_state(ctx.forward_state)
         ws = state.ws
         npix = settings.width * settings.height
         nf = wanted.num_features
 
-        grads, g_opac, g_features = gradient_buffers(ctx.saved_tensors, ctx.camera_shapes, needs)
+        # the blend adjoint is launched before the gradients' torch views are made: the GPU waits for that launch
+        gradients = GradientBlock(saved, ctx.camera_shapes, needs)
 
         alive = []  # descriptors hold no reference: contiguous copies must outlive the launches
         ups = [upstream_gradient(state, layout, alive, g, f"up_{name}", (npix, c) if c > 1 else (npix,), dtype)
@@ -95,9 +98,12 @@ class FastSurfelsFunction(torch.autograd.Function):
         with state.scope():
             projected = fast.blend_backward(ws, frame, settings, wanted, desc(opacities, wp.float32),
                                             _features_arg(features, nf, layout, state), ups,
-                                            state.array(g_opac, g_opac.shape[0], wp.float32),
-                                            feature_gradient_arg(g_features, nf, layout, state), features.shape[0],
-                                            options.surfel_backward_kernel, zacc=zacc)
+                                            state.array_at(gradients.address(OPACITIES), opacities.shape[0],
+                                                           wp.float32),
+                                            feature_gradient_at(gradients.address(FEATURES), features.shape[0], nf,
+                                                                layout, state),
+                                            features.shape[0], options.surfel_backward_kernel, zacc=zacc)
+            grads, g_opac, g_features = gradients.views()
             if any(needs[i] for i in (0, 1, 2, 4, 6, 7)):
                 projection_adjoint(state, fast.project_backward, frame, settings,
                                    (means, quats, scales, coeffs, viewmat, intrinsics), grads, needs, projected,
