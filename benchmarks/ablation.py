@@ -75,9 +75,10 @@ PRIOR_POINTS = _METHOD_MODEL.prior_points  # the method's count, and the prior c
 PRIOR_CONFIDENCE = _METHOD_MODEL.prior_points_confidence
 REAL_TERMS = ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")
 # The paper's objective from the preset: the terms it leaves out at the paper's weights (sparse_lightfield is the
-# paper's objective), and without what it adds (virtual views, on at few views).
+# paper's objective), and without what it adds (virtual views, on at few views; primitive dropout).
 _PAPER_WEIGHTS = load_config(ROOT / "configs" / "sparse_lightfield.yaml").losses
-PAPER_TERMS = [f"losses.{t}={_PAPER_WEIGHTS[t]}" for t in ("opacity", "scale")] + ["train.virtual_views=0"]
+PAPER_TERMS = ([f"losses.{t}={_PAPER_WEIGHTS[t]}" for t in ("opacity", "scale")]
+               + ["train.virtual_views=0", "train.drop_rate=0"])
 REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
                  + [("baseline_prior_points", "3DGS + prior points", "sparse_llff_baseline",
                      [f"model.prior_points={PRIOR_POINTS}", f"model.prior_points_confidence={PRIOR_CONFIDENCE}"], {})]
@@ -90,6 +91,7 @@ REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
                     ("virtual", "the preset + virtual views at any view count (FSGS's pseudo views)", "sparse_llff",
                      ["train.virtual_views=1"], {}),
                     ("wo_virtual", "the preset without virtual views", "sparse_llff", ["train.virtual_views=0"], {}),
+                    ("wo_drop", "the preset without primitive dropout", "sparse_llff", ["train.drop_rate=0"], {}),
                     ("depth_patch", "the preset + patch-normalised depth (DNGaussian)", "sparse_llff",
                      ["losses.depth_patch.weight=0.1", "losses.depth_patch.schedule=[exp, 1.0, 0.01, 0, 10000]"], {}),
                     ("full", "Ours (full: the paper's six terms)", "sparse_llff", PAPER_TERMS, {})])

@@ -314,6 +314,8 @@ def _check_cross(cfg: Config) -> None:
             raise ConfigError(f"train.{key}", f"expected a weight >= 0, got {getattr(cfg.train, key)}")
     if not 0.0 <= cfg.train.opacity_decay < 1.0:
         raise ConfigError("train.opacity_decay", f"expected a fraction in [0, 1), got {cfg.train.opacity_decay}")
+    if not 0.0 <= cfg.train.drop_rate < 1.0:
+        raise ConfigError("train.drop_rate", f"expected a fraction in [0, 1), got {cfg.train.drop_rate}")
     if cfg.train.max_sigmas < 0:
         raise ConfigError("train.max_sigmas", f"expected >= 0 (0: exact footprint), got {cfg.train.max_sigmas}")
     problem = alpha_clamp_problem(cfg.train.alpha_min, cfg.train.alpha_max)

@@ -132,6 +132,9 @@ class TrainConfig:
     # Each step, after the optimizers, every opacity times (1 - opacity_decay): a sparsity prior that Adam does not
     # rescale, unlike the `opacity` loss (train/opacity_decay.py says why that matters); 0: off.
     opacity_decay: float = 0.0
+    # Each training view renders with a random share drop_rate of the primitives left out and the others' opacities
+    # divided by 1 - drop_rate (DropGaussian; train/dropout.py); evaluation renders them all. 0: off.
+    drop_rate: float = 0.0
 
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""

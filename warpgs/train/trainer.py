@@ -37,6 +37,7 @@ from warpgs.config.loader import Config, load_config
 from warpgs.train.phase_timer import PhaseTimer
 from warpgs.train.stage_clock import StageClock
 from warpgs.model.gaussians import GaussianModel
+from warpgs.train.dropout import dropped_opacities
 from warpgs.train.extensions import Extension
 from warpgs.model.rendering import check_outputs, focal_length, render_model, screen_filter
 from warpgs.model import environment  # noqa: F401  (registers the built-in "environment" extension)
@@ -260,7 +261,10 @@ class Trainer(TrainerBuild):
         return inputs
 
     def render(self, view, outputs: Sequence[str] = ("rgb",), batch: Optional[dict] = None, *,
-               track_means2d: bool = False, step: Optional[int] = None, speculative_pairs: bool = False):
+               track_means2d: bool = False, step: Optional[int] = None, speculative_pairs: bool = False,
+               drop_rate: float = 0.0):
+        """Renders the model (with the extensions' inputs and outputs) from `view`. drop_rate: leave out that random
+        share of the primitives, the others' opacities compensated (train.drop_rate; training views only)."""
         step = self.step if step is None else step
         batch = self.make_batch(view, step) if batch is None else batch
         t = self.config.train
@@ -272,8 +276,11 @@ class Trainer(TrainerBuild):
         same = 0 <= index < len(cams) and (cams[index].width, cams[index].height) == (view.width, view.height)
         filters = screen_filter(self.model.kind, focal_length(cams[index].K if same else view.K), self.training_focal,
                                 t.surfel_screen_sigma)
+        inputs = self.render_inputs(batch, step, outputs)
+        if drop_rate:
+            inputs["opacities"] = dropped_opacities(inputs["opacities"], drop_rate)
         out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,
-                           background=self.background, inputs=self.render_inputs(batch, step, outputs),
+                           background=self.background, inputs=inputs,
                            track_means2d=track_means2d, absgrad=self.config.strategy.absgrad,
                            check_inputs=not t.nan_guard,
                            deterministic=t.deterministic or None, speculative_pairs=speculative_pairs, **filters,
