@@ -37,3 +37,29 @@ def test_training_renders_drop_and_other_renders_do_not(tmp_path):
 def test_the_config_refuses_a_rate_outside_zero_to_one(tmp_path):
     with pytest.raises(ConfigError, match="train.drop_rate"):
         run(tmp_path, "train.drop_rate=1.0")
+
+
+def test_auto_drops_with_few_training_views_only(tmp_path):
+    from warpgs.train.dropout import AUTO_MAX_VIEWS, AUTO_RATE, drop_rate_for
+
+    assert [drop_rate_for("auto", n) for n in (3, AUTO_MAX_VIEWS, AUTO_MAX_VIEWS + 1, 24)] == [AUTO_RATE, AUTO_RATE,
+                                                                                               0.0, 0.0]
+    assert drop_rate_for(0.0, 3) == 0.0 and drop_rate_for(0.3, 30) == 0.3
+    # The tiny light field trains on its 3x3 array: 9 views, so "auto" leaves dropout off; with 3 of them, on.
+    nine = run(tmp_path / "nine", "train.drop_rate=auto", steps=2)
+    assert nine.drop_rate == 0.0
+    dropped = [nine.scene.names[v] for v in nine.scene.train[3:]]
+    three = run(tmp_path / "three", "train.drop_rate=auto", f"data.exclude=[{', '.join(dropped)}]", steps=2)
+    assert len(three.views.indices) == 3 and three.drop_rate == AUTO_RATE
+    assert math.isfinite(three.train_step()["loss"])
+    with pytest.raises(ConfigError, match="train.drop_rate"):
+        run(tmp_path / "bad", "train.drop_rate=sometimes")
+
+
+def test_the_start_line_says_whether_auto_turned_dropout_on():
+    from warpgs.train.dropout import AUTO_MAX_VIEWS, dropout_note
+
+    off = dropout_note("auto", 0.0, AUTO_MAX_VIEWS + 1)
+    assert "off" in off and f"{AUTO_MAX_VIEWS + 1} training views" in off and f"at most {AUTO_MAX_VIEWS}" in off
+    assert dropout_note("auto", 0.1, 3) == dropout_note(0.1, 0.1, 3) == "; primitive dropout 0.1"
+    assert dropout_note(0.0, 0.0, 3) == ""  # not asked for: nothing to explain

@@ -179,7 +179,7 @@ def test_the_preset_pair_differs_only_in_the_method():
     # triangulated points alone. The method adds virtual views at few views, and primitive dropout.
     assert method.model.prior_points > 0 and base.model.prior_points == 0
     assert method.train.virtual_views == "auto" and base.train.virtual_views == 0
-    assert method.train.drop_rate > 0 and base.train.drop_rate == 0
+    assert method.train.drop_rate == "auto" and base.train.drop_rate == 0
     a, b = method.to_dict(), base.to_dict()
     for cfg in (a, b):
         cfg.pop("losses")
@@ -226,7 +226,7 @@ def test_the_real_ablation_removes_each_term_once():
     settings = {k: o for k, _, preset, o, _ in ablation.REAL_SETTINGS if preset == "sparse_llff"}
     sparse_llff = load_config(ROOT / "configs" / "sparse_llff.yaml")
     assert sparse_llff.losses["scale"] == 0 and sparse_llff.losses["opacity"] == 0
-    assert sparse_llff.train.virtual_views == "auto" and sparse_llff.train.drop_rate > 0
+    assert sparse_llff.train.virtual_views == "auto" and sparse_llff.train.drop_rate == "auto"
     assert settings["full"] == ablation.PAPER_TERMS == ["losses.opacity=0.05", "losses.scale=0.008",
                                                         "train.virtual_views=0", "train.drop_rate=0"]
     assert all(o[:4] == ablation.PAPER_TERMS for k, o in settings.items() if k != "preset" and k not in added)

@@ -90,6 +90,8 @@ def _check_value(key: str, value, tp):
         return _check_steps(key, value)
     if key == "train.virtual_views":
         return _check_virtual_views(key, value)
+    if key == "train.drop_rate":
+        return _check_drop_rate(key, value)
     if key in AUTO_BOOLS:
         return _check_auto_bool(key, value)
     if tp is Any:
@@ -192,6 +194,19 @@ def _check_steps(key: str, value):
 def _check_virtual_views(key: str, value):
     """A period in steps (0: off), or "auto" (train/virtual_views.py: every step with few training views)."""
     return _int_or_auto(key, value, 0, "a step period >= 0")
+
+
+def _check_drop_rate(key: str, value):
+    """A fraction in [0, 1), or "auto" (train/dropout.py: on with few training views)."""
+    if isinstance(value, str) and value.strip().lower() == "auto":
+        return "auto"
+    try:
+        rate = _as_number(key, value, float)
+    except ConfigError:
+        raise ConfigError(key, f"expected a fraction in [0, 1) or 'auto', got {value!r}") from None
+    if not 0.0 <= rate < 1.0:
+        raise ConfigError(key, f"expected a fraction in [0, 1) or 'auto', got {value!r}")
+    return rate
 
 
 def _check_auto_bool(key: str, value):
@@ -314,8 +329,6 @@ def _check_cross(cfg: Config) -> None:
             raise ConfigError(f"train.{key}", f"expected a weight >= 0, got {getattr(cfg.train, key)}")
     if not 0.0 <= cfg.train.opacity_decay < 1.0:
         raise ConfigError("train.opacity_decay", f"expected a fraction in [0, 1), got {cfg.train.opacity_decay}")
-    if not 0.0 <= cfg.train.drop_rate < 1.0:
-        raise ConfigError("train.drop_rate", f"expected a fraction in [0, 1), got {cfg.train.drop_rate}")
     if cfg.train.max_sigmas < 0:
         raise ConfigError("train.max_sigmas", f"expected >= 0 (0: exact footprint), got {cfg.train.max_sigmas}")
     problem = alpha_clamp_problem(cfg.train.alpha_min, cfg.train.alpha_max)

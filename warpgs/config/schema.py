@@ -133,8 +133,9 @@ class TrainConfig:
     # rescale, unlike the `opacity` loss (train/opacity_decay.py says why that matters); 0: off.
     opacity_decay: float = 0.0
     # Each training view renders with a random share drop_rate of the primitives left out and the others' opacities
-    # divided by 1 - drop_rate (DropGaussian; train/dropout.py); evaluation renders them all. 0: off.
-    drop_rate: float = 0.0
+    # divided by 1 - drop_rate (DropGaussian; train/dropout.py); evaluation renders them all. 0: off; "auto":
+    # dropout.AUTO_RATE when the run has at most dropout.AUTO_MAX_VIEWS training views, else off.
+    drop_rate: Union[float, str] = 0.0
 
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""

@@ -20,6 +20,7 @@ from warpgs.train import setup as train_setup
 from warpgs.train.distributed import DistributedError
 from warpgs.train.evaluation import scores_over_ranks
 from warpgs.train.guard import NonFiniteError
+from warpgs.train.dropout import dropout_note
 from warpgs.train.virtual_views import virtual_views_note
 from warpgs.utils.atomic_file import atomic_write_bytes
 from warpgs.utils.progress import Progress
@@ -82,6 +83,7 @@ class TrainingLoop:
         if tr.step == 0 or tr.init_source != "checkpoint":
             self.say(f"warpgs: {tr.scene.summary()}")
             virtual = virtual_views_note(cfg.train.virtual_views, tr.virtual_every, len(tr.views.indices))
+            virtual += dropout_note(cfg.train.drop_rate, tr.drop_rate, len(tr.views.indices))
             self.say(f"warpgs: {tr.num_primitives} {tr.model.kind} from {tr.init_source}; "
                      f"losses {tr.loss_set.names} render {list(tr.outputs)}{virtual}; "
                      f"{self._length()} on {tr.device}; output {tr.out_dir}")

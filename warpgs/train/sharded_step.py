@@ -23,7 +23,7 @@ from warpgs.train.step import end_step, set_step_schedule
 def check_config(cfg, world_size: int) -> None:
     """What train.parallel=model needs of a config, checked before anything is built: 3D Gaussians, rounds of one
     view per rank that the batch fills, no footprint truncation (the splat exchange's culling does not take it), no
-    live viewer (each process holds only a share of the primitives), no primitive dropout."""
+    live viewer (each process holds only a share of the primitives)."""
     require_gaussians(cfg.model.kind)
     train = cfg.train
     if train.batch_size % world_size:
@@ -35,8 +35,6 @@ def check_config(cfg, world_size: int) -> None:
     if train.viewer:
         raise ValueError("train.viewer: not available with train.parallel=model (each process holds only a share "
                          "of the primitives); view the output folder afterwards with warpgs-view")
-    if train.drop_rate:
-        raise ValueError("train.drop_rate: not supported with train.parallel=model (use the default data parallel)")
 
 
 def train_step_sharded(trainer) -> dict:

@@ -28,6 +28,7 @@ from warpgs.train.schedule import AutoStop, validation_split
 from warpgs.train.state import RunCounters
 from warpgs.train.strategy import DensifyStrategy
 from warpgs.train.views import TrainViews
+from warpgs.train.dropout import drop_rate_for
 from warpgs.train.virtual_views import virtual_every, virtual_views_for
 
 
@@ -139,6 +140,9 @@ class TrainerBuild:
             self.strategy.schedule.auto = AutoStop(cfg.schedule)
             self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth)[1])
         self.best_state = BestState() if self.auto_steps and cfg.schedule.keep_best else None
+        self.drop_rate = drop_rate_for(cfg.train.drop_rate, len(self.views.indices))  # train/dropout.py
+        if self.drop_rate and self.model_parallel:
+            raise ValueError("train.drop_rate: not supported with train.parallel=model (use the default data parallel)")
         self.virtual_views = None  # train.virtual_views: cameras between the training ones (train/virtual_views.py)
         self.virtual_every = virtual_every(cfg.train.virtual_views, len(self.views.indices))
         if self.virtual_every:
