@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import torch
 
+from warpgs.train.few_views import auto_off_note
+
 # train.drop_rate=auto: AUTO_RATE with at most AUTO_MAX_VIEWS training views, else off. Measured (docs/sparse_view.md):
 # 3 views +0.22 dB over 7 LLFF scenes (3 seeds), 4 views +0.11 (one seed); 24 views around a 360° capture -0.17 (CPU,
 # one seed). Between 4 and 24 views it is unmeasured, so auto leaves it off there.
@@ -26,8 +28,7 @@ def dropout_note(setting, rate: float, num_train_views: int) -> str:
     if rate:
         return f"; primitive dropout {rate:g}"
     if setting == "auto":
-        return (f"; primitive dropout off (train.drop_rate=auto: {num_train_views} training views, on with at most "
-                f"{AUTO_MAX_VIEWS})")
+        return auto_off_note("primitive dropout", "drop_rate", num_train_views, AUTO_MAX_VIEWS)
     return ""
 
 

@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from warpgs.losses.marr import masked_mean
+from warpgs.train.few_views import auto_off_note
 from warpgs.train.lifted_prior import lifted_prior
 
 SEE_THROUGH = 0.9  # a virtual pixel's inverse depth over the largest in its 5x5 neighbourhood, at least
@@ -46,8 +47,7 @@ def virtual_views_note(setting, every: int, num_train_views: int) -> str:
     if every:
         return f"; virtual views every {every} step(s)"
     if setting == "auto":
-        return (f"; virtual views off (train.virtual_views=auto: {num_train_views} training views, on with at most "
-                f"{AUTO_MAX_VIEWS})")
+        return auto_off_note("virtual views", "virtual_views", num_train_views, AUTO_MAX_VIEWS)
     return ""
 
 
