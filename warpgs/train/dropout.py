@@ -10,8 +10,8 @@ import torch
 from warpgs.train.few_views import auto_off_note
 
 # train.drop_rate=auto: AUTO_RATE with at most AUTO_MAX_VIEWS training views, else off. Measured (docs/sparse_view.md):
-# 3 views +0.22 dB over 7 LLFF scenes (3 seeds), 4 views +0.11 (one seed); 24 views around a 360° capture -0.16 (CPU,
-# two seeds). Between 4 and 24 views it is unmeasured, so auto leaves it off there.
+# 3 views +0.22 dB over 7 LLFF scenes (3 seeds), 4 views +0.11 (one seed); 9 views of a real light field -1.52 and
+# 24 views around a 360° capture -0.16 (CPU). Between 4 and 9 views it is unmeasured, so auto leaves it off there.
 AUTO_RATE = 0.1
 AUTO_MAX_VIEWS = 4
 
