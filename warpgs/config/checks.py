@@ -173,40 +173,33 @@ def _as_number(key: str, value, kind):
     return float(value)
 
 
-def _int_or_auto(key: str, value, least: int, expected: str):
-    """"auto", or an integer >= least; anything else is an error saying `expected`."""
+def _number_or_auto(key: str, value, kind, fits, expected: str):
+    """"auto", or a number of `kind` (int or float) for which fits(number) holds; anything else is an error saying
+    `expected`."""
     if isinstance(value, str) and value.strip().lower() == "auto":
         return "auto"
     try:
-        number = _as_number(key, value, int)
+        number = _as_number(key, value, kind)
     except ConfigError:
         raise ConfigError(key, f"expected {expected} or 'auto', got {value!r}") from None
-    if number < least:
+    if not fits(number):
         raise ConfigError(key, f"expected {expected} or 'auto', got {value!r}")
     return number
 
 
 def _check_steps(key: str, value):
     """A positive step count, or "auto" (train/schedule.py)."""
-    return _int_or_auto(key, value, 1, "a positive integer")
+    return _number_or_auto(key, value, int, lambda n: n >= 1, "a positive integer")
 
 
 def _check_virtual_views(key: str, value):
     """A period in steps (0: off), or "auto" (train/virtual_views.py: every step with few training views)."""
-    return _int_or_auto(key, value, 0, "a step period >= 0")
+    return _number_or_auto(key, value, int, lambda n: n >= 0, "a step period >= 0")
 
 
 def _check_drop_rate(key: str, value):
     """A fraction in [0, 1), or "auto" (train/dropout.py: on with few training views)."""
-    if isinstance(value, str) and value.strip().lower() == "auto":
-        return "auto"
-    try:
-        rate = _as_number(key, value, float)
-    except ConfigError:
-        raise ConfigError(key, f"expected a fraction in [0, 1) or 'auto', got {value!r}") from None
-    if not 0.0 <= rate < 1.0:
-        raise ConfigError(key, f"expected a fraction in [0, 1) or 'auto', got {value!r}")
-    return rate
+    return _number_or_auto(key, value, float, lambda r: 0.0 <= r < 1.0, "a fraction in [0, 1)")
 
 
 def _check_auto_bool(key: str, value):
