@@ -7,29 +7,24 @@ from __future__ import annotations
 
 import torch
 
-from warpgs.train.few_views import auto_off_note
+from warpgs.train.few_views import FewViewsRule
 
 # train.drop_rate=auto: AUTO_RATE with at most AUTO_MAX_VIEWS training views, else off. Measured (docs/sparse_view.md):
 # 3 views +0.22 dB over 7 LLFF scenes (3 seeds), 4 views +0.11 (one seed); 9 views of a real light field -1.52 and
 # 24 views around a 360° capture -0.16 (CPU). Between 4 and 9 views it is unmeasured, so auto leaves it off there.
 AUTO_RATE = 0.1
 AUTO_MAX_VIEWS = 4
+RULE = FewViewsRule("primitive dropout", "drop_rate", AUTO_MAX_VIEWS, AUTO_RATE)
 
 
 def drop_rate_for(setting, num_train_views: int) -> float:
     """The dropout rate that train.drop_rate asks for with this many training views."""
-    if setting == "auto":
-        return AUTO_RATE if num_train_views <= AUTO_MAX_VIEWS else 0.0
-    return float(setting)
+    return RULE.value(setting, num_train_views, float)
 
 
 def dropout_note(setting, rate: float, num_train_views: int) -> str:
     """The start line's words on dropout: its rate when on, why not when "auto" left it off, else ""."""
-    if rate:
-        return f"; primitive dropout {rate:g}"
-    if setting == "auto":
-        return auto_off_note("primitive dropout", "drop_rate", num_train_views, AUTO_MAX_VIEWS)
-    return ""
+    return RULE.note(setting, rate, num_train_views, f"; primitive dropout {rate:g}")
 
 
 def dropped_opacities(opacities: torch.Tensor, rate: float) -> torch.Tensor:

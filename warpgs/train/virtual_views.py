@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from warpgs.losses.marr import masked_mean
-from warpgs.train.few_views import auto_off_note
+from warpgs.train.few_views import FewViewsRule
 from warpgs.train.lifted_prior import lifted_prior
 
 SEE_THROUGH = 0.9  # a virtual pixel's inverse depth over the largest in its 5x5 neighbourhood, at least
@@ -33,22 +33,17 @@ NEIGHBOURS = 2  # a virtual camera lies between a training camera and one of thi
 # 3 views +0.18 dB over 7 LLFF scenes and a tie on a 360° capture; 4 views a tie on the 7 LLFF scenes (-0.02, H200)
 # at 2.2x the training time; 9 (a light field) -1.26, 24 (360°) -3.1.
 AUTO_MAX_VIEWS = 3
+RULE = FewViewsRule("virtual views", "virtual_views", AUTO_MAX_VIEWS, 1)
 
 
 def virtual_every(setting, num_train_views: int) -> int:
     """The period in steps that train.virtual_views asks for with this many training views (0: off)."""
-    if setting == "auto":
-        return 1 if num_train_views <= AUTO_MAX_VIEWS else 0
-    return int(setting)
+    return RULE.value(setting, num_train_views, int)
 
 
 def virtual_views_note(setting, every: int, num_train_views: int) -> str:
     """The start line's words on virtual views: their period when on, why not when "auto" left them off, else ""."""
-    if every:
-        return f"; virtual views every {every} step(s)"
-    if setting == "auto":
-        return auto_off_note("virtual views", "virtual_views", num_train_views, AUTO_MAX_VIEWS)
-    return ""
+    return RULE.note(setting, every, num_train_views, f"; virtual views every {every} step(s)")
 
 
 @dataclass
