@@ -6,11 +6,14 @@ import json
 import re
 
 import pytest
+import torch
 from hypothesis import given, settings, strategies as st
 
 from train_fixtures import Interrupt, quick_overrides, small_orbit
 from warpgs.cli.commands import resolve_config_source
 from warpgs.config.loader import ConfigError, load_config
+from warpgs.metrics.image import psnr
+from warpgs.train.loop import TrainingLoop
 from warpgs.train.schedule import DENSIFY, DONE, POLISH, TRAIN, AutoStop, ScheduleConfig, validation_split
 from warpgs.train.strategy import DensifyStrategy, StrategyConfig
 from warpgs.train.trainer import Trainer
@@ -372,3 +375,12 @@ def test_resuming_a_fixed_run_as_auto_names_the_checkpoint(tmp_path):
     Trainer(None, overrides=quick_overrides(tmp_path, steps=1), quiet=True).fit()
     with pytest.raises(ValueError, match=re.escape(f"{tmp_path / 'checkpoint.pt'}: train.steps=auto: the checkpoint was")):
         Trainer(None, overrides=quick_overrides(tmp_path, **AUTO), quiet=True, resume=True)
+
+
+def test_validation_score_is_the_held_out_views_mean_psnr(tmp_path):
+    trainer = Trainer(None, overrides=quick_overrides(tmp_path, **AUTO), quiet=True)
+    held = [trainer.views.kept_or_new(i) for i in trainer.views.held_out]
+    with torch.no_grad():
+        expected = [float(psnr(trainer.render(v, ("rgb",)).rgb.clamp(0.0, 1.0), v.image)) for v in held]
+    score = TrainingLoop(trainer)._validation_psnr()
+    assert score == pytest.approx(sum(expected) / len(expected), abs=1e-9)

@@ -22,6 +22,7 @@ from warpgs.train.evaluation import scores_over_ranks
 from warpgs.train.guard import NonFiniteError
 from warpgs.train.dropout import dropout_note
 from warpgs.train.virtual_views import virtual_views_note
+from warpgs.train.warm_up import compile_step_kernels
 from warpgs.utils.atomic_file import atomic_write_bytes
 from warpgs.utils.progress import Progress
 
@@ -91,12 +92,15 @@ class TrainingLoop:
                 train_setup.warn_pose_jumps(tr.scene, self.say)
         else:
             self.say(f"warpgs: resuming at step {tr.step} from {tr.checkpoint_path}")
-        self._pairs_at_start = speculative_pair_stats(tr)
         t0 = time.perf_counter()
         with tr.clock.stage("load_views"):
             loaded = tr.views.load_all()  # outside the steps' clock, as gsplat's and 3DGS's loaders do
         if loaded:
             self.say(f"warpgs: {loaded} training views loaded onto {tr.device} in {time.perf_counter() - t0:.1f} s")
+        if tr.step < self.end():
+            with tr.clock.stage("compile_kernels"), tr.lock:  # outside the steps' clock too (train/warm_up.py)
+                compile_step_kernels(tr)
+        self._pairs_at_start = speculative_pair_stats(tr)  # after the warm-up's render: the run's own count
         slow = {name: s for name, s in tr.clock.seconds.items() if s >= 1.0}
         if slow:  # where the wait before the first step went (triangulation and estimated priors are cached after)
             self.say("warpgs: set-up " + ", ".join(f"{name.replace('_', ' ')} {s:.1f} s" for name, s in slow.items()))
@@ -217,9 +221,15 @@ class TrainingLoop:
         ranks get the value one process gets and take the same decisions."""
         tr = self.trainer
         views = [tr.views.kept_or_new(i) for i in tr.views.held_out]
-        scores = scores_over_ranks(views, lambda v: tr.render(v, ("rgb",)).rgb,
-                                   lambda rgb, v: float(psnr(rgb.clamp(0.0, 1.0), v.image)), tr.ranks,
-                                   tr._render_round if tr.model_parallel else None, what="the validation score")
+        with torch.no_grad():  # the renders' forward alone (render/gaussians_fast.run_op), as evaluations render
+            if not tr.ranks.enabled:  # one host read for the score, not one a view that stalls the next launch
+                scores = torch.stack([psnr(tr.render(v, ("rgb",)).rgb.clamp(0.0, 1.0), v.image)
+                                      for v in views]).tolist()
+            else:
+                scores = scores_over_ranks(views, lambda v: tr.render(v, ("rgb",)).rgb,
+                                           lambda rgb, v: float(psnr(rgb.clamp(0.0, 1.0), v.image)), tr.ranks,
+                                           tr._render_round if tr.model_parallel else None,
+                                           what="the validation score")
         return sum(scores) / len(scores)
 
     def _close_progress(self) -> None:
