@@ -102,6 +102,7 @@ def run_warpgs(trainer, counts: list, eval_every: int) -> dict:
            "largest_drop": largest_drop(counts)}
     if "schedule" in result.metrics:  # train.steps=auto: its decisions and validation scores
         out["schedule"] = result.metrics["schedule"]
+    out["stage_seconds"] = result.metrics["stage_seconds"]  # the wall beyond training: loading, compiling, validating
     return out
 
 

@@ -285,6 +285,7 @@ def test_auto_run_logs_its_decisions_and_resumes_to_the_same_end(tmp_path):
     log = [json.loads(line) for line in (tmp_path / "full" / "log.jsonl").read_text().splitlines()]
     assert [e["step"] for e in log if e["type"] == "schedule"] == steps
     assert [e["step"] for e in log if e["type"] == "validation"] == [s["step"] for s in sched["validation"]]
+    assert result.metrics["stage_seconds"]["validation"] > 0  # the rule's cost beside the steps, in its own stage
 
     # Interrupted between the two decisions (densification stopped, training goes on), then resumed; and
     # interrupted after the step of the first decision but before the rule saw it (a step's hook, or a second

@@ -48,7 +48,7 @@ def test_outputs_written(fitted):
     assert metrics["steps"] == STEPS and metrics["num_primitives"] == result.num_primitives
     # Where the run's wall time beyond training went (issue 33's start-up), stage by stage, in running order.
     assert list(metrics["stage_seconds"]) == ["join_ranks", "load_scene", "build_model", "load_views", "share_model",
-                                              "compile_kernels",
+                                              "compile_kernels", "periodic_evaluation",
                                               "final_checkpoint_and_ply", "final_evaluation"]
     assert all(v >= 0 for v in metrics["stage_seconds"].values()) and metrics["stage_seconds"]["final_evaluation"] > 0
     assert sorted(p.name for p in (out / "renders" / "test").glob("*.png")) == ["orbit_000.png", "orbit_008.png"]

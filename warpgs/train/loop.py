@@ -178,13 +178,14 @@ class TrainingLoop:
         auto = schedule.auto
         decisions = []
         if auto.due(step) and not (auto.scores and auto.scores[-1]["step"] >= step):  # once a step (resumes)
-            psnr = self._validation_psnr()
-            tr.log.event("validation", step, {"psnr": psnr, "num_views": len(tr.views.held_out)},
-                         train_seconds=tr.train_seconds)
-            decisions += auto.observe(step, psnr, last_reset=schedule.last_reset(step - 1),
-                                      scheduled_stop=schedule.scheduled_stop())
-            if tr.best_state is not None and auto.best_step == step:  # a new best: copy it (train/best_state.py)
-                tr.best_state.capture(step, tr.training_state())
+            with tr.clock.stage("validation"):  # the rule's own cost beside the steps: renders and best copies
+                psnr = self._validation_psnr()
+                tr.log.event("validation", step, {"psnr": psnr, "num_views": len(tr.views.held_out)},
+                             train_seconds=tr.train_seconds)
+                decisions += auto.observe(step, psnr, last_reset=schedule.last_reset(step - 1),
+                                          scheduled_stop=schedule.scheduled_stop())
+                if tr.best_state is not None and auto.best_step == step:  # a new best: copy it (train/best_state.py)
+                    tr.best_state.capture(step, tr.training_state())
         decisions += auto.check_bound(step)
         for d in decisions:
             if d["decision"] == "stop":
@@ -254,7 +255,8 @@ class TrainingLoop:
 
     def _periodic_eval(self) -> None:
         tr = self.trainer
-        entry, m = tr.evaluator.periodic(tr.step, tr.num_primitives, tr.train_seconds, keep_images=tr.log.images)
+        with tr.clock.stage("periodic_evaluation"):
+            entry, m = tr.evaluator.periodic(tr.step, tr.num_primitives, tr.train_seconds, keep_images=tr.log.images)
         tr.log.eval(tr.step, m, num_primitives=entry["num_primitives"], train_seconds=tr.train_seconds)
         lp = f" lpips {m['lpips']:.4f}" if m["lpips"] is not None else ""
         self.say(f"[eval {m['split']} @ {tr.step}] psnr {m['psnr']:.2f} ssim {m['ssim']:.4f}{lp} "

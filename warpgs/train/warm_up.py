@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import torch
 
+from warpgs.train.step import speculative_pairs  # the step's rule, not a copy
+
 
 def compile_step_kernels(trainer) -> None:
     """One render + loss + backward of the first training view at the current step, through the same calls a step
     makes (the extensions' inputs, the loss set, the densification statistics' means2d, the speculative pair
     sizing), then every gradient dropped. Primitive dropout and virtual views are torch ops on top of the same
     kernels, so they are left out."""
-    from warpgs.train.step import speculative_pairs  # the step's rule, not a copy
-
     if trainer.model_parallel or not trainer.views.indices or trainer.model.num_primitives == 0:
         return  # model-parallel steps render through their own sharded calls (train/sharded_step.py)
     step = trainer.step
