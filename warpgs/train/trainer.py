@@ -41,6 +41,7 @@ from warpgs.train.dropout import dropped_opacities
 from warpgs.train.extensions import Extension
 from warpgs.model.rendering import check_outputs, focal_length, render_model, screen_filter
 from warpgs.model import environment  # noqa: F401  (registers the built-in "environment" extension)
+from warpgs.train import exposure  # noqa: F401  (registers the built-in "exposure" extension)
 from warpgs.train import setup as train_setup
 from warpgs.train import step as training_step
 from warpgs.train import sharded_step
