@@ -21,8 +21,8 @@ trainer's modules through `batch["modules"]` and the per-primitive extras throug
 
 Hook order in one training step: make_batch -> render_inputs -> (render) -> after_render -> losses ->
 backward -> optimizer steps -> strategy -> after_step. `outputs()` adds render outputs to every render the
-trainer makes (training and evaluation). Built-in: `environment` (warpgs.model.environment), a learned background; `exposure` (warpgs.train.exposure),
-a colour transform per training view.
+trainer makes (training and evaluation). Built-in: `environment` (warpgs.model.environment), a learned background,
+and `exposure` (warpgs.train.exposure), a colour transform per training view.
 """
 from __future__ import annotations
 
