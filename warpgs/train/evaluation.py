@@ -132,18 +132,27 @@ def scores_over_ranks(views: list, render: Callable, score: Callable, ranks=None
                       render_round: Optional[Callable] = None, what: str = "gathering the scores") -> List[float]:
     """[score(render(view), view) for view in views], the renders shared out over the ranks (each renders its
     contiguous share; with render_round, model-parallel, in rounds of one view per rank) and the scores gathered,
-    so every rank returns the same list, in view order, as one process computes it."""
+    so every rank returns the same list, in view order, as one process computes it. A score may be a 0-d device
+    tensor: the scores are read back together (one host read, not one a view that holds up the next render)."""
     if ranks is None or not ranks.enabled:
-        return [score(render(v), v) for v in views]
+        return _floats([score(render(v), v) for v in views])
     share = range(len(views))[ranks.shard(len(views))]
     rounds = _Rounds(render_round, ranks, views) if render_round is not None else None
-    mine = {k: score(rounds.next(views[k]) if rounds is not None else render(views[k]), views[k]) for k in share}
+    values = [score(rounds.next(views[k]) if rounds is not None else render(views[k]), views[k]) for k in share]
     if rounds is not None:
         rounds.finish()
+    mine = dict(zip(share, _floats(values)))
     merged = {}
     for part in ranks.all_gather_object(mine, what=what):
         merged.update(part)
     return [merged[k] for k in range(len(views))]
+
+
+def _floats(values: list) -> List[float]:
+    """Python floats of numbers or 0-d tensors, with one device read for the tensors."""
+    if values and all(isinstance(v, torch.Tensor) for v in values):
+        return torch.stack(values).tolist()
+    return [float(v) for v in values]
 
 
 class _Rounds:

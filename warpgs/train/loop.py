@@ -222,15 +222,10 @@ class TrainingLoop:
         ranks get the value one process gets and take the same decisions."""
         tr = self.trainer
         views = [tr.views.kept_or_new(i) for i in tr.views.held_out]
-        with torch.no_grad():  # the renders' forward alone (render/gaussians_fast.run_op), as evaluations render
-            if not tr.ranks.enabled:  # one host read for the score, not one a view that stalls the next launch
-                scores = torch.stack([psnr(tr.render(v, ("rgb",)).rgb.clamp(0.0, 1.0), v.image)
-                                      for v in views]).tolist()
-            else:
-                scores = scores_over_ranks(views, lambda v: tr.render(v, ("rgb",)).rgb,
-                                           lambda rgb, v: float(psnr(rgb.clamp(0.0, 1.0), v.image)), tr.ranks,
-                                           tr._render_round if tr.model_parallel else None,
-                                           what="the validation score")
+        # psnr stays on the device: scores_over_ranks reads the scores back at once, not a view at a time.
+        scores = scores_over_ranks(views, lambda v: tr.render(v, ("rgb",)).rgb,
+                                   lambda rgb, v: psnr(rgb.clamp(0.0, 1.0), v.image), tr.ranks,
+                                   tr._render_round if tr.model_parallel else None, what="the validation score")
         return sum(scores) / len(scores)
 
     def _close_progress(self) -> None:

@@ -18,6 +18,7 @@ from warpgs.train import sharded_step
 from warpgs.train.best_state import BestState
 from warpgs.train.determinism import use_deterministic_algorithms
 from warpgs.train.distributed import setup_ranks, sync_model
+from warpgs.train.dropout import drop_rate_for
 from warpgs.train.evaluation import Evaluator
 from warpgs.train.extensions import CallbackExtension, Extension, build_extension
 from warpgs.train.model_parallel import move_training, shard_training
@@ -28,7 +29,6 @@ from warpgs.train.schedule import AutoStop, validation_split
 from warpgs.train.state import RunCounters
 from warpgs.train.strategy import DensifyStrategy
 from warpgs.train.views import TrainViews
-from warpgs.train.dropout import drop_rate_for
 from warpgs.train.virtual_views import virtual_every, virtual_views_for
 
 

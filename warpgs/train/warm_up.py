@@ -9,25 +9,16 @@ from __future__ import annotations
 
 import torch
 
-from warpgs.train.step import speculative_pairs  # the step's rule, not a copy
-
 
 def compile_step_kernels(trainer) -> None:
-    """One render + loss + backward of the first training view at the current step, through the same calls a step
-    makes (the extensions' inputs, the loss set, the densification statistics' means2d, the speculative pair
-    sizing), then every gradient dropped. Primitive dropout and virtual views are torch ops on top of the same
-    kernels, so they are left out."""
+    """The step's own view pass (render, loss, backward: train/step.view_pass, through the trainer's method as
+    train_step calls it) on the first training view at the current step, densifying, then every gradient dropped."""
     if trainer.model_parallel or not trainer.views.indices or trainer.model.num_primitives == 0:
         return  # model-parallel steps render through their own sharded calls (train/sharded_step.py)
-    step = trainer.step
     view = trainer.view(trainer.views.indices[0])
     devices = [trainer.device] if trainer.device.type == "cuda" else []
-    with torch.random.fork_rng(devices=devices):
-        batch = trainer.make_batch(view, step)
-        out = trainer.render(view, trainer.outputs_at(step), batch, track_means2d=True, step=step,
-                             speculative_pairs=speculative_pairs(trainer))
-        result = trainer.loss_set(out, batch, trainer.model, step, trainer.max_steps)
-        result.total.backward()
+    with torch.random.fork_rng(devices=devices):  # primitive dropout draws random numbers
+        trainer.view_pass(view, trainer.step, densify=True)
     for _, p in trainer.named_parameters():
         p.grad = None
     if trainer.device.type == "cuda":  # its kernels run inside this stage, not in the first step's time
