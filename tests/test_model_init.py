@@ -45,10 +45,9 @@ def brute_knn_scale(p, k):
     return (d.topk(k, largest=False).values ** 2).mean(1).clamp_min(1e-7).sqrt().float()
 
 
-def test_knn_scale_chunked_matches_brute_force(monkeypatch):
+def test_knn_scale_matches_brute_force():
     p = torch.randn(200, 3, generator=torch.Generator().manual_seed(0))
     p[7] = p[3]  # a duplicate: its nearest distance is 0
-    monkeypatch.setattr(gs, "_KNN_BLOCK", 200 * 7)  # 7 rows per chunk, last one ragged
     torch.testing.assert_close(knn_scale(p, 3), brute_knn_scale(p, 3))
     assert knn_scale(p, 3)[7] < knn_scale(p, 3)[0] + 10  # finite
     assert torch.isfinite(knn_scale(torch.zeros(5, 3)).log()).all()  # all coincident: floored, finite log

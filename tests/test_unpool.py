@@ -31,6 +31,17 @@ def test_knn_matches_brute_force_and_never_returns_the_point_itself():
     assert idx[7, 0] == 3 and idx[3, 0] == 7 and d[3, 0] == 0
 
 
+def test_knn_with_more_coincident_points_than_neighbours_still_skips_the_point_itself():
+    p = torch.cat([torch.zeros(6, 3), torch.tensor([[1.0, 0, 0], [3.0, 0, 0]])])  # six at the origin, k + 1 = 3
+    d, idx = knn(p, 2)
+    assert d.shape == idx.shape == (8, 2) and d.dtype == torch.float32 and idx.dtype == torch.int64
+    assert (idx != torch.arange(8)[:, None]).all()
+    assert (d[:6] == 0).all() and (idx[:6] < 6).all()
+    torch.testing.assert_close(d[6], torch.tensor([1.0, 1.0]))
+    torch.testing.assert_close(d[7], torch.tensor([2.0, 3.0]))
+    assert knn(p[:1], 3)[0].shape == (1, 0)  # a lone point has no neighbours
+
+
 def test_a_long_link_gets_one_midpoint_with_its_ends_mean_and_the_fainter_opacity():
     # 0 and 1 are close; 2 is far from both: links 0-1 (short, twice), 2-1 (long).
     m = model_at([[0.0, 0, 0], [0.001, 0, 0], [1.0, 0, 0]])

@@ -24,29 +24,31 @@ from warpgs.model.primitive_math import SH_C0, num_sh_coeffs, quat_to_rotmat, rg
 
 CORE_PARAMS = ("means", "log_scales", "quats", "logit_opacities", "sh0", "shN")
 MAX_SH_DEGREE = 3
-_KNN_BLOCK = 1 << 25  # distance-matrix entries per chunk of the kNN search (128 MiB of float32)
 
 
 def knn(points: torch.Tensor, k: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
-    """([N, k] distances, [N, k] indices) of each point's k nearest other points, nearest first (k <= N - 1).
+    """([N, k] distances, [N, k] indices) of each point's k nearest other points, nearest first (k <= N - 1),
+    on the points' device.
 
-    Plain torch in row chunks so memory stays bounded; points are centred first and distances are computed
-    without the matmul trick, which loses precision for close points far from the origin.
+    Exact, with a k-d tree in float64 on the host (scipy), O(N log N): a full distance matrix (the earlier search)
+    made a 122k-point SfM cloud's set-up take 18 s on 16 cores and 35 s on 2, and grows with N squared.
     """
+    from scipy.spatial import cKDTree  # lazy: the render path does not need scipy
+
     n = points.shape[0]
-    k = min(int(k), n - 1)
-    p = (points - points.mean(0)).float()
-    chunk = max(1, min(n, _KNN_BLOCK // n))
-    dists, idx = [], []
-    for start in range(0, n, chunk):
-        d = torch.cdist(p[start:start + chunk], p, compute_mode="donot_use_mm_for_euclid_dist")
-        # Never a point's own neighbour, even where duplicates make the zero distances tie.
-        rows = torch.arange(start, min(start + chunk, n), device=p.device)
-        d[rows - start, rows] = float("inf")
-        nearest = d.topk(k, dim=1, largest=False)
-        dists.append(nearest.values)
-        idx.append(nearest.indices)
-    return torch.cat(dists), torch.cat(idx)
+    k = max(0, min(int(k), n - 1))
+    if k == 0:
+        return points.new_zeros(n, 0), torch.zeros(n, 0, dtype=torch.int64, device=points.device)
+    host = points.detach().to("cpu", torch.float64).numpy()
+    dists, idx = cKDTree(host).query(host, k=k + 1, workers=-1)
+    dists, idx = dists.reshape(n, k + 1), idx.reshape(n, k + 1)
+    # Drop each point's own entry. Among coincident points the tree may list another first, or (more than k + 1
+    # of them) not list the point at all: then the farthest entry goes, all at distance 0 anyway.
+    own = idx == np.arange(n)[:, None]
+    own[~own.any(1), -1] = True
+    keep = ~own
+    return (torch.from_numpy(dists[keep].reshape(n, k)).to(points.device, torch.float32),
+            torch.from_numpy(idx[keep].reshape(n, k)).to(points.device, torch.int64))
 
 
 def knn_scale(points: torch.Tensor, k: int = 3, fallback: float = 0.01) -> torch.Tensor:
