@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import socket
 import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -96,6 +98,15 @@ def read_results(files, what: str) -> list:
         except (OSError, json.JSONDecodeError) as e:
             raise SystemExit(f"{f}: not a readable {what} ({e})")
     return payloads
+
+
+def mean_se(values: list) -> tuple[Optional[float], Optional[float]]:
+    """(mean, standard error of the mean) of the values that are numbers (None and NaN left out); (None, None) for
+    none, and a None error for one."""
+    vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    if not vals:
+        return None, None
+    return statistics.fmean(vals), (statistics.stdev(vals) / math.sqrt(len(vals)) if len(vals) > 1 else None)
 
 
 def print_table(rows: list[dict], columns: list[str]) -> None:

@@ -8,22 +8,23 @@ and machine starts, so a ratio is quoted as the mean over several processes with
         benchmarks/results/raster_cuda_h200_bwd_order_s43.json:raster_new_
 
 A FILE is one raster.py result ({"meta", "rows"}) or a collection ({"runs": {name: result}}); FILE:PREFIX takes the
-collection's runs whose names start with PREFIX. Prints a table and writes benchmarks/results/OUT_NAME.json.
+collection's runs whose names start with PREFIX. Prints a table and writes benchmarks/results/OUT_NAME.json (or
+$OUT/OUT_NAME.json).
 """
 from __future__ import annotations
 
 import argparse
-import json
-import math
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from common import mean_se, print_table, read_results, write_json
+
+METRICS = ("ratio_fwd", "ratio_fwd_bwd", "fwd_ms", "fwd_bwd_ms", "gsplat_fwd_ms", "gsplat_fwd_bwd_ms")
 
 
 def processes(spec: str) -> list[tuple[str, dict]]:
     """(name, raster.py result) for each process in FILE or FILE:PREFIX."""
     path, _, prefix = spec.partition(":")
-    data = json.loads(Path(path).read_text())
+    [(_, data)] = read_results([path], "raster.py result")
     if "rows" in data:
         return [(Path(path).name, data)]
     runs = data.get("runs")
@@ -35,14 +36,6 @@ def processes(spec: str) -> list[tuple[str, dict]]:
     return picked
 
 
-def mean_se(values: list[float]) -> tuple[float, float]:
-    m = sum(values) / len(values)
-    if len(values) < 2:
-        return m, float("nan")
-    var = sum((v - m) ** 2 for v in values) / (len(values) - 1)
-    return m, math.sqrt(var / len(values))
-
-
 def pool(specs: list[str]) -> list[dict]:
     groups: dict[tuple, dict] = {}
     for spec in specs:
@@ -51,18 +44,17 @@ def pool(specs: list[str]) -> list[dict]:
                 if row.get("ratio_fwd") is None:
                     continue  # a row without gsplat beside it
                 key = (row["primitive"], row["n"], row["resolution"])
-                g = groups.setdefault(key, {"processes": [], "ratio_fwd": [], "ratio_fwd_bwd": [],
-                                            "fwd_ms": [], "fwd_bwd_ms": [], "gsplat_fwd_ms": [], "gsplat_fwd_bwd_ms": []})
+                g = groups.setdefault(key, {"processes": [], **{k: [] for k in METRICS}})
                 g["processes"].append(name)
-                for k in ("ratio_fwd", "ratio_fwd_bwd", "fwd_ms", "fwd_bwd_ms", "gsplat_fwd_ms", "gsplat_fwd_bwd_ms"):
+                for k in METRICS:
                     g[k].append(float(row[k]))
     out = []
     for (primitive, n, resolution), g in sorted(groups.items()):
         row = {"primitive": primitive, "n": n, "resolution": resolution, "processes": len(g["processes"])}
-        for k in ("ratio_fwd", "ratio_fwd_bwd"):
-            row[f"{k}_mean"], row[f"{k}_se"] = mean_se(g[k])
-        for k in ("fwd_ms", "fwd_bwd_ms", "gsplat_fwd_ms", "gsplat_fwd_bwd_ms"):
-            row[f"{k}_mean"] = sum(g[k]) / len(g[k])
+        for k in METRICS:
+            row[f"{k}_mean"], se = mean_se(g[k])
+            if k.startswith("ratio"):
+                row[f"{k}_se"] = se
         row["per_process"] = g
         out.append(row)
     return out
@@ -74,15 +66,11 @@ def main() -> None:
     ap.add_argument("files", nargs="+", help="raster.py result files; FILE:PREFIX picks runs of a collection")
     args = ap.parse_args()
     rows = pool(args.files)
-    print("primitive | N | resolution | processes | fwd ms (gsplat) | ratio fwd | fwd+bwd ms (gsplat) | ratio fwd+bwd")
-    for r in rows:
-        print(f"{r['primitive']} | {r['n']} | {r['resolution']} | {r['processes']} | "
-              f"{r['fwd_ms_mean']:.2f} ({r['gsplat_fwd_ms_mean']:.2f}) | {r['ratio_fwd_mean']:.3f} ± {r['ratio_fwd_se']:.3f} | "
-              f"{r['fwd_bwd_ms_mean']:.2f} ({r['gsplat_fwd_bwd_ms_mean']:.2f}) | "
-              f"{r['ratio_fwd_bwd_mean']:.3f} ± {r['ratio_fwd_bwd_se']:.3f}")
-    path = RESULTS / f"{args.name}.json"
-    path.write_text(json.dumps({"command": "python benchmarks/raster_pool.py " + " ".join([args.name] + args.files),
-                                "rows": rows}, indent=1))
+    print_table(rows, ["primitive", "n", "resolution", "processes", "fwd_ms_mean", "gsplat_fwd_ms_mean", "ratio_fwd_mean",
+                       "ratio_fwd_se", "fwd_bwd_ms_mean", "gsplat_fwd_bwd_ms_mean", "ratio_fwd_bwd_mean",
+                       "ratio_fwd_bwd_se"])
+    path = write_json(args.name, {"command": "python benchmarks/raster_pool.py " + " ".join([args.name] + args.files),
+                                  "rows": rows})
     print(f"wrote {path}")
 
 
