@@ -1,0 +1,137 @@
+"""Compare `sparse.py` waves that differ by an override: per scene, each variant's held-out PSNR (mean ± standard
+error over seeds) and its differences from reference variants, paired by seed; then the mean over scenes.
+
+sparse.py names a run by protocol, scene, setting and seed, so the same setting with another override (say
+`train.drop_rate=0.3`) runs into another `--out` folder (its `priors/` a link to the first's, so every variant reads
+the same prior). This script puts those folders side by side:
+
+    python benchmarks/sparse_variants.py sparse_llff3_cuda_1000_drop_rate_h200 --ref 0.1,3DGS \
+        3DGS=/tmp/sp01/runs:baseline 0.1=/tmp/sp01/runs:preset 0.3=/tmp/sp03/runs:preset
+
+LABEL=FOLDER:SETTING takes the run files in FOLDER whose setting is SETTING. Every variant must cover the same scenes
+and seeds under the same protocol, split and length. Prints a table and writes benchmarks/results/NAME.json (or
+$OUT/NAME.json) with every run's scores.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from pathlib import Path
+
+from common import mean_se, write_json
+
+METRICS = ("psnr", "ssim", "abs_rel", "num_primitives")
+# What must agree between the variants' runs of one scene and seed for their difference to mean anything.
+SAME = ("protocol", "n_train", "steps", "downscale", "size", "train_index", "test_index", "budget")
+
+
+def load_variant(spec: str) -> tuple[str, dict]:
+    """LABEL=FOLDER:SETTING -> (label, {(scene, seed): run})."""
+    label, eq, rest = spec.partition("=")
+    folder, colon, setting = rest.rpartition(":")
+    if not (eq and colon and label and folder and setting):
+        raise SystemExit(f"{spec!r}: expected LABEL=FOLDER:SETTING")
+    runs = {}
+    for f in sorted(Path(folder).glob("*.json")):
+        run = json.loads(f.read_text())
+        if run.get("setting") == setting:
+            run["file"] = str(f)
+            runs[(run["scene"], run["seed"])] = run
+    if not runs:
+        raise SystemExit(f"{spec}: no run files with setting {setting!r} in {folder}")
+    return label, runs
+
+
+def check_alike(variants: dict) -> list[tuple[str, int]]:
+    """The (scene, seed) keys every variant has; an error naming the files when two runs differ in their set-up."""
+    keys = [set(runs) for runs in variants.values()]
+    common = set.intersection(*keys)
+    if any(k != common for k in keys):
+        missing = {label: sorted(common ^ set(runs)) for label, runs in variants.items() if set(runs) != common}
+        raise SystemExit(f"the variants do not cover the same scenes and seeds: {missing}")
+    for key in sorted(common):
+        first_label, first = next(iter(variants.items()))
+        for label, runs in variants.items():
+            for field in SAME:
+                if runs[key].get(field) != first[key].get(field):
+                    raise SystemExit(f"{runs[key]['file']} and {first[key]['file']} differ in {field!r}: "
+                                     f"{runs[key].get(field)!r} against {first[key].get(field)!r}")
+    return sorted(common)
+
+
+def compare(variants: dict, refs: list[str]) -> dict:
+    keys = check_alike(variants)
+    scenes = sorted({scene for scene, _ in keys})
+    seeds = sorted({seed for _, seed in keys})
+    table = {}
+    for scene in scenes:
+        row = {}
+        for label, runs in variants.items():
+            mine = [runs[(scene, s)] for s in seeds if (scene, s) in runs]
+            cell = {m: mean_se([r[m] for r in mine if r.get(m) is not None]) for m in METRICS}
+            for ref in refs:
+                cell[f"d_psnr_vs_{ref}"] = mean_se([r["psnr"] - variants[ref][(scene, r["seed"])]["psnr"] for r in mine])
+            row[label] = cell
+        table[scene] = row
+    mean = {}
+    for label, runs in variants.items():
+        # Over seeds: each seed's mean over the scenes, then their spread; over scenes: the spread of scene means.
+        per_seed = [statistics.fmean(runs[(sc, s)]["psnr"] for sc in scenes) for s in seeds]
+        mean[label] = {"psnr": mean_se(per_seed),
+                       "psnr_scenes_se": mean_se([table[sc][label]["psnr"][0] for sc in scenes])[1]}
+        for ref in refs:
+            per_seed_d = [statistics.fmean(runs[(sc, s)]["psnr"] - variants[ref][(sc, s)]["psnr"] for sc in scenes)
+                          for s in seeds]
+            mean[label][f"d_psnr_vs_{ref}"] = mean_se(per_seed_d)
+            mean[label][f"d_psnr_vs_{ref}_scenes_se"] = mean_se(
+                [table[sc][label][f"d_psnr_vs_{ref}"][0] for sc in scenes])[1]
+        for m in METRICS[1:]:
+            vals = [table[sc][label][m][0] for sc in scenes if table[sc][label][m][0] is not None]
+            mean[label][m] = mean_se(vals) if vals else (None, None)
+    return {"refs": refs, "scenes": table, "mean": mean, "seeds": seeds}
+
+
+def print_comparison(result: dict) -> None:
+    labels = list(next(iter(result["scenes"].values())))
+    refs = result["refs"]
+    # A reference's difference from an earlier reference is the negative of the one printed: left out.
+    deltas = [(label, ref) for ref in refs for label in labels
+              if label != ref and not (label in refs and refs.index(label) > refs.index(ref))]
+
+    def cell(v, sign=False):
+        m, se = v
+        return "n/a" if m is None else f"{m:{'+' if sign else ''}.2f}" + ("" if se is None else f" ± {se:.2f}")
+
+    print("| scene | " + " | ".join(labels) + " | " + " | ".join(f"Δ {a} vs {b}" for a, b in deltas) + " |")
+    print("|---|" + "---|" * (len(labels) + len(deltas)))
+    rows = list(result["scenes"].items()) + [("mean", result["mean"])]
+    for scene, row in rows:
+        print(f"| {scene} | " + " | ".join(cell(row[label]["psnr"]) for label in labels) + " | "
+              + " | ".join(cell(row[a][f"d_psnr_vs_{b}"], sign=True) for a, b in deltas) + " |")
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("name", help="output name (benchmarks/results/NAME.json)")
+    ap.add_argument("variants", nargs="+", help="LABEL=FOLDER:SETTING, one per variant")
+    ap.add_argument("--ref", required=True, help="comma-separated labels the differences are taken from")
+    args = ap.parse_args(argv)
+    variants = dict(load_variant(spec) for spec in args.variants)
+    if len(variants) != len(args.variants):
+        raise SystemExit("two variants have the same label")
+    refs = args.ref.split(",")
+    for ref in refs:
+        if ref not in variants:
+            raise SystemExit(f"--ref {ref!r}: not one of the labels {list(variants)}")
+    result = compare(variants, refs)
+    print_comparison(result)
+    result["sources"] = dict(zip(variants, args.variants))
+    result["overrides"] = {label: next(iter(runs.values())).get("overrides") for label, runs in variants.items()}
+    result["runs"] = [{"variant": label, **{k: r.get(k) for k in ("scene", "seed", "file", "train_seconds") + METRICS}}
+                      for label, runs in variants.items() for r in runs.values()]
+    print(f"\nwrote {write_json(args.name, result)}")
+
+
+if __name__ == "__main__":
+    main()
