@@ -8,7 +8,8 @@ the same prior). This script puts those folders side by side:
     python benchmarks/sparse_variants.py sparse_llff3_cuda_1000_drop_rate_h200 --ref 0.1,3DGS \
         3DGS=/tmp/sp01/runs:baseline 0.1=/tmp/sp01/runs:preset 0.3=/tmp/sp03/runs:preset
 
-LABEL=FOLDER:SETTING takes the run files in FOLDER whose setting is SETTING. Every variant must cover the same scenes
+LABEL=FOLDER:SETTING takes the run files in FOLDER whose setting is SETTING; a label given twice gathers both folders
+(e.g. two scenes' waves). Every variant must cover the same scenes
 and seeds under the same protocol, split and length. Prints a table and writes benchmarks/results/NAME.json (or
 $OUT/NAME.json) with every run's scores.
 """
@@ -58,6 +59,12 @@ def check_alike(variants: dict) -> list[tuple[str, int]]:
                     raise SystemExit(f"{runs[key]['file']} and {first[key]['file']} differ in {field!r}: "
                                      f"{runs[key].get(field)!r} against {first[key].get(field)!r}")
     return sorted(common)
+
+
+def shared_overrides(runs) -> list:
+    """The config overrides every run of a variant was made with (the scene's own path and priors differ)."""
+    lists = [r.get("overrides") or [] for r in runs]
+    return [o for o in lists[0] if all(o in other for other in lists[1:])]
 
 
 def compare(variants: dict, refs: list[str]) -> dict:
@@ -117,17 +124,22 @@ def main(argv=None) -> None:
     ap.add_argument("variants", nargs="+", help="LABEL=FOLDER:SETTING, one per variant")
     ap.add_argument("--ref", required=True, help="comma-separated labels the differences are taken from")
     args = ap.parse_args(argv)
-    variants = dict(load_variant(spec) for spec in args.variants)
-    if len(variants) != len(args.variants):
-        raise SystemExit("two variants have the same label")
+    variants: dict = {}
+    for spec in args.variants:
+        label, runs = load_variant(spec)
+        mine = variants.setdefault(label, {})
+        for key, run in runs.items():
+            if key in mine:
+                raise SystemExit(f"{label}: {run['file']} and {mine[key]['file']} are both {key[0]}, seed {key[1]}")
+            mine[key] = run
     refs = args.ref.split(",")
     for ref in refs:
         if ref not in variants:
             raise SystemExit(f"--ref {ref!r}: not one of the labels {list(variants)}")
     result = compare(variants, refs)
     print_comparison(result)
-    result["sources"] = dict(zip(variants, args.variants))
-    result["overrides"] = {label: next(iter(runs.values())).get("overrides") for label, runs in variants.items()}
+    result["sources"] = args.variants
+    result["overrides"] = {label: shared_overrides(runs.values()) for label, runs in variants.items()}
     result["runs"] = [{"variant": label, **{k: r.get(k) for k in ("scene", "seed", "file", "train_seconds") + METRICS}}
                       for label, runs in variants.items() for r in runs.values()]
     print(f"\nwrote {write_json(args.name, result)}")

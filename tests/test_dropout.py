@@ -40,17 +40,17 @@ def test_the_config_refuses_a_rate_outside_zero_to_one(tmp_path):
 
 
 def test_auto_drops_with_few_training_views_only(tmp_path):
-    from warpgs.train.dropout import AUTO_MAX_VIEWS, AUTO_RATE, drop_rate_for
+    from warpgs.train.dropout import AUTO_MAX_VIEWS, AUTO_RATE, AUTO_RATE_3, drop_rate_for
 
-    assert [drop_rate_for("auto", n) for n in (3, AUTO_MAX_VIEWS, AUTO_MAX_VIEWS + 1, 24)] == [AUTO_RATE, AUTO_RATE,
-                                                                                               0.0, 0.0]
+    assert AUTO_MAX_VIEWS == 4 and AUTO_RATE_3 != AUTO_RATE  # two measured rates: 3 views and 4
+    assert [drop_rate_for("auto", n) for n in (2, 3, 4, 5, 24)] == [AUTO_RATE_3, AUTO_RATE_3, AUTO_RATE, 0.0, 0.0]
     assert drop_rate_for(0.0, 3) == 0.0 and drop_rate_for(0.3, 30) == 0.3
     # The tiny light field trains on its 3x3 array: 9 views, so "auto" leaves dropout off; with 3 of them, on.
     nine = run(tmp_path / "nine", "train.drop_rate=auto", steps=2)
     assert nine.drop_rate == 0.0
     dropped = [nine.scene.names[v] for v in nine.scene.train[3:]]
     three = run(tmp_path / "three", "train.drop_rate=auto", f"data.exclude=[{', '.join(dropped)}]", steps=2)
-    assert len(three.views.indices) == 3 and three.drop_rate == AUTO_RATE
+    assert len(three.views.indices) == 3 and three.drop_rate == AUTO_RATE_3
     assert math.isfinite(three.train_step()["loss"])
     with pytest.raises(ConfigError, match="train.drop_rate"):
         run(tmp_path / "bad", "train.drop_rate=sometimes")

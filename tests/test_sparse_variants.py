@@ -51,3 +51,18 @@ def test_runs_made_differently_are_refused_naming_the_files(tmp_path):
         sparse_variants.load_variant(f"z={a}:wo_drop")
     with pytest.raises(SystemExit, match="LABEL=FOLDER:SETTING"):
         sparse_variants.load_variant(str(a))
+
+
+def test_a_label_given_twice_gathers_both_folders_and_refuses_a_run_twice(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path))  # the table goes there, not into benchmarks/results
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    _write(a, "preset", "fern", 0, 20.0, overrides=["data.path=fern", "train.drop_rate=0.1"])
+    _write(b, "preset", "room", 0, 10.0, overrides=["data.path=room", "train.drop_rate=0.1"])
+    _write(c, "preset", "fern", 0, 21.0, overrides=["data.path=fern", "train.drop_rate=0.3"])
+    _write(c, "preset", "room", 0, 10.5, overrides=["data.path=room", "train.drop_rate=0.3"])
+    sparse_variants.main(["out", "--ref", "old", f"old={a}:preset", f"old={b}:preset", f"new={c}:preset"])
+    assert "| mean | 15.00 | 15.75 | +0.75 |" in capsys.readouterr().out
+    written = json.loads((tmp_path / "out.json").read_text())
+    assert written["overrides"] == {"old": ["train.drop_rate=0.1"], "new": ["train.drop_rate=0.3"]}
+    with pytest.raises(SystemExit, match="are both fern, seed 0"):
+        sparse_variants.main(["out", "--ref", "old", f"old={a}:preset", f"old={a}:preset", f"new={c}:preset"])

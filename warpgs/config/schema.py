@@ -134,7 +134,7 @@ class TrainConfig:
     opacity_decay: float = 0.0
     # Each training view renders with a random share drop_rate of the primitives left out and the others' opacities
     # divided by 1 - drop_rate (DropGaussian; train/dropout.py); evaluation renders them all. 0: off; "auto":
-    # dropout.AUTO_RATE when the run has at most dropout.AUTO_MAX_VIEWS training views, else off.
+    # dropout.AUTO_RATE_3 with at most 3 training views, dropout.AUTO_RATE with up to dropout.AUTO_MAX_VIEWS, else off.
     drop_rate: Union[float, str] = 0.0
 
     def render_options(self) -> dict:
