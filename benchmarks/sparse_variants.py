@@ -9,9 +9,8 @@ the same prior). This script puts those folders side by side:
         3DGS=/tmp/sp01/runs:baseline 0.1=/tmp/sp01/runs:preset 0.3=/tmp/sp03/runs:preset
 
 LABEL=FOLDER:SETTING takes the run files in FOLDER whose setting is SETTING; a label given twice gathers both folders
-(e.g. two scenes' waves). Every variant must cover the same scenes
-and seeds under the same protocol, split and length. Prints a table and writes benchmarks/results/NAME.json (or
-$OUT/NAME.json) with every run's scores.
+(e.g. two scenes' waves). Every variant must cover the same scenes and seeds under the same protocol, split and
+length. Prints a table and writes benchmarks/results/NAME.json (or $OUT/NAME.json) with every run's scores.
 """
 from __future__ import annotations
 
@@ -51,9 +50,9 @@ def check_alike(variants: dict) -> list[tuple[str, int]]:
     if any(k != common for k in keys):
         missing = {label: sorted(common ^ set(runs)) for label, runs in variants.items() if set(runs) != common}
         raise SystemExit(f"the variants do not cover the same scenes and seeds: {missing}")
+    first = next(iter(variants.values()))
     for key in sorted(common):
-        first_label, first = next(iter(variants.items()))
-        for label, runs in variants.items():
+        for runs in variants.values():
             for field in SAME:
                 if runs[key].get(field) != first[key].get(field):
                     raise SystemExit(f"{runs[key]['file']} and {first[key]['file']} differ in {field!r}: "
@@ -75,7 +74,7 @@ def compare(variants: dict, refs: list[str]) -> dict:
     for scene in scenes:
         row = {}
         for label, runs in variants.items():
-            mine = [runs[(scene, s)] for s in seeds if (scene, s) in runs]
+            mine = [runs[(scene, s)] for s in seeds]
             cell = {m: mean_se([r[m] for r in mine if r.get(m) is not None]) for m in METRICS}
             for ref in refs:
                 cell[f"d_psnr_vs_{ref}"] = mean_se([r["psnr"] - variants[ref][(scene, r["seed"])]["psnr"] for r in mine])
