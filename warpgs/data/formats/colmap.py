@@ -104,7 +104,8 @@ def cameras_from_model(rec, images_dir: Path, model_dir: Optional[PathLike] = No
 def points_from_model(rec, image_ids: Sequence[int], model_dir: Optional[PathLike] = None) -> Optional[PointCloud]:
     if rec.num_points3D() == 0:
         return None
-    # One pass over pycolmap's map (each lookup by id copies the point with its track: 3x slower at 122k points).
+    # One pass over pycolmap's map: a lookup by id copies the point with its track (bonsai800, 122k points: 0.27 s a
+    # field by id against 0.10 s for the pass).
     points = sorted(rec.points3D.items(), key=lambda item: item[0])
     row = {pid: r for r, (pid, _) in enumerate(points)}
     xyz = np.array([p.xyz for _, p in points], dtype=np.float64)
