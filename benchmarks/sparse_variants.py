@@ -20,6 +20,7 @@ import statistics
 from pathlib import Path
 
 from common import mean_se, write_json
+from sparse_tables import fmt
 
 METRICS = ("psnr", "ssim", "abs_rel", "num_primitives")
 # What must agree between the variants' runs of one scene and seed for their difference to mean anything.
@@ -75,7 +76,7 @@ def compare(variants: dict, refs: list[str]) -> dict:
         row = {}
         for label, runs in variants.items():
             mine = [runs[(scene, s)] for s in seeds]
-            cell = {m: mean_se([r[m] for r in mine if r.get(m) is not None]) for m in METRICS}
+            cell = {m: mean_se([r.get(m) for r in mine]) for m in METRICS}
             for ref in refs:
                 cell[f"d_psnr_vs_{ref}"] = mean_se([r["psnr"] - variants[ref][(scene, r["seed"])]["psnr"] for r in mine])
             row[label] = cell
@@ -93,8 +94,7 @@ def compare(variants: dict, refs: list[str]) -> dict:
             mean[label][f"d_psnr_vs_{ref}_scenes_se"] = mean_se(
                 [table[sc][label][f"d_psnr_vs_{ref}"][0] for sc in scenes])[1]
         for m in METRICS[1:]:
-            vals = [table[sc][label][m][0] for sc in scenes if table[sc][label][m][0] is not None]
-            mean[label][m] = mean_se(vals) if vals else (None, None)
+            mean[label][m] = mean_se([table[sc][label][m][0] for sc in scenes])
     return {"refs": refs, "scenes": table, "mean": mean, "seeds": seeds}
 
 
@@ -105,16 +105,12 @@ def print_comparison(result: dict) -> None:
     deltas = [(label, ref) for ref in refs for label in labels
               if label != ref and not (label in refs and refs.index(label) > refs.index(ref))]
 
-    def cell(v, sign=False):
-        m, se = v
-        return "n/a" if m is None else f"{m:{'+' if sign else ''}.2f}" + ("" if se is None else f" ± {se:.2f}")
-
     print("| scene | " + " | ".join(labels) + " | " + " | ".join(f"Δ {a} vs {b}" for a, b in deltas) + " |")
     print("|---|" + "---|" * (len(labels) + len(deltas)))
     rows = list(result["scenes"].items()) + [("mean", result["mean"])]
     for scene, row in rows:
-        print(f"| {scene} | " + " | ".join(cell(row[label]["psnr"]) for label in labels) + " | "
-              + " | ".join(cell(row[a][f"d_psnr_vs_{b}"], sign=True) for a, b in deltas) + " |")
+        print(f"| {scene} | " + " | ".join(fmt(*row[label]["psnr"], 2) for label in labels) + " | "
+              + " | ".join(fmt(*row[a][f"d_psnr_vs_{b}"], 2, sign=True) for a, b in deltas) + " |")
 
 
 def main(argv=None) -> None:
