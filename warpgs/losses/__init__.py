@@ -21,6 +21,7 @@ from warpgs.losses import photometric  # noqa: F401  (registers "l1" and "dssim"
 from warpgs.losses import marr  # noqa: F401  (registers "depth", "depth_grad", "depth_local")
 from warpgs.losses import gestalt  # noqa: F401  (registers "opacity", "scale", "count")
 from warpgs.losses import depth_patch  # noqa: F401  (registers "depth_patch", off unless a config lists it)
+from warpgs.losses import continuity  # noqa: F401  (registers "depth_smooth", off unless a config lists it)
 
 __all__ = [
     "DEFAULT_LOSSES", "KNOWN_OUTPUTS", "LossResult", "LossTerm", "Schedule", "batch_field", "compute_losses",
