@@ -6,6 +6,7 @@ each at the benchmark's resolution that a GPU machine can receive (64 MiB a call
     python benchmarks/sparse_data.py llff data/raw/leaves data/sparse/leaves --jpeg 98   # images_8 + poses + ref.
     python benchmarks/sparse_data.py gather data/raw/bonsai_src data/bonsai800/images --skip images  # for SfM
     python benchmarks/sparse_data.py colmap data/bonsai800 data/sparse/bonsai800  # images + sparse/0, as they are
+    python benchmarks/sparse_data.py nex data/raw/room_nex data/raw/room_llff    # NeX's layout -> standard LLFF
     python benchmarks/sparse_data.py size data/sparse/*                           # MiB per scene and in all
 
 MIRROR is the bare git directory `fetch` made (/work/.mirror/<owner>+<name>/repo); a snapshot lacks files of 4 MiB
@@ -292,6 +293,9 @@ def main(argv=None) -> None:
     g = sub.add_parser("gather", help="every image under SRC into one folder DEST (for SfM)")
     g.add_argument("src"), g.add_argument("dest")
     g.add_argument("--skip", action="append", default=[], help="a subfolder of SRC to leave out (repeatable)")
+    x = sub.add_parser("nex", help="an LLFF scene in NeX's layout as a standard LLFF folder (sparse_data_nex.py)")
+    x.add_argument("src"), x.add_argument("out")
+    x.add_argument("--jpeg", type=int, default=98, metavar="Q", help="JPEG quality of the cropped images")
     c = sub.add_parser("colmap", help="copy a COLMAP scene's images/ and sparse/0")
     c.add_argument("src"), c.add_argument("out")
     s = sub.add_parser("size", help="MiB per scene folder and in all, against the carry budget")
@@ -304,6 +308,10 @@ def main(argv=None) -> None:
         dest, missing = extract(Path(args.mirror), args.path, Path(args.dest), args.commit)
         lacks = f" (the snapshot lacks {len(missing)} file(s): {', '.join(missing[:5])})" if missing else ""
         print(f"{dest}{lacks}")
+    elif args.cmd == "nex":
+        from sparse_data_nex import convert
+
+        print(f"{convert(Path(args.src), Path(args.out), args.jpeg)}: {folder_mib(Path(args.out)):.1f} MiB")
     elif args.cmd == "gather":
         print(f"{args.dest}: {len(gather_images(Path(args.src), Path(args.dest), args.skip))} images")
     elif args.cmd in ("llff", "colmap"):

@@ -36,11 +36,13 @@ def edge_weight(image: torch.Tensor, edge: float = EDGE) -> torch.Tensor:
     return torch.exp(-edge * g.abs().sum(2).mean(1, keepdim=True))
 
 
-def curvature_l1(pred: torch.Tensor, mask: torch.Tensor, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """Weighted mean over pixels with an all-covered 3x3 window of |∂xx d| + 2|∂xy d| + |∂yy d|, d = pred over its
-    (detached) mean on mask; maps [B, 1, H, W]."""
-    with torch.no_grad():
-        scale = masked_mean(pred, mask).clamp_min(1e-12)
+def curvature_l1(pred: torch.Tensor, mask: torch.Tensor, weight: Optional[torch.Tensor] = None,
+                 scale: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Weighted mean over pixels with an all-covered 3x3 window of |∂xx d| + 2|∂xy d| + |∂yy d|, d = pred / scale;
+    maps [B, 1, H, W]. scale: by default pred's mean on mask, detached (a unit, not something to optimise)."""
+    if scale is None:
+        with torch.no_grad():
+            scale = masked_mean(pred, mask).clamp_min(1e-12)
     d = torch.where(mask, pred / scale, torch.zeros_like(pred))
     h = spatial_gradient(d, mode="diff", order=2, normalized=True).abs()  # [B, 1, 3, H, W]: xx, xy, yy
     curvature = h[:, :, 0] + 2.0 * h[:, :, 1] + h[:, :, 2]
