@@ -88,9 +88,8 @@ REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
                     ("wo_confidence", "w/o confidence", "sparse_llff", PAPER_TERMS, {"confidence_power": 0.0}),
                     # beyond the paper: the preset with one addition (issue 30 item 5)
                     ("unpool", "the preset + unpooling (FSGS)", "sparse_llff", ["strategy.unpool_every=1"], {}),
-                    ("virtual", "the preset + virtual views at any view count (FSGS's pseudo views)", "sparse_llff",
-                     ["train.virtual_views=1"], {}),
-                    ("wo_virtual", "the preset without virtual views", "sparse_llff", ["train.virtual_views=0"], {}),
+                    ("virtual", "the preset + virtual views with at most 3 training views (FSGS's pseudo views)",
+                     "sparse_llff", ["train.virtual_views=auto"], {}),
                     ("wo_drop", "the preset without primitive dropout", "sparse_llff", ["train.drop_rate=0"], {}),
                     ("depth_patch", "the preset + patch-normalised depth (DNGaussian)", "sparse_llff",
                      ["losses.depth_patch.weight=0.1", "losses.depth_patch.schedule=[exp, 1.0, 0.01, 0, 10000]"], {}),

@@ -12,7 +12,7 @@ each at the benchmark's resolution that a GPU machine can receive (64 MiB a call
 MIRROR is the bare git directory `fetch` made (/work/.mirror/<owner>+<name>/repo); a snapshot lacks files of 4 MiB
 and more, which `extract` names and skips (often sparse/0/images.bin). `llff` writes images_<factor>/<name> at
 1/factor of the poses' full size (from the source's own images_<factor> when it has them at that size, else
-area-resized from whichever complete image folder it has: some copies hold 800x600 JPEGs), PNG or, with --jpeg Q,
+area-resized from whichever complete image folder it has), PNG or, with --jpeg Q,
 JPEG (half the bytes), copies poses_bounds.npy, and turns the source's SfM model (sparse/0, made from every view)
 into reference_depth.npz: the depth of its points in each view that saw them, what the benchmark scores test-view
 depth at (never used for training). `colmap` copies images/ and sparse/0 unchanged (a 360° capture is read at
@@ -48,12 +48,16 @@ MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin", "cameras.txt", "imag
 class Source:
     repo: str  # owner/name on GitHub
     path: str  # the scene's folder in it
-    kind: str  # "llff" (poses_bounds.npy) or "colmap" (sparse/0), or "images" (no poses: run SfM first)
+    kind: str  # "llff" (poses_bounds.npy), "nex" (NeX's layout: `nex` first), "colmap" (sparse/0), or "images" (no
+    # poses: run SfM first)
     note: str
 
 
-# Public copies found with the search tool (2026-11-27). The LLFF scenes are the NeRF release's; fortress has only
-# style-transferred images in the copies found, so it is missing.
+# Public copies found with the search tool. fern, flower, horns and orchids are the NeRF release's own files; room,
+# trex and fortress are NeX's release (its own COLMAP poses, undistorted ~1000x750 images: `nex` makes standard LLFF
+# folders of them, then `llff --factor 2`). No photographic copy of leaves was found: the only one fetched
+# (bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF, like its room, trex and orchids) holds style-transferred images,
+# each view painted on its own, so no model can render a held-out view of them; it is listed to be avoided.
 SOURCES = {
     "fern": Source("luo-ziyuan/CopyRNeRF-code", "data/nerf_llff_data/fern", "llff",
                    "original images_4/images_8 PNGs, sparse/0 points3D.bin (no images.bin)"),
@@ -61,14 +65,19 @@ SOURCES = {
                      "original images_8 PNGs (image000.png ...), sparse/0 without images.bin (a snapshot lacks it)"),
     "horns": Source("Bussler/CustomNeRF", "data/horns", "llff",
                     "images/ holds the 504x378 images_8 PNGs; no SfM model (no depth reference)"),
-    "leaves": Source("bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF", "data/leaves", "llff",
-                     "800x600 JPEGs (the release's names and count), sparse/0 without images.bin"),
-    "orchids": Source("bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF", "data/orchids", "llff",
-                      "800x600 JPEGs (the release's names and count), sparse/0 without images.bin"),
-    "room": Source("bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF", "data/room", "llff",
-                   "800x600 JPEGs (the release's names and count), sparse/0 complete"),
-    "trex": Source("bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF", "data/trex", "llff",
-                   "800x600 JPEGs (the release's names and count), sparse/0 without images.bin"),
+    "orchids": Source("Zephyrmcb/NeRF-Pytorch", "data/nerf_llff_data/orchids", "llff",
+                      "original poses and photos, images_8 as 504x378 JPEGs; sparse/0 without images.bin: prepare "
+                      "without it (--triangulate) for the depth reference"),
+    "room": Source("Javlon3002/For_NeX", "dataset/room", "nex",
+                   "NeX's release: 41 undistorted 996x746 JPEGs (img001..), [N, 14] poses, hwf_cxcy.npy; `nex`, "
+                   "then `llff --factor 2 --jpeg 98 --triangulate`, read as PATH@2"),
+    "trex": Source("Javlon3002/For_NeX", "dataset/trex", "nex",
+                   "NeX's release: 55 undistorted 1002x751 images; as room"),
+    "fortress": Source("Javlon3002/For_NeX", "dataset/fortress", "nex",
+                       "NeX's release: 42 undistorted 1004x753 images; as room"),
+    "leaves (stylised)": Source("bwnebs1/23-2_DSL_Modeling_3D_Style_with_NeRF", "data/leaves", "llff",
+                                "NOT usable: style-transferred 800x600 JPEGs, every view painted separately (the "
+                                "same repository's room, trex and orchids too)"),
     "phone64": Source("Scodive/Data", ".", "llff",
                       "64 phone photos around a subject (360-ish), 1920x1080, poses_bounds.npy, sparse/0 without "
                       "images.bin; the issue's capture: prepare with --factor 4 --keep-images, read it as PATH@4"),

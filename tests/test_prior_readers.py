@@ -64,5 +64,6 @@ def test_virtual_views_on_auto_read_priors_only_when_they_turn_on():
     cfg = load_config(CONFIGS / "sparse_llff.yaml")
     terms = resolve_losses({"l1": 1.0})
     cfg.model.prior_points = 0
+    cfg.train.virtual_views = "auto"
     assert what_reads_priors(cfg, terms, 3) == "train.virtual_views"
     assert what_reads_priors(cfg, terms, 24) == ""

@@ -176,9 +176,9 @@ def test_the_preset_pair_differs_only_in_the_method():
     assert set(base.losses) == {"l1", "dssim"}
     assert set(method.losses) == {"l1", "dssim", "depth", "depth_grad", "depth_local", "opacity", "scale", "count"}
     # The method also starts from points lifted from its prior; the baseline, which has none, from the
-    # triangulated points alone. The method adds virtual views at few views, and primitive dropout.
+    # triangulated points alone. The method adds primitive dropout at few views (virtual views are off in both).
     assert method.model.prior_points > 0 and base.model.prior_points == 0
-    assert method.train.virtual_views == "auto" and base.train.virtual_views == 0
+    assert method.train.virtual_views == 0 and base.train.virtual_views == 0
     assert method.train.drop_rate == "auto" and base.train.drop_rate == 0
     a, b = method.to_dict(), base.to_dict()
     for cfg in (a, b):
@@ -213,20 +213,19 @@ def test_the_real_ablation_removes_each_term_once():
     keys = [s[0] for s in ablation.REAL_SETTINGS]
     assert keys[0] == "baseline" and keys[-1] == "full" and len(set(keys)) == len(keys)
     # the preset plus one thing beyond the paper
-    added = {"unpool": ["strategy.unpool_every=1"], "virtual": ["train.virtual_views=1"],
-             "wo_virtual": ["train.virtual_views=0"], "wo_drop": ["train.drop_rate=0"],
+    added = {"unpool": ["strategy.unpool_every=1"], "virtual": ["train.virtual_views=auto"],
+             "wo_drop": ["train.drop_rate=0"],
              "depth_patch": ["losses.depth_patch.weight=0.1", "losses.depth_patch.schedule=[exp, 1.0, 0.01, 0, 10000]"]}
     removed = [o for key, _, preset, overrides, _ in ablation.REAL_SETTINGS if preset == "sparse_llff"
                and key not in added for o in overrides if o not in ablation.PAPER_TERMS]
     assert removed == [f"losses.{t}=0" for t in ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")] \
         + ["model.prior_points=0"]
-    # The preset leaves the paper's opacity and scale terms out and adds virtual views at few views and primitive
-    # dropout: "full" (the paper's objective) and every "w/o" row put the terms back and take the additions out;
-    # "preset" is the preset.
+    # The preset leaves the paper's opacity and scale terms out and adds primitive dropout at few views: "full" (the
+    # paper's objective) and every "w/o" row put the terms back and take the additions out; "preset" is the preset.
     settings = {k: o for k, _, preset, o, _ in ablation.REAL_SETTINGS if preset == "sparse_llff"}
     sparse_llff = load_config(ROOT / "configs" / "sparse_llff.yaml")
     assert sparse_llff.losses["scale"] == 0 and sparse_llff.losses["opacity"] == 0
-    assert sparse_llff.train.virtual_views == "auto" and sparse_llff.train.drop_rate == "auto"
+    assert sparse_llff.train.virtual_views == 0 and sparse_llff.train.drop_rate == "auto"
     assert settings["full"] == ablation.PAPER_TERMS == ["losses.opacity=0.05", "losses.scale=0.008",
                                                         "train.virtual_views=0", "train.drop_rate=0"]
     assert all(o[:4] == ablation.PAPER_TERMS for k, o in settings.items() if k != "preset" and k not in added)
