@@ -30,8 +30,8 @@ NEIGHBOURHOOD = 5
 MAX_POINTS = 2_000_000  # lifted prior pixels kept (all confident pixels of a few training views fit)
 NEIGHBOURS = 2  # a virtual camera lies between a training camera and one of this many nearest (by centre)
 # train.virtual_views=auto: on (every step) with at most this many training views. Measured (docs/sparse_view.md):
-# 3 views +0.18 dB over 7 LLFF scenes and a tie on a 360° capture; 4 views a tie on the 7 LLFF scenes (-0.02, H200)
-# at 2.2x the training time; 9 (a light field) -1.26, 24 (360°) -3.1.
+# 3 views a tie on 7 real LLFF scenes (-0.05 dB, H200) at 2.6x the training time and on a 360° capture; 4 views a tie
+# (-0.02); 9 (a light field) -1.26, 24 (360°) -3.1. sparse_llff leaves them off.
 AUTO_MAX_VIEWS = 3
 RULE = FewViewsRule("virtual views", "virtual_views", AUTO_MAX_VIEWS, 1)
 
