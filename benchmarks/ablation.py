@@ -67,7 +67,7 @@ SETTINGS = [
 # Real captures (--data): (key, label, preset, overrides, Marr settings); the terms as in SETTINGS, plus the
 # initial points lifted from the prior (model.prior_points): removed from the method, and given to 3DGS alone.
 # "full" is the paper's objective, six terms; configs/sparse_llff.yaml ships it without the scale term (it cost
-# 0.15-0.22 dB over the seven LLFF scenes) and without the opacity term (-1.13 dB on a real light field, +0.08 on
+# 0.15-0.22 dB over seven LLFF-protocol scenes) and without the opacity term (-1.13 dB on a real light field, +0.08 on
 # LLFF, a tie on bonsai800; docs/sparse_view.md), so the preset as shipped is its own "preset" row, and every
 # "w/o" row puts the paper's weights back before removing its own part.
 _METHOD_MODEL = load_config(ROOT / "configs" / "sparse_llff.yaml").model
