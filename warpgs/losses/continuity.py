@@ -1,11 +1,11 @@
 """Good continuation (`depth_smooth`): where the 2.5D sketch is silent, rendered depth should continue smoothly.
 
-Beyond the Marr–Gestalt paper and off unless a config lists it (`losses.depth_smooth`; benchmarks/sparse.py's
-`smooth` setting puts it on the preset). The plane-sweep prior is confident on texture and silent on walls, floors
+Beyond the Marr–Gestalt paper and off unless a config lists it (`losses.depth_smooth=W`): on seven real LLFF scenes
+(3 views, H200, 3 seeds) weight 1 tied with none (-0.01 +- 0.05 dB) and 10 cost 0.52 (docs/sparse_view.md). The plane-sweep prior is confident on texture and silent on walls, floors
 and sky, exactly where three views leave the model free to put floaters. This term asks the rendered inverse depth
 to have no curvature there (Gestalt good continuation):
 
-    L = Σ w |∂xx d| + 2 |∂xy d| + |∂yy d|  /  Σ w,   d = D̂ / mean(D̂)
+    L = Σ w (|∂xx d| + 2 |∂xy d| + |∂yy d|) / Σ w,   d = D̂ / mean(D̂)
 
 - second order, so planes at any slant (a floor, a wall seen obliquely) cost nothing;
 - d is the rendered inverse depth (marr.py's alpha-normalised form) over its mean on the covered pixels, so the
