@@ -212,3 +212,15 @@ def test_prior_accuracy_scores_a_waves_priors_at_the_training_views(tmp_path, mo
     assert mean["delta1"] == 1.0 and mean["point_coverage"] == 1.0 and mean["valid_pixels"] == 1.0
     assert mean["confident_pixels"] == pytest.approx((w // 2) / w)
     assert json.loads((tmp_path / "sparse_prior_accuracy_t.json").read_text())["scenes"].keys() == {scene_dir.name}
+
+
+def test_an_llff_folder_trimmed_to_another_resolution_needs_its_downscale(tmp_path):
+    import sparse_runs
+
+    scene = tmp_path / "room"
+    (scene / "images_2").mkdir(parents=True)
+    np.save(scene / "poses_bounds.npy", np.zeros((3, 17)))
+    protocol = sparse_runs.PROTOCOLS["llff3"]
+    with pytest.raises(SystemExit, match=r"has no images_8/ .*it holds images_2: give it as .*room@N"):
+        sparse_runs.parse_scene(str(scene), protocol)
+    assert sparse_runs.parse_scene(f"{scene}@2", protocol).downscale == 2
