@@ -109,6 +109,13 @@ def mean_se(values: list) -> tuple[Optional[float], Optional[float]]:
     return statistics.fmean(vals), (statistics.stdev(vals) / math.sqrt(len(vals)) if len(vals) > 1 else None)
 
 
+def fmt(m: Optional[float], se: Optional[float], digits: int, sign: bool = False) -> str:
+    """"m ± se" with `digits` decimals (a sign with sign=True); "n/a" without a mean, no "±" without an error."""
+    if m is None:
+        return "n/a"
+    return f"{m:{'+' if sign else ''}.{digits}f}" + (f" ± {se:.{digits}f}" if se is not None else "")
+
+
 def print_table(rows: list[dict], columns: list[str]) -> None:
     widths = [max(len(c), *(len(_fmt(r.get(c))) for r in rows)) for c in columns]
     print(" | ".join(c.ljust(w) for c, w in zip(columns, widths)))

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import math
 import statistics
-from typing import Optional
 
 import ablation
-from common import mean_se
+from common import fmt, mean_se
 
 SETTINGS = {key: (label, preset, overrides, marr) for key, label, preset, overrides, marr in ablation.REAL_SETTINGS}
 TERMS = [f"wo_{t}" for t in ablation.REAL_TERMS]
@@ -17,12 +16,6 @@ PAPER_TABLE2 = {"baseline": ("3DGS", 21.13, 0.695, 0.248), "wo_depth": ("w/o DR"
                 "wo_depth_grad": ("w/o DGR", 22.00, 0.728, 0.222), "wo_depth_local": ("w/o LDR", 21.98, 0.728, 0.223),
                 "wo_opacity": ("w/o GOR", 21.75, 0.723, 0.221), "wo_scale": ("w/o GSR", 22.03, 0.729, 0.221),
                 "wo_count": ("w/o GCR", 21.97, 0.720, 0.224), "full": ("Ours", 22.11, 0.732, 0.218)}
-
-
-def fmt(m: Optional[float], se: Optional[float], digits: int, sign: bool = False) -> str:
-    if m is None:
-        return "n/a"
-    return f"{m:{'+' if sign else ''}.{digits}f}" + (f" ± {se:.{digits}f}" if se is not None else "")
 
 
 def paired(runs: dict, key: str, ref: str, metric: str = "psnr") -> list[float]:

@@ -19,8 +19,7 @@ import json
 import statistics
 from pathlib import Path
 
-from common import mean_se, write_json
-from sparse_tables import fmt
+from common import fmt, mean_se, write_json
 
 METRICS = ("psnr", "ssim", "abs_rel", "num_primitives")
 # What must agree between the variants' runs of one scene and seed for their difference to mean anything.
