@@ -215,12 +215,12 @@ def _write_scaled_images(src: Path, out: Path, n: int, hw, factor: int, jpeg_qua
         rgb, _ = read_image(f)
         rgb = rgb if same else resize_area(rgb, *size)
         if jpeg_quality:
-            atomic_write_bytes(folder / f"{name}.jpg", _jpeg(rgb, jpeg_quality))
+            atomic_write_bytes(folder / f"{name}.jpg", jpeg_bytes(rgb, jpeg_quality))
         else:
             write_png(folder / f"{name}.png", rgb)
 
 
-def _jpeg(rgb: np.ndarray, quality: int) -> bytes:
+def jpeg_bytes(rgb: np.ndarray, quality: int) -> bytes:
     from PIL import Image
 
     buf = io.BytesIO()

@@ -34,7 +34,7 @@ def centred_window(size: int, centre: float) -> tuple[int, int]:
 def convert(src: Path, out: Path, jpeg_quality: int = 98) -> Path:
     """src (NeX layout: images/, poses_bounds.npy [N, 14], hwf_cxcy.npy) -> out: images/ cropped about the
     principal point and a standard [N, 17] poses_bounds.npy. Errors name the file and what was wrong."""
-    from sparse_data import _jpeg  # the same 4:4:4 JPEG writer as every other prepared scene
+    from sparse_data import jpeg_bytes  # the same 4:4:4 JPEG writer as every other prepared scene
 
     src, out = Path(src), Path(out)
     poses_path, intr_path = src / "poses_bounds.npy", src / "hwf_cxcy.npy"
@@ -58,7 +58,7 @@ def convert(src: Path, out: Path, jpeg_quality: int = 98) -> Path:
         rgb, _ = read_image(f)
         if rgb.shape[:2] != (int(h), int(w)):
             raise SystemExit(f"{f}: {rgb.shape[1]}x{rgb.shape[0]}, hwf_cxcy.npy says {int(w)}x{int(h)}")
-        atomic_write_bytes(folder / f"{f.stem}.jpg", _jpeg(rgb[r0:r1, c0:c1], jpeg_quality))
+        atomic_write_bytes(folder / f"{f.stem}.jpg", jpeg_bytes(rgb[r0:r1, c0:c1], jpeg_quality))
     hwf = np.array([r1 - r0, c1 - c0, fx], dtype=np.float64)
     poses = np.concatenate([pb[:, :12].reshape(-1, 3, 4), np.broadcast_to(hwf[None, :, None], (len(pb), 3, 1))], 2)
     standard = np.concatenate([poses.reshape(len(pb), 15), pb[:, 12:14]], 1)

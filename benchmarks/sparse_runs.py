@@ -77,11 +77,13 @@ def parse_scene(spec: str, protocol: Protocol) -> SceneSpec:
 def check_llff_images(path: Path, downscale: int) -> None:
     """An LLFF folder trimmed to another images_<N> than the protocol's default: an error that says which @N to give
     (NeX's scenes, prepared at 1/2 of their ~1000 px images, hold images_2 only)."""
-    if not (path / "poses_bounds.npy").is_file() or (path / f"images_{downscale}").is_dir() or (path / "images").is_dir():
+    llff = (path / "poses_bounds.npy").is_file()
+    if not llff or (path / f"images_{downscale}").is_dir() or (path / "images").is_dir():
         return
     have = sorted(p.name for p in path.glob("images_*") if p.is_dir())
-    raise SystemExit(f"--scenes: {path} has no images_{downscale}/ (nor images/) for the protocol's default 1/{downscale}; "
-                     f"it holds {', '.join(have) or 'no image folder'}: give it as {path}@N for images_N")
+    holds = ", ".join(have) or "no image folder"
+    raise SystemExit(f"--scenes: {path} has no images_{downscale}/ (nor images/) for the protocol's default "
+                     f"1/{downscale}; it holds {holds}: give it as {path}@N for images_N")
 
 
 def expand_settings(text: str) -> list[str]:

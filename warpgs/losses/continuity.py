@@ -1,8 +1,9 @@
 """Good continuation (`depth_smooth`): where the 2.5D sketch is silent, rendered depth should continue smoothly.
 
 Beyond the Marr–Gestalt paper and off unless a config lists it (`losses.depth_smooth=W`): on seven real LLFF scenes
-(3 views, H200, 3 seeds) weight 1 tied with none (-0.01 +- 0.05 dB) and 10 cost 0.52 (docs/sparse_view.md). The plane-sweep prior is confident on texture and silent on walls, floors
-and sky, exactly where three views leave the model free to put floaters. This term asks the rendered inverse depth
+(3 views, H200, 3 seeds) weight 1 tied with none (-0.01 +- 0.05 dB) and 10 cost 0.52 (docs/sparse_view.md).
+The plane-sweep prior is confident on texture and silent on walls, floors and sky, exactly where three views leave
+the model free to put floaters. This term asks the rendered inverse depth
 to have no curvature there (Gestalt good continuation):
 
     L = Σ w (|∂xx d| + 2 |∂xy d| + |∂yy d|) / Σ w,   d = D̂ / mean(D̂)
@@ -22,8 +23,8 @@ from typing import Optional
 import torch
 from kornia.filters import spatial_gradient
 
-from warpgs.losses.marr import (DEPTH_SCHEDULE, OUTPUTS, PRIOR_KEY, SETTINGS, masked_mean, prior_and_mask,
-                                prior_weight, rendered_inverse_depth, window_min, window_valid)
+from warpgs.losses.marr import (DEPTH_SCHEDULE, OUTPUTS, PRIOR_KEY, SETTINGS, _bchw, masked_mean,
+                                prior_and_mask, prior_weight, rendered_inverse_depth, window_min, window_valid)
 from warpgs.losses.photometric import IMAGE_KEY
 from warpgs.losses.registry import batch_field, register_loss
 
@@ -66,7 +67,7 @@ def silence(batch, like: torch.Tensor) -> torch.Tensor:
 def depth_smooth(render_out, batch, model, step) -> torch.Tensor:
     """L_smooth: edge-aware curvature of the rendered inverse depth where the prior is silent (module doc)."""
     pred, alpha = rendered_inverse_depth(render_out)
-    image = _bchw_rgb(batch_field(batch, IMAGE_KEY)).to(pred)
+    image = _bchw(batch_field(batch, IMAGE_KEY), f"batch.{IMAGE_KEY}", channels=3).to(pred)
     if image.shape[-2:] != pred.shape[-2:]:
         raise ValueError(f"batch.{IMAGE_KEY}: {list(image.shape[-2:])} does not match the render "
                          f"{list(pred.shape[-2:])}")
@@ -74,11 +75,3 @@ def depth_smooth(render_out, batch, model, step) -> torch.Tensor:
     weight = window_min(edge_weight(image) * silence(batch, pred))
     return curvature_l1(pred, covered, weight)
 
-
-def _bchw_rgb(x: torch.Tensor) -> torch.Tensor:
-    """[H, W, C] or [B, H, W, C] -> [B, C, H, W]."""
-    if x.dim() == 3:
-        x = x[None]
-    if x.dim() != 4:
-        raise ValueError(f"batch.{IMAGE_KEY}: expected [H, W, C] or [B, H, W, C], got {list(x.shape)}")
-    return x.permute(0, 3, 1, 2)

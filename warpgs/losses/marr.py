@@ -77,14 +77,16 @@ def configure(**kwargs) -> MarrSettings:
 
 
 # ----- pure functions on [B, 1, H, W] maps (tests use these directly) ------------------------------------------
-def _bchw(x: torch.Tensor, name: str) -> torch.Tensor:
-    """[H, W], [H, W, 1] or [B, H, W, 1] -> [B, 1, H, W]."""
-    if x.dim() == 2:
+def _bchw(x: torch.Tensor, name: str, channels: int = 1) -> torch.Tensor:
+    """[H, W] (one channel), [H, W, C] or [B, H, W, C] -> [B, C, H, W], C = channels."""
+    if x.dim() == 2 and channels == 1:
         x = x[..., None]
     if x.dim() == 3:
         x = x[None]
-    if x.dim() != 4 or x.shape[-1] != 1:
-        raise ValueError(f"{name}: expected [H, W], [H, W, 1] or [B, H, W, 1], got {list(x.shape)}")
+    if x.dim() != 4 or x.shape[-1] != channels:
+        shapes = ("[H, W], [H, W, 1] or [B, H, W, 1]" if channels == 1
+                  else f"[H, W, {channels}] or [B, H, W, {channels}]")
+        raise ValueError(f"{name}: expected {shapes}, got {list(x.shape)}")
     return x.permute(0, 3, 1, 2)
 
 
