@@ -241,3 +241,26 @@ def test_prior_points_lie_on_the_surface_and_only_where_confident(tmp_path, monk
     assert len(got) == len(scene.points) + 300 and "300 from depth priors" in source
     with pytest.raises(ValueError, match="model.prior_points=300"):
         initial_points(scene, cfg)
+
+
+def test_auto_prior_confidence_follows_the_training_view_count(tmp_path, monkeypatch):
+    from warpgs.config import ConfigError, load_config
+    from warpgs.train.lifted_prior import AUTO_FEW, AUTO_FEW_MAX_VIEWS, AUTO_MANY, confidence_for
+    from warpgs.train.setup import initial_points
+
+    assert AUTO_FEW > AUTO_MANY
+    views = (3, AUTO_FEW_MAX_VIEWS, AUTO_FEW_MAX_VIEWS + 1, 24)
+    assert [confidence_for("auto", n) for n in views] == [AUTO_FEW, AUTO_FEW, AUTO_MANY, AUTO_MANY]
+    assert confidence_for(0.3, 24) == 0.3 and confidence_for("0.7", 3) == 0.7
+    assert load_config(None, ["model.prior_points_confidence=auto"]).model.prior_points_confidence == "auto"
+    for bad in ("high", "1.5", "-0.1"):
+        with pytest.raises(ConfigError, match="model.prior_points_confidence"):
+            load_config(None, [f"model.prior_points_confidence={bad}"])
+    # The start line names the threshold "auto" chose for this scene's training views.
+    monkeypatch.setenv("WARPGS_CACHE", str(tmp_path / "cache"))
+    scene = plane_scene_with_points(tmp_path / "scene")
+    with_priors, _ = compute_depth_priors(scene, PlaneSweepStereo(near=3.0, far=8.0), out_dir=tmp_path / "priors")
+    cfg = load_config(None, ["model.init=sfm", "model.prior_points=300", "model.prior_points_confidence=auto",
+                             "train.device=cpu"])
+    _, _, source = initial_points(with_priors, cfg)
+    assert f"confidence >= {confidence_for('auto', len(with_priors.train)):g}" in source

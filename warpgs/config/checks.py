@@ -92,6 +92,8 @@ def _check_value(key: str, value, tp):
         return _check_virtual_views(key, value)
     if key == "train.drop_rate":
         return _check_drop_rate(key, value)
+    if key == "model.prior_points_confidence":
+        return _number_or_auto(key, value, float, lambda c: 0.0 <= c <= 1.0, "a confidence in [0, 1]")
     if key in AUTO_BOOLS:
         return _check_auto_bool(key, value)
     if tp is Any:
@@ -305,9 +307,6 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError("model.sh_degree", f"expected 0..3, got {cfg.model.sh_degree}")
     if not 0.0 < cfg.model.init_opacity < 1.0:
         raise ConfigError("model.init_opacity", f"expected a value in (0, 1), got {cfg.model.init_opacity}")
-    if not 0.0 <= cfg.model.prior_points_confidence <= 1.0:
-        raise ConfigError("model.prior_points_confidence",
-                          f"expected a confidence in [0, 1], got {cfg.model.prior_points_confidence}")
     if cfg.model.background_radius <= 1.0:
         raise ConfigError("model.background_radius", f"expected > 1 (outside the scene), got {cfg.model.background_radius}")
     if not 0.0 < cfg.train.near < cfg.train.far:

@@ -56,7 +56,8 @@ class ModelConfig:
     init_points: int = 100_000  # points drawn for depth/random initialisation
     prior_points: int = 0  # extra initial points lifted from the depth priors' pixels of the training views, added
     #                         to what model.init gave (few views: triangulation finds few points; 0: none)
-    prior_points_confidence: float = 0.5  # ... from pixels whose prior confidence is at least this
+    prior_points_confidence: Union[float, str] = 0.5  # ... from pixels whose prior confidence is at least this;
+    #                         "auto": 0.8 with few training views, 0.5 with more (train/lifted_prior.py)
     init_opacity: float = 0.1
     background_points: int = 0  # extra points on a far sphere, where sky/background can live (0: none, as 3DGS)
     background_radius: float = 3.0  # that sphere's radius, in multiples of the scene's radius

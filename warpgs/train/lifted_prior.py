@@ -2,6 +2,23 @@
 prior points (setup.py, model.prior_points) and the virtual views' point cloud (virtual_views.py)."""
 from __future__ import annotations
 
+# model.prior_points_confidence=auto: AUTO_FEW with at most AUTO_FEW_MAX_VIEWS training views, else AUTO_MANY. The
+# plane sweep's confidence scales with the share of a pixel's neighbours that agree, and views all around a scene see
+# less of each other than a few forward-facing ones: at 24 views of bonsai800 3% of the pixels reach 0.8 (LLFF's 3
+# views: 7-21%), and the points crowd into the few places that do. Measured, 0.5 against 0.8 (docs/sparse_view.md):
+# 24 views around bonsai800 +0.29 +- 0.13 dB (H200, 3 seeds) and phone64 +0.16 (CPU, seed 0); 9 views of a real
+# light field -0.11 and 3 views of 4 real LLFF scenes -0.16 in the mean (CPU, seed 0). 10 to 23 views: unmeasured.
+AUTO_FEW = 0.8
+AUTO_MANY = 0.5
+AUTO_FEW_MAX_VIEWS = 9
+
+
+def confidence_for(setting, num_train_views: int) -> float:
+    """The least prior confidence model.prior_points_confidence asks for with this many training views."""
+    if setting != "auto":
+        return float(setting)
+    return AUTO_FEW if num_train_views <= AUTO_FEW_MAX_VIEWS else AUTO_MANY
+
 
 def lifted_prior(scene, views, n: int, min_confidence: float, seed: int, key: str, named: str):
     """A PointCloud of n pixels of the views' depth priors of at least min_confidence, lifted with their colours

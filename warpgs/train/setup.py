@@ -16,7 +16,7 @@ import torch
 from warpgs.config.loader import BACKGROUNDS, Config, DataConfig
 from warpgs.model.gaussians import MODEL_KINDS, GaussianModel
 from warpgs.model.rendering import focal_length
-from warpgs.train.lifted_prior import lifted_prior
+from warpgs.train.lifted_prior import confidence_for, lifted_prior
 from warpgs.train.virtual_views import virtual_every
 
 
@@ -234,7 +234,8 @@ def initial_points(scene, config: Config):
     xyz, rgb = cloud.tensors()
     xyz, rgb = xyz.float(), rgb.float()
     if config.model.prior_points:
-        px, pc, note = prior_points(scene, config.model.prior_points, config.model.prior_points_confidence, seed)
+        confidence = confidence_for(config.model.prior_points_confidence, len(scene.train))
+        px, pc, note = prior_points(scene, config.model.prior_points, confidence, seed)
         xyz, rgb = torch.cat([xyz, px]), torch.cat([rgb, pc])
         source += f" + {note}"
     if config.model.background_points:

@@ -21,6 +21,7 @@ from warpgs.train.distributed import setup_ranks, sync_model
 from warpgs.train.dropout import drop_rate_for
 from warpgs.train.evaluation import Evaluator
 from warpgs.train.extensions import CallbackExtension, Extension, build_extension
+from warpgs.train.lifted_prior import confidence_for
 from warpgs.train.model_parallel import move_training, shard_training
 from warpgs.train.optim import build_optimizer, fused_adam
 from warpgs.train.resolution import ScaledViews
@@ -148,8 +149,9 @@ class TrainerBuild:
         if self.virtual_every:
             if self.model_parallel:
                 raise ValueError("train.virtual_views: not with train.parallel=model (use the default data parallel)")
-            self.virtual_views = virtual_views_for(self.scene, self.views.indices, cfg.model.prior_points_confidence,
-                                                   self.device, cfg.train.seed)
+            confidence = confidence_for(cfg.model.prior_points_confidence, len(self.views.indices))
+            self.virtual_views = virtual_views_for(self.scene, self.views.indices, confidence, self.device,
+                                                   cfg.train.seed)
         self.evaluator = Evaluator(self.scene, cfg.eval, self.device, self.out_dir,
                                    render=lambda v: self.render(v, ("rgb",)).rgb, views=self.views,
                                    ranks=self.ranks, render_round=self._render_round if self.model_parallel else None)
