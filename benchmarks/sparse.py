@@ -61,6 +61,7 @@ from sparse_runs import (FULL_STEPS, PROTOCOLS, Protocol, Run, SceneSpec, expand
                          needs_prior, parse_scene, plan, prior_done, read_run, run_budget, run_done, run_steps)
 from sparse_tables import PAPER_TABLE2, SETTINGS, print_tables, summarise  # statistics and tables
 from sparse_worker import make_prior, reference_source, train_one  # the worker processes
+from warpgs.data.errors import SceneError
 
 
 # --- the run files' tables ------------------------------------------------------------------------------------------
@@ -174,9 +175,13 @@ def worker_cmd(args, kind: str, scene: SceneSpec, run: Optional[Run] = None) -> 
 def dry_run(args, runs: list[Run], scenes: list[SceneSpec]) -> None:
     out = Path(args.out)
     for sc in scenes:
-        loaded = load(sc, args.proto)
-        ref = reference_source(sc) or "none (image metrics only)"
         prior = "done" if prior_done(out, args.tag, sc) else "to do"
+        try:  # a dry run computes nothing: a folder of images alone is not reconstructed here
+            loaded = load(sc, args.proto, run_sfm=False)
+        except SceneError as e:
+            print(f"{sc.name} ({sc.path}): {e}; the first run makes the poses with SfM; prior: {prior}")
+            continue
+        ref = reference_source(sc) or "none (image metrics only)"
         print(f"{sc.name} ({sc.path}, downscale {sc.downscale}, {loaded.cameras[0].width}x{loaded.cameras[0].height}"
               f", {len(loaded)} views): train {loaded.train} {[loaded.names[v] for v in loaded.train]}, test "
               f"{loaded.test}; depth reference: {ref}; prior: {prior}")

@@ -102,10 +102,13 @@ def plan(protocol: str, scenes: list[SceneSpec], settings: list[str], seeds: lis
     return [Run(protocol, sc, key, seed) for sc in scenes for key in settings for seed in seeds]
 
 
-def load(scene: SceneSpec, protocol: Protocol):
+def load(scene: SceneSpec, protocol: Protocol, run_sfm: bool = True):
+    """The scene as the protocol reads it. A folder of images alone is reconstructed first unless run_sfm is False
+    (then it is a SceneError)."""
     from warpgs.data import load_scene
 
-    return load_scene(scene.path, split=protocol.split, n_train=protocol.n_train_arg, downscale=scene.downscale)
+    return load_scene(scene.path, split=protocol.split, n_train=protocol.n_train_arg, downscale=scene.downscale,
+                      run_sfm_if_needed=run_sfm)
 
 
 def prior_folder(out: Path, protocol: str, scene: SceneSpec) -> Path:

@@ -152,6 +152,21 @@ def test_settings_groups_and_bad_input():
         sparse.main(["--scenes", "/no/such/scene", "--dry-run"])
 
 
+def test_a_dry_run_does_not_reconstruct_a_folder_of_images(tmp_path, capsys):
+    """A capture without poses is listed as such; its SfM is left to the first run (no database written)."""
+    from PIL import Image
+
+    scene = tmp_path / "photos"
+    (scene / "images").mkdir(parents=True)
+    for i in range(4):
+        Image.new("RGB", (32, 24), (40 * i, 80, 120)).save(scene / "images" / f"{i:03d}.jpg")
+    sparse.main(["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--seeds", "0",
+                 "--out", str(tmp_path / "out"), "--dry-run"])
+    listed = capsys.readouterr().out
+    assert "the first run makes the poses with SfM" in listed and "m360_24_photos_baseline_s0" in listed
+    assert not (scene / "database.db").exists() and not (scene / "sparse").exists()
+
+
 def test_trimmed_llff_copy_keeps_split_cameras_and_reference(tmp_path):
     cams = _cameras(n=12)
     points = _tracked_points(cams)
