@@ -18,7 +18,7 @@ from warpgs.train.few_views import FewViewsRule
 AUTO_RATE_3 = 0.3
 AUTO_RATE = 0.1
 AUTO_MAX_VIEWS = 4
-RULE = FewViewsRule("primitive dropout", "drop_rate", AUTO_MAX_VIEWS, AUTO_RATE, fewer=((3, AUTO_RATE_3),))
+RULE = FewViewsRule("primitive dropout", "train.drop_rate", AUTO_MAX_VIEWS, AUTO_RATE, fewer=((3, AUTO_RATE_3),))
 
 
 def drop_rate_for(setting, num_train_views: int) -> float:

@@ -2,6 +2,8 @@
 prior points (setup.py, model.prior_points) and the virtual views' point cloud (virtual_views.py)."""
 from __future__ import annotations
 
+from warpgs.train.few_views import FewViewsRule
+
 # model.prior_points_confidence=auto: AUTO_FEW with at most AUTO_FEW_MAX_VIEWS training views, else AUTO_MANY. The
 # plane sweep's confidence scales with the share of a pixel's neighbours that agree, and views all around a scene see
 # less of each other than a few forward-facing ones: at 24 views of bonsai800 3% of the pixels reach 0.8 (LLFF's 3
@@ -11,13 +13,13 @@ from __future__ import annotations
 AUTO_FEW = 0.8
 AUTO_MANY = 0.5
 AUTO_FEW_MAX_VIEWS = 9
+RULE = FewViewsRule("prior points' confidence", "model.prior_points_confidence", AUTO_FEW_MAX_VIEWS, AUTO_FEW,
+                    more=AUTO_MANY)
 
 
 def confidence_for(setting, num_train_views: int) -> float:
     """The least prior confidence model.prior_points_confidence asks for with this many training views."""
-    if setting != "auto":
-        return float(setting)
-    return AUTO_FEW if num_train_views <= AUTO_FEW_MAX_VIEWS else AUTO_MANY
+    return RULE.value(setting, num_train_views, float)
 
 
 def lifted_prior(scene, views, n: int, min_confidence: float, seed: int, key: str, named: str):

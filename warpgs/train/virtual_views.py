@@ -33,7 +33,7 @@ NEIGHBOURS = 2  # a virtual camera lies between a training camera and one of thi
 # 3 views a tie on 7 real LLFF scenes (-0.05 dB, H200) at 2.6x the training time and on a 360° capture; 4 views a tie
 # (-0.02); 9 (a light field) -1.26, 24 (360°) -3.1. sparse_llff leaves them off.
 AUTO_MAX_VIEWS = 3
-RULE = FewViewsRule("virtual views", "virtual_views", AUTO_MAX_VIEWS, 1)
+RULE = FewViewsRule("virtual views", "train.virtual_views", AUTO_MAX_VIEWS, 1)
 
 
 def virtual_every(setting, num_train_views: int) -> int:
