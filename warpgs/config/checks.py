@@ -93,7 +93,7 @@ def _check_value(key: str, value, tp):
     if key == "train.drop_rate":
         return _check_drop_rate(key, value)
     if key == "model.prior_points_confidence":
-        return _number_or_auto(key, value, float, lambda c: 0.0 <= c <= 1.0, "a confidence in [0, 1]")
+        return _check_prior_confidence(key, value)
     if key in AUTO_BOOLS:
         return _check_auto_bool(key, value)
     if tp is Any:
@@ -202,6 +202,11 @@ def _check_virtual_views(key: str, value):
 def _check_drop_rate(key: str, value):
     """A fraction in [0, 1), or "auto" (train/dropout.py: on with few training views)."""
     return _number_or_auto(key, value, float, lambda r: 0.0 <= r < 1.0, "a fraction in [0, 1)")
+
+
+def _check_prior_confidence(key: str, value):
+    """A confidence in [0, 1], or "auto" (train/lifted_prior.py: by the number of training views)."""
+    return _number_or_auto(key, value, float, lambda c: 0.0 <= c <= 1.0, "a confidence in [0, 1]")
 
 
 def _check_auto_bool(key: str, value):
