@@ -75,10 +75,11 @@ PRIOR_POINTS = _METHOD_MODEL.prior_points  # the method's count, and the prior c
 PRIOR_CONFIDENCE = _METHOD_MODEL.prior_points_confidence
 REAL_TERMS = ("depth", "depth_grad", "depth_local", "opacity", "scale", "count")
 # The paper's objective from the preset: the terms it leaves out at the paper's weights (sparse_lightfield is the
-# paper's objective), and without what it adds (virtual views, on at few views; primitive dropout).
+# paper's objective), and without what it adds (virtual views, on at few views; primitive dropout; unpooling, on
+# beyond a few views).
 _PAPER_WEIGHTS = load_config(ROOT / "configs" / "sparse_lightfield.yaml").losses
 PAPER_TERMS = ([f"losses.{t}={_PAPER_WEIGHTS[t]}" for t in ("opacity", "scale")]
-               + ["train.virtual_views=0", "train.drop_rate=0"])
+               + ["train.virtual_views=0", "train.drop_rate=0", "strategy.unpool_every=0"])
 REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
                  + [("baseline_prior_points", "3DGS + prior points", "sparse_llff_baseline",
                      [f"model.prior_points={PRIOR_POINTS}", f"model.prior_points_confidence={PRIOR_CONFIDENCE}"], {})]
@@ -87,7 +88,9 @@ REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
                  + [("wo_prior_points", "w/o prior points", "sparse_llff", PAPER_TERMS + ["model.prior_points=0"], {}),
                     ("wo_confidence", "w/o confidence", "sparse_llff", PAPER_TERMS, {"confidence_power": 0.0}),
                     # beyond the paper: the preset with one addition (issue 30 item 5)
-                    ("unpool", "the preset + unpooling (FSGS)", "sparse_llff", ["strategy.unpool_every=1"], {}),
+                    ("unpool", "the preset + unpooling at any view count (FSGS)", "sparse_llff",
+                     ["strategy.unpool_every=1"], {}),
+                    ("wo_unpool", "the preset without unpooling", "sparse_llff", ["strategy.unpool_every=0"], {}),
                     ("virtual", "the preset + virtual views with at most 3 training views (FSGS's pseudo views)",
                      "sparse_llff", ["train.virtual_views=auto"], {}),
                     ("wo_drop", "the preset without primitive dropout", "sparse_llff", ["train.drop_rate=0"], {}),

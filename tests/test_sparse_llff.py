@@ -176,10 +176,12 @@ def test_the_preset_pair_differs_only_in_the_method():
     assert set(base.losses) == {"l1", "dssim"}
     assert set(method.losses) == {"l1", "dssim", "depth", "depth_grad", "depth_local", "opacity", "scale", "count"}
     # The method also starts from points lifted from its prior; the baseline, which has none, from the
-    # triangulated points alone. The method adds primitive dropout at few views (virtual views are off in both).
+    # triangulated points alone. The method adds primitive dropout at few views and unpooling beyond a few (virtual
+    # views are off in both).
     assert method.model.prior_points > 0 and base.model.prior_points == 0
     assert method.train.virtual_views == 0 and base.train.virtual_views == 0
     assert method.train.drop_rate == "auto" and base.train.drop_rate == 0
+    assert method.strategy.unpool_every == "auto" and base.strategy.unpool_every == 0
     a, b = method.to_dict(), base.to_dict()
     for cfg in (a, b):
         cfg.pop("losses")
@@ -188,6 +190,7 @@ def test_the_preset_pair_differs_only_in_the_method():
         cfg["model"].pop("prior_points_confidence")
         cfg["train"].pop("virtual_views")
         cfg["train"].pop("drop_rate")
+        cfg["strategy"].pop("unpool_every")
     assert a == b
 
 
@@ -214,7 +217,7 @@ def test_the_real_ablation_removes_each_term_once():
     assert keys[0] == "baseline" and keys[-1] == "full" and len(set(keys)) == len(keys)
     # the preset plus one thing beyond the paper
     added = {"unpool": ["strategy.unpool_every=1"], "virtual": ["train.virtual_views=auto"],
-             "wo_drop": ["train.drop_rate=0"],
+             "wo_drop": ["train.drop_rate=0"], "wo_unpool": ["strategy.unpool_every=0"],
              "depth_patch": ["losses.depth_patch.weight=0.1", "losses.depth_patch.schedule=[exp, 1.0, 0.01, 0, 10000]"]}
     removed = [o for key, _, preset, overrides, _ in ablation.REAL_SETTINGS if preset == "sparse_llff"
                and key not in added for o in overrides if o not in ablation.PAPER_TERMS]
@@ -226,9 +229,12 @@ def test_the_real_ablation_removes_each_term_once():
     sparse_llff = load_config(ROOT / "configs" / "sparse_llff.yaml")
     assert sparse_llff.losses["scale"] == 0 and sparse_llff.losses["opacity"] == 0
     assert sparse_llff.train.virtual_views == 0 and sparse_llff.train.drop_rate == "auto"
+    assert sparse_llff.strategy.unpool_every == "auto"
     assert settings["full"] == ablation.PAPER_TERMS == ["losses.opacity=0.05", "losses.scale=0.008",
-                                                        "train.virtual_views=0", "train.drop_rate=0"]
-    assert all(o[:4] == ablation.PAPER_TERMS for k, o in settings.items() if k != "preset" and k not in added)
+                                                        "train.virtual_views=0", "train.drop_rate=0",
+                                                        "strategy.unpool_every=0"]
+    n = len(ablation.PAPER_TERMS)
+    assert all(o[:n] == ablation.PAPER_TERMS for k, o in settings.items() if k != "preset" and k not in added)
     assert settings["preset"] == [] and settings["wo_scale"] == ablation.PAPER_TERMS + ["losses.scale=0"]
     assert all(settings[k] == o for k, o in added.items())
     # The initialisation's share: 3DGS with the method's initial points and prior, none of its losses.

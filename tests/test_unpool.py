@@ -104,3 +104,55 @@ def test_a_training_run_with_unpooling_fills_gaps_and_stays_finite(tmp_path):
     assert reports and sum(r.get("unpooled", 0) for r in reports) > 0
     assert result.num_primitives <= 6000  # quick_overrides' budget
     assert all(torch.isfinite(p).all() for p in trainer.model.params.values())
+
+
+def test_auto_is_off_with_a_few_training_views_and_at_every_refine_with_more():
+    import pytest
+
+    from warpgs.train.unpool import AUTO_OFF_MAX_VIEWS, unpool_every_for, unpool_note
+
+    assert [unpool_every_for("auto", n) for n in (2, 3, AUTO_OFF_MAX_VIEWS, AUTO_OFF_MAX_VIEWS + 1, 24)] == \
+        [0, 0, 0, 1, 1]
+    assert unpool_every_for(0, 24) == 0 and unpool_every_for(3, 2) == 3  # a number is taken as given
+    off = unpool_note("auto", 0, 3)
+    assert "unpooling off" in off and f"more than {AUTO_OFF_MAX_VIEWS}" in off and "3 training views" in off
+    assert unpool_note("auto", 1, 6) == unpool_note(1, 1, 6) == "; unpooling"
+    assert unpool_note(2, 2, 6) == "; unpooling every 2 refines" and unpool_note(0, 0, 6) == ""
+    with pytest.raises(ValueError, match="unpool_every"):  # the strategy cannot count views: the trainer resolves it
+        DensifyStrategy(StrategyConfig(unpool_every="auto"), scene_extent=1.0)
+
+
+def test_the_config_takes_auto_and_names_the_key_of_a_bad_period():
+    import pytest
+
+    from warpgs.config import load_config
+    from warpgs.config import ConfigError
+
+    from pathlib import Path
+
+    preset = Path(__file__).resolve().parent.parent / "configs" / "sparse_llff.yaml"
+    assert load_config(preset).strategy.unpool_every == "auto"
+    assert load_config(None, overrides=["strategy.unpool_every=2"]).strategy.unpool_every == 2
+    for bad in ("sometimes", "-1", "0.5"):
+        with pytest.raises(ConfigError, match="strategy.unpool_every"):
+            load_config(None, overrides=[f"strategy.unpool_every={bad}"])
+
+
+def test_a_training_run_resolves_auto_by_its_training_views(tmp_path):
+    """strategy.unpool_every=auto reaches the trainer's strategy as a number for the scene's training-view count,
+    and unpools when that count is above the rule's bound."""
+    from train_fixtures import quick_overrides
+
+    from warpgs.train.trainer import Trainer
+    from warpgs.train.unpool import AUTO_OFF_MAX_VIEWS, unpool_every_for
+
+    reports = []
+    overrides = quick_overrides(tmp_path, steps=25, **{"strategy.unpool_every": "auto",
+                                                       "strategy.unpool_distance": 0.01})
+    trainer = Trainer(None, overrides=overrides, quiet=True,
+                      callbacks=[lambda tr, step, info: info["densify"] and reports.append(info["densify"])])
+    views = len(trainer.scene.train)
+    assert trainer.strategy.config.unpool_every == unpool_every_for("auto", views)
+    trainer.fit()
+    unpooled = sum(r.get("unpooled", 0) for r in reports)
+    assert (unpooled > 0) == (views > AUTO_OFF_MAX_VIEWS)

@@ -94,6 +94,8 @@ def _check_value(key: str, value, tp):
         return _check_drop_rate(key, value)
     if key == "model.prior_points_confidence":
         return _check_prior_confidence(key, value)
+    if key == "strategy.unpool_every":
+        return _check_unpool_every(key, value)
     if key in AUTO_BOOLS:
         return _check_auto_bool(key, value)
     if tp is Any:
@@ -202,6 +204,11 @@ def _check_virtual_views(key: str, value):
 def _check_drop_rate(key: str, value):
     """A fraction in [0, 1), or "auto" (train/dropout.py: on with few training views)."""
     return _number_or_auto(key, value, float, lambda r: 0.0 <= r < 1.0, "a fraction in [0, 1)")
+
+
+def _check_unpool_every(key: str, value):
+    """A period in refines (0: off), or "auto" (train/unpool.py: on with more than a few training views)."""
+    return _number_or_auto(key, value, int, lambda n: n >= 0, "a period in refines >= 0")
 
 
 def _check_prior_confidence(key: str, value):

@@ -1,6 +1,7 @@
 """What settings with an "auto" that depends on the training-view count (train.virtual_views, train.drop_rate,
-model.prior_points_confidence) share: "auto" is one value with at most a number of training views and another above
-(off, for the few-view switches), and the start line says which."""
+model.prior_points_confidence, strategy.unpool_every) share: "auto" is one value with at most a number of training
+views and another above (off, for the few-view switches; unpooling the other way round), and the start line says
+which."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -35,6 +36,6 @@ class FewViewsRule:
         if value:
             return on_words
         if setting == "auto":
-            return (f"; {self.what} off ({self.key}=auto: {num_train_views} training views, on with at most "
-                    f"{self.most})")
+            when = f"more than {self.most}" if self.more else f"at most {self.most}"
+            return f"; {self.what} off ({self.key}=auto: {num_train_views} training views, on with {when})"
         return ""

@@ -57,7 +57,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, fields
-from typing import Optional
+from typing import Optional, Union
 
 import torch
 
@@ -104,8 +104,9 @@ class StrategyConfig:
     seed: int = 0  # for the split sampling
     # Proximity-guided unpooling (train/unpool.py, FSGS): at every unpool_every-th refine, a new primitive at the
     # midpoint of each link to one of a primitive's unpool_k nearest others longer than unpool_distance x the
-    # scene extent (sparse views: gaps between the few points a start has); 0 off
-    unpool_every: int = 0
+    # scene extent (sparse views: gaps between the few points a start has); 0 off; "auto": by the number of
+    # training views (unpool.RULE), which the trainer resolves before it builds the strategy
+    unpool_every: Union[int, str] = 0
     unpool_k: int = 3
     unpool_distance: float = 0.05
     # AbsGS (gsplat's absgrad): the densification statistic sums each pixel's |dL/dmeans2d| per component instead of
@@ -119,7 +120,7 @@ class StrategyConfig:
             raise ValueError(f"absgrad: expected true or false, got {self.absgrad!r}")
         for f in fields(self):
             v = getattr(self, f.name)
-            if f.name == "absgrad":
+            if f.name == "absgrad" or (f.name == "unpool_every" and v == "auto"):
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{f.name}: expected a finite non-negative number, got {v!r}")
@@ -156,6 +157,9 @@ class DensifyStrategy:
         world_extent: the scene size the world-size rule measures against (default scene_extent); the trainer
         passes warpgs.data.extent.scene_content_extent, which stays valid when the cameras barely move."""
         self.config = config or StrategyConfig()
+        if self.config.unpool_every == "auto":  # it depends on the run's views, which the strategy does not see
+            raise ValueError('unpool_every: "auto" is resolved by the trainer (train/unpool.py unpool_every_for); '
+                             'give a DensifyStrategy a number')
         self.invisible_below = float(invisible_below)
         for name, value in (("scene_extent", scene_extent), ("world_extent", world_extent)):
             if value is not None and not (math.isfinite(float(value)) and value > 0):

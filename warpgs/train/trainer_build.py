@@ -4,6 +4,7 @@ A base class of Trainer (train/trainer.py) so that the trainer's file keeps what
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 from typing import Callable, Dict, Iterable, List, Optional
 
 import torch
@@ -29,6 +30,7 @@ from warpgs.train.scaling import apply_batch_scaling, lr_scale
 from warpgs.train.schedule import AutoStop, validation_split
 from warpgs.train.state import RunCounters
 from warpgs.train.strategy import DensifyStrategy
+from warpgs.train.unpool import unpool_every_for
 from warpgs.train.views import TrainViews
 from warpgs.train.virtual_views import virtual_every, virtual_views_for
 
@@ -127,7 +129,10 @@ class TrainerBuild:
         if self.batch_size > 1:
             apply_batch_scaling(self.optimizers, self.base_learning_rates(), batch_size=self.batch_size,
                                 rule=cfg.train.batch_scaling)
-        self.strategy = DensifyStrategy(cfg.strategy, self.extent, invisible_below=cfg.train.alpha_min,
+        # strategy.unpool_every=auto counts the scene's training views (train/unpool.py), as the prior points do
+        strategy_cfg = replace(cfg.strategy, unpool_every=unpool_every_for(cfg.strategy.unpool_every,
+                                                                          len(self.scene.train)))
+        self.strategy = DensifyStrategy(strategy_cfg, self.extent, invisible_below=cfg.train.alpha_min,
                                         world_extent=cfg.train.scene_extent or scene_content_extent(self.scene),
                                         run_steps=self.max_steps)
         self.strategy.initialize(self.model)

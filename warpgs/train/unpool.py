@@ -11,6 +11,25 @@ from __future__ import annotations
 import torch
 
 from warpgs.model.gaussians import knn
+from warpgs.train.few_views import FewViewsRule
+
+# strategy.unpool_every=auto: off with at most AUTO_OFF_MAX_VIEWS training views, at every refine with more. Measured
+# against the sparse_llff preset without it (H200, paired by seed; docs/sparse_view.md): 7 real LLFF scenes at 3 views
+# -0.16 +- 0.04 dB (it fills the budget with midpoints the three views cannot check), at 4 views a tie (+0.01 +- 0.11,
+# 2 seeds), at 6 views +0.43 +- 0.03; 360° captures at 12 views +0.24 +- 0.06 (phone64) and +0.10 +- 0.08
+# (bonsai800), at 24 views +0.13 +- 0.10 and +0.14 +- 0.05.
+AUTO_OFF_MAX_VIEWS = 4
+RULE = FewViewsRule("unpooling", "strategy.unpool_every", AUTO_OFF_MAX_VIEWS, 0, more=1)
+
+
+def unpool_every_for(setting, num_train_views: int) -> int:
+    """The period in refines that strategy.unpool_every asks for with this many training views (0: off)."""
+    return RULE.value(setting, num_train_views, int)
+
+
+def unpool_note(setting, every: int, num_train_views: int) -> str:
+    """The start line's words on unpooling: on when on, why not when "auto" left it off, else ""."""
+    return RULE.note(setting, every, num_train_views, "; unpooling" + (f" every {every} refines" if every > 1 else ""))
 
 # Parameters the midpoint takes as the mean of the two ends (the rest come from the first end, except opacity).
 MEAN_OF_ENDS = ("means", "log_scales", "sh0")
