@@ -28,7 +28,8 @@ with one change: `unpool` (proximity-guided unpooling at any view count; the pre
 `wo_unpool` (none), `virtual` (virtual views with at most 3 training views), `wo_drop` (no primitive dropout),
 `depth_patch` (patch-normalised depth)): any comma-separated keys, or the groups main (baseline, preset, full), terms
 (w/o each Marr and Gestalt term), paper (baseline, terms and full: the rows of the paper's Table 2), all. The depth
-prior of each scene and protocol is estimated once (from its training views, as data.depth_priors=estimate does) and shared by every run that uses it.
+prior of each scene and protocol is estimated once (from its training views, as data.depth_priors=estimate does) and
+shared by every run that uses it.
 Depth (order, AbsRel, coverage) is scored at the capture's all-view SfM points seen by each test view
 (reference_depth.npz from sparse_data.py, else sparse/0); without either only the image metrics are given. LPIPS is
 given when its weights are on disk.

@@ -123,12 +123,11 @@ def test_auto_is_off_with_a_few_training_views_and_at_every_refine_with_more():
 
 
 def test_the_config_takes_auto_and_names_the_key_of_a_bad_period():
+    from pathlib import Path
+
     import pytest
 
-    from warpgs.config import load_config
-    from warpgs.config import ConfigError
-
-    from pathlib import Path
+    from warpgs.config import ConfigError, load_config
 
     preset = Path(__file__).resolve().parent.parent / "configs" / "sparse_llff.yaml"
     assert load_config(preset).strategy.unpool_every == "auto"

@@ -32,6 +32,7 @@ def unpool_note(setting, every: int, num_train_views: int) -> str:
     """The start line's words on unpooling: on when on, why not when "auto" left it off, else ""."""
     return RULE.note(setting, every, num_train_views, "; unpooling" + (f" every {every} refines" if every > 1 else ""))
 
+
 # Parameters the midpoint takes as the mean of the two ends (the rest come from the first end, except opacity).
 MEAN_OF_ENDS = ("means", "log_scales", "sh0")
 
