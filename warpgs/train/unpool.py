@@ -17,8 +17,7 @@ from warpgs.train.few_views import FewViewsRule
 # against the sparse_llff preset without it (H200, paired by seed; docs/sparse_view.md): 7 real LLFF scenes at 3 views
 # -0.16 +- 0.04 dB (it fills the budget with midpoints the three views cannot check), at 4 views a tie (+0.01 +- 0.11,
 # 2 seeds), at 6 views +0.43 +- 0.03; 360° captures at 12 views +0.24 +- 0.06 (phone64) and +0.10 +- 0.08
-# (bonsai800), at 24 views +0.13 +- 0.10 and +0.14 +- 0.05. A 3x3 light field's 9 views lose 0.49 (chess, a CPU probe):
-# not special-cased on one capture; its documented command sets 0.
+# (bonsai800), at 24 views +0.13 +- 0.10 and +0.14 +- 0.05; a real 3x3 light field's 9 views +1.09 +- 0.07 (chess).
 AUTO_OFF_MAX_VIEWS = 4
 RULE = FewViewsRule("unpooling", "strategy.unpool_every", AUTO_OFF_MAX_VIEWS, 0, more=1)
 
