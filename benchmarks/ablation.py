@@ -147,9 +147,15 @@ def user_overrides_replaced(setting: list, user: list) -> list[str]:
 
 def warn_replaced_overrides(settings: dict, user: list) -> None:
     """Say on stderr which of the user's overrides a setting replaces with its own value (e.g. model.prior_points
-    for baseline_prior_points), instead of letting them vanish from its runs. settings: {key: its overrides}."""
-    for key, overrides in settings.items():
-        replaced = user_overrides_replaced(overrides, user)
+    for baseline_prior_points), instead of letting them vanish from its runs; refuse (SystemExit) an override that
+    every chosen setting replaces, which would change no run at all. settings: {key: its overrides}."""
+    replaced_by = {key: user_overrides_replaced(overrides, user) for key, overrides in settings.items()}
+    void = [o for o in user if settings and all(o in replaced for replaced in replaced_by.values())]
+    if void:
+        raise SystemExit(f"overrides: {' '.join(void)} would change no run: every chosen setting "
+                         f"({', '.join(settings)}) sets {', '.join(o.split('=', 1)[0] for o in void)} itself "
+                         f"(to vary it, use a setting that does not, e.g. preset)")
+    for key, replaced in replaced_by.items():
         if replaced:
             verb = "does" if len(replaced) == 1 else "do"
             print(f"note: setting {key} sets {', '.join(o.split('=', 1)[0] for o in replaced)} itself; "

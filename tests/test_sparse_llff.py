@@ -207,6 +207,17 @@ def test_the_drivers_name_an_override_that_a_setting_replaces(capsys):
     assert "wo_depth" not in err and "u=1" not in err
 
 
+def test_the_drivers_refuse_an_override_that_changes_no_run():
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import ablation
+
+    with pytest.raises(SystemExit, match="model.prior_points=5000 would change no run.*baseline_prior_points"):
+        ablation.warn_replaced_overrides({"baseline_prior_points": ["model.prior_points=20000"]},
+                                         ["model.prior_points=5000", "u=1"])
+
+
 def test_the_real_ablation_removes_each_term_once():
     import sys
 
