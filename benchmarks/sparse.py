@@ -48,6 +48,7 @@ your own and copy the table there at the end.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import shlex
@@ -133,6 +134,9 @@ def parse(argv):
     ap.add_argument("--at-step", type=int, default=None,
                     help="with --table: the image scores each run's history has at this step")
     ap.add_argument("--detach", action="store_true", help="start the wave in its own process session and return")
+    ap.add_argument("--marr", action="append", default=[], metavar="KEY=VALUE",
+                    help="a warpgs.losses.marr setting for every run (e.g. confidence_power=2; repeatable); a "
+                         "setting that sets the key itself (wo_confidence) keeps its own")
     ap.add_argument("--worker", choices=("prior", "run"), help=argparse.SUPPRESS)
     ap.add_argument("--setting", help=argparse.SUPPRESS)
     ap.add_argument("--seed", type=int, help=argparse.SUPPRESS)
@@ -158,8 +162,28 @@ def parse(argv):
         raise SystemExit("--at-step: only with --table (it reads the histories of runs already made)")
     if any("=" not in o for o in args.overrides):
         raise SystemExit(f"overrides: expected key=value, got {args.overrides}")
+    args.marr_settings = parse_marr(args.marr)
     args.name = args.name or f"{args.tag}_{args.device.replace(':', '')}_{run_steps(args)}"
     return args, scenes, expand_settings(args.settings), seeds, gpus
+
+
+def parse_marr(items: list[str]) -> dict:
+    """--marr KEY=VALUE items -> {key: float}; an unknown key or a value that is not a number >= 0 is an error."""
+    from warpgs.losses.marr import MarrSettings
+
+    names = {f.name for f in dataclasses.fields(MarrSettings)}
+    settings = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        if key not in names:
+            raise SystemExit(f"--marr {item}: expected KEY=VALUE with KEY one of {sorted(names)}")
+        try:
+            settings[key] = float(value)
+        except ValueError:
+            raise SystemExit(f"--marr {item}: the value is not a number") from None
+        if not settings[key] >= 0:
+            raise SystemExit(f"--marr {item}: expected a value >= 0")
+    return settings
 
 
 def worker_cmd(args, kind: str, scene: SceneSpec, run: Optional[Run] = None) -> list[str]:
@@ -171,6 +195,7 @@ def worker_cmd(args, kind: str, scene: SceneSpec, run: Optional[Run] = None) -> 
     cmd += [a for flag, v in (("--steps", args.steps), ("--budget", args.budget)) if v for a in (flag, str(v))]
     if run is not None:
         cmd += ["--setting", run.setting, "--seed", str(run.seed)]
+    cmd += [a for key, value in args.marr_settings.items() for a in ("--marr", f"{key}={value:g}")]
     return cmd + list(args.overrides)
 
 

@@ -69,7 +69,8 @@ def train_one(args, run: Run) -> dict:
     """One training run, scored on the protocol's test views; its JSON is written atomically."""
     import torch
 
-    label, preset, setting_overrides, marr = SETTINGS[run.setting]
+    label, preset, setting_overrides, own_marr = SETTINGS[run.setting]
+    marr = {**args.marr_settings, **own_marr}  # --marr for every run; the setting's own keys win
     if args.threads:
         torch.set_num_threads(args.threads)
     loaded = load(run.scene, args.proto)

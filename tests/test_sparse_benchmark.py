@@ -31,7 +31,8 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     scene = synthetic_dir("orbit")  # 36 views at 128x96: 24 train under the 360 protocol, 5 test (0, 8, ...)
     out = tmp_path / "out"
     common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--seeds", "3",
-              "--steps", "8", "--budget", "1000", "--threads", "1", "--out", str(out), "eval.every=4"]
+              "--steps", "8", "--budget", "1000", "--threads", "1", "--out", str(out), "--marr", "alpha_min=0.2",
+              "eval.every=4"]
     sparse.main(common + ["--dry-run"])
     listed = capsys.readouterr().out
     assert "1 runs (0 done, 1 to do)" in listed and "m360_24_orbit_baseline_s3" in listed
@@ -43,6 +44,7 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     want_train, want_test = fsgs_split(36, 24)
     assert run["train_index"] == want_train and run["test_index"] == want_test
     assert (run["steps"], run["seed"], run["budget"]) == (8, 3, 1000)
+    assert run["marr"] == {"alpha_min": 0.2}  # --marr reached the worker
     assert math.isfinite(run["psnr"]) and run["abs_rel"] is not None  # the synthetic scene carries exact depth
     assert payload["summary"]["scenes"]["orbit"]["baseline"]["psnr"] == (run["psnr"], None)
     assert [h["step"] for h in run["history"]] == [4]  # the periodic test evaluation the override asked for
@@ -239,3 +241,18 @@ def test_an_llff_folder_trimmed_to_another_resolution_needs_its_downscale(tmp_pa
     with pytest.raises(SystemExit, match=r"has no images_8/ .*it holds images_2: give it as .*room@N"):
         sparse_runs.parse_scene(str(scene), protocol)
     assert sparse_runs.parse_scene(f"{scene}@2", protocol).downscale == 2
+
+
+def test_marr_settings_reach_every_worker_and_bad_ones_are_refused():
+    scene = synthetic_dir("orbit")
+    base = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "preset,wo_confidence"]
+    args, scenes, *_ = sparse.parse(base + ["--marr", "confidence_power=4", "--marr", "alpha_min=0.2"])
+    assert args.marr_settings == {"confidence_power": 4.0, "alpha_min": 0.2}
+    cmd = sparse.worker_cmd(args, "run", scenes[0], sparse_runs.Run(args.tag, scenes[0], "preset", 0))
+    assert " ".join(cmd).count("--marr") == 2 and "confidence_power=4" in cmd and "alpha_min=0.2" in cmd
+    with pytest.raises(SystemExit, match="--marr power=2: expected KEY=VALUE"):
+        sparse.parse(base + ["--marr", "power=2"])
+    with pytest.raises(SystemExit, match="not a number"):
+        sparse.parse(base + ["--marr", "confidence_power=high"])
+    with pytest.raises(SystemExit, match=">= 0"):
+        sparse.parse(base + ["--marr", "confidence_power=-1"])
