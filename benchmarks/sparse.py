@@ -29,7 +29,9 @@ with one change: `unpool` (proximity-guided unpooling at any view count; the pre
 `depth_patch` (patch-normalised depth)): any comma-separated keys, or the groups main (baseline, preset, full), terms
 (w/o each Marr and Gestalt term), paper (baseline, terms and full: the rows of the paper's Table 2), all. The depth
 prior of each scene and protocol is estimated once (from its training views, as data.depth_priors=estimate does) and
-shared by every run that uses it.
+shared by every run that uses it. Trailing key=value overrides and --marr KEY=VALUE (a warpgs.losses.marr setting)
+apply to every run; a setting keeps the values it sets itself (an override that every chosen setting sets is an
+error), and runs that differ only by them need their own --out (link its priors/ to the first's).
 Depth (order, AbsRel, coverage) is scored at the capture's all-view SfM points seen by each test view
 (reference_depth.npz from sparse_data.py, else sparse/0); without either only the image metrics are given. LPIPS is
 given when its weights are on disk.
