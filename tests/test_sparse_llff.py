@@ -182,6 +182,7 @@ def test_the_preset_pair_differs_only_in_the_method():
     assert method.train.virtual_views == 0 and base.train.virtual_views == 0
     assert method.train.drop_rate == "auto" and base.train.drop_rate == 0
     assert method.strategy.unpool_every == "auto" and base.strategy.unpool_every == 0
+    assert base.strategy.prune_world_scale == 0  # in both (a == b below): it deletes a sparse capture's background
     a, b = method.to_dict(), base.to_dict()
     for cfg in (a, b):
         cfg.pop("losses")
