@@ -41,6 +41,27 @@ def test_auto_estimates_priors_for_a_scene_without_them(tmp_path, capsys):
     assert all(math.isfinite(v) for v in info["values"].values())
 
 
+def test_a_run_that_reads_priors_says_how_much_of_the_views_they_cover(tmp_path, capsys):
+    import numpy as np
+
+    from warpgs.data.depth.coverage import prior_coverage
+
+    trainer = run(tmp_path, "data.depth_priors=estimate")
+    err = capsys.readouterr().err
+    scene = trainer.scene
+    shares = [float(scene.inv_depth_prior_np(v)[1].mean()) for v in scene.train]
+    stats = prior_coverage(scene, scene.train)
+    assert stats["views"] == len(scene.train) and math.isclose(stats["valid"], np.mean(shares), rel_tol=1e-6)
+    assert stats["valid_min"] == min(shares) and stats["valid_max"] == max(shares) and 0 < stats["valid"] <= 1
+    assert stats["confident"] is not None and stats["confident"] <= stats["valid"]  # the sweep writes a confidence
+    line = next(ln for ln in err.splitlines() if ln.startswith("depth priors: valid on"))
+    assert f"{100 * stats['valid']:.0f}% of the pixels of the {len(scene.train)} training views" in line
+    assert prior_coverage(scene, []) is None
+    # A run that reads no prior says nothing about one.
+    run(tmp_path / "none", "data.depth_priors=auto", "losses.depth=0", "losses.depth_grad=0", "losses.depth_local=0")
+    assert "depth priors: valid on" not in capsys.readouterr().err
+
+
 def test_auto_leaves_a_scene_alone_when_nothing_reads_priors(tmp_path):
     trainer = run(tmp_path, "data.depth_priors=auto", "losses.depth=0", "losses.depth_grad=0", "losses.depth_local=0")
     assert not (tmp_path / "depth_priors").exists()

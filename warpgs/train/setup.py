@@ -104,6 +104,12 @@ def load_training_scene(data: DataConfig, out_dir: Optional[Path] = None,
     if not scene.train:
         left_out = " after data.exclude" if scene.metadata.get("excluded") else ""
         raise ValueError(f"data.split: the scene at {scene.root} has no training views{left_out}")
+    if needs_priors:
+        from warpgs.data.depth.coverage import describe_prior_coverage, prior_coverage
+
+        coverage = prior_coverage(scene, scene.train)
+        if coverage is not None:
+            print(describe_prior_coverage(coverage), file=sys.stderr)
     return scene
 
 
