@@ -110,6 +110,13 @@ def print_comparison(result: dict) -> None:
     for scene, row in rows:
         print(f"| {scene} | " + " | ".join(fmt(*row[label]["psnr"], 2) for label in labels) + " | "
               + " | ".join(fmt(*row[a][f"d_psnr_vs_{b}"], 2, sign=True) for a, b in deltas) + " |")
+    # The other scores, mean over the scenes (each scene's mean over seeds): what a results table quotes beside PSNR.
+    print("\n| variant | SSIM | AbsRel | primitives |\n|---|---|---|---|")
+    for label in labels:
+        cell = result["mean"][label]
+        prims = cell["num_primitives"][0]
+        print(f"| {label} | {fmt(cell['ssim'][0], None, 3)} | {fmt(cell['abs_rel'][0], None, 3)} | "
+              f"{'n/a' if prims is None else (f'{prims:.0f}' if prims < 10_000 else f'{prims / 1000:.0f}k')} |")
 
 
 def main(argv=None) -> None:

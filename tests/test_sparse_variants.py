@@ -61,7 +61,9 @@ def test_a_label_given_twice_gathers_both_folders_and_refuses_a_run_twice(tmp_pa
     _write(c, "preset", "fern", 0, 21.0, overrides=["data.path=fern", "train.drop_rate=0.3"])
     _write(c, "preset", "room", 0, 10.5, overrides=["data.path=room", "train.drop_rate=0.3"])
     sparse_variants.main(["out", "--ref", "old", f"old={a}:preset", f"old={b}:preset", f"new={c}:preset"])
-    assert "| mean | 15.00 | 15.75 | +0.75 |" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "| mean | 15.00 | 15.75 | +0.75 |" in out
+    assert "| old | 0.500 | n/a | 100 |" in out  # the other scores' table (the runs carry no depth reference)
     written = json.loads((tmp_path / "out.json").read_text())
     assert written["overrides"] == {"old": ["train.drop_rate=0.1"], "new": ["train.drop_rate=0.3"]}
     with pytest.raises(SystemExit, match="are both fern, seed 0"):
