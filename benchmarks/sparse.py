@@ -62,7 +62,7 @@ from typing import Optional
 import ablation
 from common import ROOT, write_json
 from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
-from sparse_runs import (FULL_STEPS, PROTOCOLS, Protocol, Run, SceneSpec, expand_settings, load,  # the plan
+from sparse_runs import (FULL_STEPS, PROTOCOLS, Run, SceneSpec, expand_settings, load, protocol_for,  # the plan
                          needs_prior, parse_scene, plan, prior_done, read_run, run_budget, run_done, run_steps)
 from sparse_tables import PAPER_TABLE2, SETTINGS, print_tables, summarise  # statistics and tables
 from sparse_worker import make_prior, reference_source, train_one  # the worker processes
@@ -144,16 +144,10 @@ def parse(argv):
     ap.add_argument("--seed", type=int, help=argparse.SUPPRESS)
     ap.add_argument("overrides", nargs="*", help="extra key=value config overrides for every run")
     args = ap.parse_args(argv)
-    protocol = PROTOCOLS[args.protocol]
-    if args.n_train is not None:  # the protocol's split rule with another count (e.g. FSGS-style 12 views)
-        if args.n_train < 1:
-            raise SystemExit(f"--n-train: expected at least 1, got {args.n_train}")
-        if protocol.split == "grid":
-            raise SystemExit(f"--n-train: protocol {args.protocol} trains on its light field's 3x3 grid")
-        protocol = Protocol(args.n_train, protocol.downscale, f"{protocol.about}, with {args.n_train} training views")
+    # The protocol's split rule, with another count under --n-train (e.g. FSGS-style 12 views); run files and priors
+    # are named by the tag: the protocol, and the training-view count when it is not the protocol's.
+    protocol, args.tag = protocol_for(args.protocol, args.n_train)
     args.proto = protocol
-    # Names of run files and priors: the protocol, and the training-view count when it is not the protocol's.
-    args.tag = args.protocol if args.n_train is None else f"{args.protocol}_n{args.n_train}"
     scenes = [parse_scene(s, protocol) for s in args.scenes.split(",") if s]
     if len({s.name for s in scenes}) != len(scenes):
         raise SystemExit("--scenes: two scenes share a folder name (it names their run files)")

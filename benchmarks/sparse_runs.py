@@ -111,6 +111,19 @@ def load(scene: SceneSpec, protocol: Protocol, run_sfm: bool = True):
                       run_sfm_if_needed=run_sfm)
 
 
+def protocol_for(name: str, n_train: Optional[int] = None) -> tuple[Protocol, str]:
+    """(the protocol, the tag its run files and priors are named by): `name`'s, or its split rule with n_train
+    training views (tag <name>_n<N>); a light field's grid takes no other count."""
+    protocol = PROTOCOLS[name]
+    if n_train is None:
+        return protocol, name
+    if n_train < 1:
+        raise SystemExit(f"--n-train: expected at least 1, got {n_train}")
+    if protocol.split == "grid":
+        raise SystemExit(f"--n-train: protocol {name} trains on its light field's 3x3 grid")
+    return Protocol(n_train, protocol.downscale, f"{protocol.about}, with {n_train} training views"), f"{name}_n{n_train}"
+
+
 def prior_folder(out: Path, protocol: str, scene: SceneSpec) -> Path:
     return out / "priors" / f"{protocol}_{scene.name}"
 

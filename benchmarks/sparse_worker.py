@@ -45,9 +45,11 @@ def reference_source(scene: SceneSpec) -> Optional[str]:
     return None
 
 
-def reference_depth(scene: SceneSpec, loaded) -> tuple[Optional[dict], str]:
-    """({test view name: [H, W] sparse depth}, where it came from) or (None, why not)."""
-    names = [loaded.names[v] for v in loaded.test]
+def reference_depth(scene: SceneSpec, loaded, views=None) -> tuple[Optional[dict], str]:
+    """({view name: [H, W] sparse depth} for `views` (default: the test views), where it came from) or (None, why
+    not)."""
+    views = list(loaded.test if views is None else views)
+    names = [loaded.names[v] for v in views]
     w, h = loaded.cameras[0].width, loaded.cameras[0].height
     source = reference_source(scene)
     if source == REFERENCE_FILE:
@@ -61,7 +63,7 @@ def reference_depth(scene: SceneSpec, loaded) -> tuple[Optional[dict], str]:
         except SceneError as e:
             return None, f"sparse/0 unusable: {e}"
         return {loaded.names[v]: sparse_depth_map(loaded.cameras[v], points.xyz[per_view[v]])
-                for v in loaded.test}, "sparse/0"
+                for v in views}, "sparse/0"
     return None, "no SfM model"
 
 

@@ -228,7 +228,14 @@ def test_prior_accuracy_scores_a_waves_priors_at_the_training_views(tmp_path, mo
     assert mean["abs_rel"] == pytest.approx(0.1, rel=1e-4)  # |1.1 z - z| / z
     assert mean["delta1"] == 1.0 and mean["point_coverage"] == 1.0 and mean["valid_pixels"] == 1.0
     assert mean["confident_pixels"] == pytest.approx((w // 2) / w)
+    assert mean["abs_rel_confidence4_weighted"] == pytest.approx(0.1, rel=1e-4)  # the same error everywhere
+    assert "scale_error" not in mean  # no format.json: no alignment recorded
     assert json.loads((tmp_path / "sparse_prior_accuracy_t.json").read_text())["scenes"].keys() == {scene_dir.name}
+    # The worst view's alignment scale, as compute_depth_priors records it in format.json.
+    scales = [1.01, 0.96, 1.0]
+    (folder / "format.json").write_text(json.dumps({"views": {n: {"alignment": {"scale": c}}
+                                                              for n, c in zip(names, scales)}}))
+    assert sparse_prior_accuracy.main(args)["scenes"][scene_dir.name]["mean"]["scale_error"] == pytest.approx(0.04)
 
 
 def test_an_llff_folder_trimmed_to_another_resolution_needs_its_downscale(tmp_path):
