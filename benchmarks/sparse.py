@@ -50,7 +50,6 @@ your own and copy the table there at the end.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import shlex
@@ -164,21 +163,16 @@ def parse(argv):
 
 
 def parse_marr(items: list[str]) -> dict:
-    """--marr KEY=VALUE items -> {key: float}; an unknown key or a value that is not a number >= 0 is an error."""
-    from warpgs.losses.marr import MarrSettings
+    """--marr KEY=VALUE items -> {key: float}, checked as warpgs.losses.marr.configure checks them."""
+    from warpgs.losses.marr import checked_settings
 
-    names = {f.name for f in dataclasses.fields(MarrSettings)}
     settings = {}
     for item in items:
         key, _, value = item.partition("=")
-        if key not in names:
-            raise SystemExit(f"--marr {item}: expected KEY=VALUE with KEY one of {sorted(names)}")
         try:
-            settings[key] = float(value)
-        except ValueError:
-            raise SystemExit(f"--marr {item}: the value is not a number") from None
-        if not settings[key] >= 0:
-            raise SystemExit(f"--marr {item}: expected a value >= 0")
+            settings.update(checked_settings(**{key: value}))
+        except ValueError as exc:
+            raise SystemExit(f"--marr {item}: expected KEY=VALUE ({exc})") from None
     return settings
 
 

@@ -121,7 +121,8 @@ def protocol_for(name: str, n_train: Optional[int] = None) -> tuple[Protocol, st
         raise SystemExit(f"--n-train: expected at least 1, got {n_train}")
     if protocol.split == "grid":
         raise SystemExit(f"--n-train: protocol {name} trains on its light field's 3x3 grid")
-    return Protocol(n_train, protocol.downscale, f"{protocol.about}, with {n_train} training views"), f"{name}_n{n_train}"
+    about = f"{protocol.about}, with {n_train} training views"
+    return Protocol(n_train, protocol.downscale, about), f"{name}_n{n_train}"
 
 
 def prior_folder(out: Path, protocol: str, scene: SceneSpec) -> Path:

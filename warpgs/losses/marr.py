@@ -63,15 +63,27 @@ class MarrSettings:
 SETTINGS = MarrSettings()
 
 
-def configure(**kwargs) -> MarrSettings:
-    """Change the module's settings (see MarrSettings); returns them."""
+def checked_settings(**kwargs) -> dict:
+    """{key: float} for settings of MarrSettings, each a finite number >= 0; anything else is a ValueError naming
+    it (configure's check, also run by callers that pass settings on, e.g. benchmarks/sparse.py --marr)."""
     names = {f.name for f in fields(MarrSettings)}
+    checked = {}
     for key, value in kwargs.items():
         if key not in names:
             raise ValueError(f"marr.configure: unknown setting {key!r}; choose from {sorted(names)}")
-        value = float(value)
-        if not (value >= 0.0 and value < float("inf")):
-            raise ValueError(f"marr.configure: {key} must be finite and >= 0, got {value}")
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"marr.configure: {key}={value!r} is not a number") from None
+        if not (number >= 0.0 and number < float("inf")):
+            raise ValueError(f"marr.configure: {key} must be finite and >= 0, got {number}")
+        checked[key] = number
+    return checked
+
+
+def configure(**kwargs) -> MarrSettings:
+    """Change the module's settings (see MarrSettings); returns them."""
+    for key, value in checked_settings(**kwargs).items():
         setattr(SETTINGS, key, value)
     return SETTINGS
 
