@@ -14,6 +14,7 @@ from warpgs.data import (DepthModelUnavailable, VideoDepthAnything, align_depth_
                          points_from_depth, random_points, read_depth, read_inverse_depth, write_exr)
 from warpgs.data.formats.image_io import to_uint8
 from warpgs.data.formats.lightfield import pseudo_video_order
+from warpgs.data.depth.estimators import DepthEstimate, DepthEstimator
 from warpgs.data.depth.video_depth import PseudoVideoDepth
 
 
@@ -112,6 +113,43 @@ def test_a_view_without_sfm_points_gets_no_prior_instead_of_failing(monkeypatch,
     monkeypatch.setattr(scene, "visible_points", lambda v: seen(v)[:0])
     with pytest.raises(ValueError, match=f"{scene.names[views[0]]}.*no SfM points"):
         PlaneSweepStereo(num_sources=2).estimate(scene, views)
+
+
+class _CornerOnlyEstimate(DepthEstimator):
+    """The scene's true inverse depth, valid everywhere except on one view, where only one pixel is: that view
+    sees its SfM points but its prior meets fewer than the 3 an alignment needs (as 12 views around a 360° capture
+    left one)."""
+
+    name = "corner_only"
+
+    def __init__(self, blind: int, metric: bool):
+        self.blind, self.metric = blind, metric
+
+    def estimate(self, scene, views, sources=None):
+        out = {}
+        for v in views:
+            depth, valid = scene.depth_np(v)
+            valid = valid & np.isfinite(depth) & (depth > 0)
+            if v == self.blind:
+                valid = np.zeros_like(valid)
+                valid[0, 0] = True
+            out[v] = DepthEstimate(np.where(valid, 1 / np.maximum(depth, 1e-9), 0).astype(np.float32), valid,
+                                   self.metric)
+        return out
+
+
+def test_a_metric_prior_that_meets_too_few_points_is_kept_unaligned(tmp_path, capsys):
+    path, _, _ = default_lightfield()
+    scene = load_scene(path)
+    views = list(scene.train[:3])
+    blind = views[1]
+    _, report = compute_depth_priors(scene, _CornerOnlyEstimate(blind, metric=True), views=views, out_dir=tmp_path / "m")
+    assert report["views"][scene.names[blind]]["alignment"] is None
+    assert all(report["views"][scene.names[v]]["alignment"]["scale"] == pytest.approx(1, abs=1e-3)
+               for v in views if v != blind)
+    assert f"{scene.names[blind]!r} kept unaligned" in capsys.readouterr().err
+    with pytest.raises(ValueError, match=f"view {scene.names[blind]!r}: depth alignment needs at least 3"):
+        compute_depth_priors(scene, _CornerOnlyEstimate(blind, metric=False), views=views, out_dir=tmp_path / "r")
 
 
 def test_priors_are_served_with_the_scene(tmp_path, monkeypatch):

@@ -14,7 +14,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from warpgs.data.depth.align import align_depth_to_points
-from warpgs.data.depth.estimators import CONFIDENCE_CHANNEL, DepthEstimator
+from warpgs.data.depth.estimators import CONFIDENCE_CHANNEL, DepthEstimate, DepthEstimator
 from warpgs.data.depth.fill import fill_inverse_depth
 from warpgs.data.depth import files as depth_files
 from warpgs.data.scene import MapFormat, Scene
@@ -77,6 +77,20 @@ def _filled(scene: Scene, v: int, inv: np.ndarray, valid: np.ndarray, confidence
     return inv_filled, valid | filled, conf, float(filled.mean())
 
 
+def _aligned(scene: Scene, v: int, est: DepthEstimate, inv: np.ndarray, valid: np.ndarray, seen: np.ndarray):
+    """The view's alignment to the points it sees, or None for a metric estimate whose valid pixels meet too few of
+    them to fit one: 12 views around a 360° capture left a view with 2 such points of the 10+ it sees. The sweep's
+    depth is in the poses' units already, so it is kept as swept (as for a view that sees fewer than min_points);
+    a relative estimate cannot be, and the error names the view."""
+    try:
+        return align_depth_to_points(inv, valid, scene.cameras[v], scene.points.xyz[seen])
+    except ValueError as exc:
+        if not est.metric:
+            raise ValueError(f"view {scene.names[v]!r}: {exc}") from None
+        print(f"depth priors: view {scene.names[v]!r} kept unaligned ({exc})", file=sys.stderr)
+        return None
+
+
 def compute_depth_priors(scene: Scene, estimator: Optional[DepthEstimator] = None, *,
                          views: Optional[Sequence[int]] = None, out_dir: Optional[Path] = None,
                          align: bool = True, min_points: int = 10, triangulate: bool = True,
@@ -113,9 +127,10 @@ def compute_depth_priors(scene: Scene, estimator: Optional[DepthEstimator] = Non
         alignment = None
         seen = scene.visible_points(v)
         if align and scene.points is not None and len(seen) >= min_points:
-            alignment = align_depth_to_points(inv, valid, scene.cameras[v], scene.points.xyz[seen])
-            inv = alignment.apply(inv)
-            valid &= inv > 0
+            alignment = _aligned(scene, v, est, inv, valid, seen)
+            if alignment is not None:
+                inv = alignment.apply(inv)
+                valid &= inv > 0
         elif not est.metric:
             raise ValueError(f"view {scene.names[v]!r}: a relative depth estimate needs at least {min_points} "
                              f"SfM points to align to, the view sees {len(seen)}")
