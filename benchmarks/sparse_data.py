@@ -5,6 +5,7 @@ each at the benchmark's resolution that a GPU machine can receive (64 MiB a call
     python benchmarks/sparse_data.py extract MIRROR data/leaves data/raw/leaves   # a folder of a fetched repo
     python benchmarks/sparse_data.py llff data/raw/leaves data/sparse/leaves --jpeg 98   # images_8 + poses + ref.
     python benchmarks/sparse_data.py gather data/raw/bonsai_src data/bonsai800/images --skip images  # for SfM
+    python benchmarks/sparse_data.py orbit data/raw/stitch/images data/stitch/images --factor 2  # numbered, for SfM
     python benchmarks/sparse_data.py colmap data/bonsai800 data/sparse/bonsai800  # images + sparse/0, as they are
     python benchmarks/sparse_data.py nex data/raw/room_nex data/raw/room_llff    # NeX's layout -> standard LLFF
     python benchmarks/sparse_data.py size data/sparse/*                           # MiB per scene and in all
@@ -84,6 +85,14 @@ SOURCES = {
     "bonsai800": Source("EricXu23/Bonsaidownload", ".", "images",
                         "Mip-NeRF 360 bonsai, 292 photos at 800x533, no usable poses: run SfM "
                         "(benchmarks/sfm.py --mapper global) into sparse/0 first; gather --skip images"),
+    "figurine": Source("5697526/NeRF-TensoRF", "images", "images",
+                       "80 phone photos (1080x1920) walking around a figurine on a table (two passes in places), "
+                       "named 1.jpg..80.jpg; its sparse/0 lacks images.bin and gives each photo its own focal "
+                       "length: `orbit --factor 2`, then SfM (--mapper global: 80/80 registered), read as PATH@2"),
+    "stitch": Source("jianzhengjie/Gaussian-Splatting-", "data/sparse/0/images", "images",
+                     "82 video frames (1440x1440) around a plush toy on a table, one loop; the repository's model "
+                     "files are truncated in the snapshot: `orbit --factor 2`, then SfM (--mapper global: 82/82), "
+                     "read as PATH@2"),
 }
 
 
@@ -302,6 +311,10 @@ def main(argv=None) -> None:
     g = sub.add_parser("gather", help="every image under SRC into one folder DEST (for SfM)")
     g.add_argument("src"), g.add_argument("dest")
     g.add_argument("--skip", action="append", default=[], help="a subfolder of SRC to leave out (repeatable)")
+    o = sub.add_parser("orbit", help="a walk-around capture's photos, renamed in capture order, for SfM "
+                                     "(sparse_data_orbit.py)")
+    o.add_argument("src"), o.add_argument("dest")
+    o.add_argument("--factor", type=int, default=1, help="area-average to 1/factor of the size first")
     x = sub.add_parser("nex", help="an LLFF scene in NeX's layout as a standard LLFF folder (sparse_data_nex.py)")
     x.add_argument("src"), x.add_argument("out")
     x.add_argument("--jpeg", type=int, default=98, metavar="Q", help="JPEG quality of the cropped images")
@@ -321,6 +334,10 @@ def main(argv=None) -> None:
         from sparse_data_nex import convert
 
         print(f"{convert(Path(args.src), Path(args.out), args.jpeg)}: {folder_mib(Path(args.out)):.1f} MiB")
+    elif args.cmd == "orbit":
+        from sparse_data_orbit import orbit_images
+
+        print(f"{args.dest}: {len(orbit_images(Path(args.src), Path(args.dest), args.factor))} images")
     elif args.cmd == "gather":
         print(f"{args.dest}: {len(gather_images(Path(args.src), Path(args.dest), args.skip))} images")
     elif args.cmd in ("llff", "colmap"):
