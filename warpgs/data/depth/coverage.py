@@ -1,7 +1,8 @@
 """How much of the training views a depth prior covers, said once when a run starts that reads it: the share of
 pixels with a valid prior and the share at confidence >= 0.5 (where model.prior_points lifts its points beyond 9
-views). On real captures a prior valid on 48-97% of the pixels helped the sparse preset and one valid on 31% cost it
-1 dB (docs/sparse_view.md); the line lets a user see where a capture of their own falls, not a rule."""
+views). It describes, it does not decide: on real captures priors valid on 27-97% of the pixels (0-36% at confidence
+>= 0.5) helped the sparse preset, and the one that cost it 1 dB (bonsai800 at 12 views, 31% / 7.7%) lies inside that
+range (docs/sparse_view.md)."""
 from __future__ import annotations
 
 from typing import Optional, Sequence
