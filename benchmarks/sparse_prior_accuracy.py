@@ -10,8 +10,9 @@ Per scene (mean over its training views): AbsRel and delta<1.25 at the reference
 share of those points on valid pixels (point coverage), the share of valid pixels, the AbsRel weighted by the prior's
 confidence c and by c^4 (what the Marr terms weigh by at confidence_power 1 and 4), the share of pixels at confidence
 >= 0.5 (where model.prior_points lifts its points beyond 9 views), and the largest |scale - 1| of the views'
-alignment to the training views' SfM points (a metric sweep needs ~1; the prior's format.json records it). A capture
-without a reference gets the last three only. Writes benchmarks/results/sparse_prior_accuracy_<name>.json (or $OUT).
+alignment to the training views' SfM points (a metric sweep needs ~1; the prior's format.json records it; views kept
+unaligned, whose valid pixels met too few points, are counted beside it). A capture without a reference gets the last
+three only. Writes benchmarks/results/sparse_prior_accuracy_<name>.json (or $OUT).
 """
 from __future__ import annotations
 
@@ -70,9 +71,11 @@ def score_scene(out: Path, tag: str, protocol, spec) -> dict:
                "scale_error": abs(scales[name] - 1.0) if name in scales else None}
         views[name] = {**row, **(score_view(inv, valid, conf, reference[name]) if reference else {})}
     mean = {k: statistics.fmean(v[k] for v in views.values()) for k in KEYS
-            if all(v.get(k) is not None for v in views.values())}
-    if "scale_error" in mean:
-        mean["scale_error"] = max(v["scale_error"] for v in views.values())  # the worst view, not the mean
+            if k != "scale_error" and all(v.get(k) is not None for v in views.values())}
+    if scales:  # the worst aligned view, not the mean; a metric sweep that met too few points is kept unaligned
+        mean["scale_error"] = max((v["scale_error"] for v in views.values() if v["scale_error"] is not None),
+                                  default=None)
+        mean["unaligned_views"] = sum(v["scale_error"] is None for v in views.values())
     return {"mean": mean, "views": views, "reference": source if reference else f"none ({source})"}
 
 
@@ -93,7 +96,10 @@ def main(argv=None) -> dict:
     print("| scene | " + " | ".join(HEADERS) + " |")
     print("|---|" + "---|" * len(HEADERS))
     for name, r in scenes.items():
-        print(f"| {name} | " + " | ".join("n/a" if k not in r["mean"] else f"{r['mean'][k]:.3f}" for k in KEYS) + " |")
+        cells = ["n/a" if r["mean"].get(k) is None else f"{r['mean'][k]:.3f}" for k in KEYS]
+        if r["mean"].get("unaligned_views"):
+            cells[-1] += f" ({r['mean']['unaligned_views']} view(s) unaligned)"
+        print(f"| {name} | " + " | ".join(cells) + " |")
     payload = {"protocol": tag, "out": str(out), "scenes": scenes}
     print(f"wrote {write_json(f'sparse_prior_accuracy_{args.name or tag}', payload)}")
     return payload

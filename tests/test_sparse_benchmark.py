@@ -200,7 +200,7 @@ def test_trimmed_llff_copy_keeps_split_cameras_and_reference(tmp_path):
     assert not (kept_dir / "images_2").exists() and (kept_dir / sparse_data.REFERENCE_FILE).is_file()
 
 
-def test_prior_accuracy_scores_a_waves_priors_at_the_training_views(tmp_path, monkeypatch):
+def test_prior_accuracy_scores_a_waves_priors_at_the_training_views(tmp_path, monkeypatch, capsys):
     import sparse_prior_accuracy
     from warpgs.data.depth.priors import write_prior
 
@@ -235,7 +235,14 @@ def test_prior_accuracy_scores_a_waves_priors_at_the_training_views(tmp_path, mo
     scales = [1.01, 0.96, 1.0]
     (folder / "format.json").write_text(json.dumps({"views": {n: {"alignment": {"scale": c}}
                                                               for n, c in zip(names, scales)}}))
-    assert sparse_prior_accuracy.main(args)["scenes"][scene_dir.name]["mean"]["scale_error"] == pytest.approx(0.04)
+    mean = sparse_prior_accuracy.main(args)["scenes"][scene_dir.name]["mean"]
+    assert mean["scale_error"] == pytest.approx(0.04) and mean["unaligned_views"] == 0
+    # A view kept unaligned (its valid pixels met too few SfM points) is counted, not taken for the worst.
+    (folder / "format.json").write_text(json.dumps({"views": {n: {"alignment": None if c == 0.96 else {"scale": c}}
+                                                              for n, c in zip(names, scales)}}))
+    mean = sparse_prior_accuracy.main(args)["scenes"][scene_dir.name]["mean"]
+    assert mean["scale_error"] == pytest.approx(0.01) and mean["unaligned_views"] == 1
+    assert "(1 view(s) unaligned)" in capsys.readouterr().out
 
 
 def test_an_llff_folder_trimmed_to_another_resolution_needs_its_downscale(tmp_path):
