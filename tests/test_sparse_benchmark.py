@@ -124,6 +124,18 @@ def test_tables_pair_seeds_and_average_scenes(capsys):
     # The paper's rows beside ours: w/o DR (the depth term) is 0.32 dB under the paper's full method, ours -1.00.
     assert "| w/o DR | 21.79 | -0.32 | 0.722 | 0.228 | 17.00 ± 1.00 | -1.00 ± 0.00 |" in printed
     assert "| w/o DGR | 22.00 | -0.11 | 0.728 | 0.222 | not run |" in printed
+    assert "worst view PSNR" not in printed  # no run has per-view scores
+
+
+def test_tables_show_the_worst_test_view():
+    """A view a floater covers (figurine's 8.5 dB beside a 14.5 dB mean) shows in its own column; a run scored at an
+    earlier step has no per-view scores at that step, so it gives none."""
+    runs = [{**_result("a", "baseline", s, 15.0), "per_view": {"v0": {"psnr": 18.0}, "v1": {"psnr": w}}}
+            for s, w in ((0, 9.0), (1, 11.0))]
+    row = sparse_tables.summarise(runs, ["baseline"])["scenes"]["a"]["baseline"]
+    assert row["worst_view_psnr"] == pytest.approx((10.0, 1.0))
+    early = [{**r, "scored_at_step": 1000} for r in runs]
+    assert sparse_tables.summarise(early, ["baseline"])["scenes"]["a"]["baseline"]["worst_view_psnr"] == (None, None)
 
 
 def test_the_light_field_protocol_trains_on_the_3x3_grid(tmp_path, capsys, monkeypatch):
