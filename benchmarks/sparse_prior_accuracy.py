@@ -27,6 +27,7 @@ from common import write_json
 from sparse_runs import PROTOCOLS, load, parse_scene, prior_folder, protocol_for
 from sparse_worker import reference_depth
 
+from warpgs.data.depth.coverage import pixel_shares
 from warpgs.data.depth.evaluate import point_depth_metrics
 from warpgs.data.formats.view_files import FORMAT_FILE
 
@@ -66,8 +67,8 @@ def score_scene(out: Path, tag: str, protocol, spec) -> dict:
         name = scene.names[i]
         inv, valid = scene.inv_depth_prior_np(i)
         conf = scene.prior_confidence_np(i)
-        row = {"valid_pixels": float(valid.mean()),
-               "confident_pixels": None if conf is None else float((valid & (conf >= 0.5)).mean()),
+        valid_share, confident_share = pixel_shares(valid, conf)
+        row = {"valid_pixels": valid_share, "confident_pixels": confident_share,
                "scale_error": abs(scales[name] - 1.0) if name in scales else None}
         views[name] = {**row, **(score_view(inv, valid, conf, reference[name]) if reference else {})}
     mean = {k: statistics.fmean(v[k] for v in views.values()) for k in KEYS

@@ -12,6 +12,12 @@ import numpy as np
 CONFIDENT = 0.5
 
 
+def pixel_shares(valid: np.ndarray, confidence: Optional[np.ndarray]) -> tuple[float, Optional[float]]:
+    """(share of pixels in `valid`, share of them at confidence >= CONFIDENT, None without a confidence map)."""
+    confident = None if confidence is None else float((valid & (confidence >= CONFIDENT)).mean())
+    return float(valid.mean()), confident
+
+
 def prior_coverage(scene, views: Sequence[int]) -> Optional[dict]:
     """{"views", "valid" (mean share of pixels), "valid_min", "valid_max", "confident" (mean share at confidence
     >= CONFIDENT, None when no prior file carries a confidence)} over `views` that have a prior; None if none does."""
@@ -21,11 +27,10 @@ def prior_coverage(scene, views: Sequence[int]) -> Optional[dict]:
         if prior is None:
             continue
         inv, ok = prior
-        ok = ok & np.isfinite(inv) & (inv > 0)
-        valid.append(float(ok.mean()))
-        conf = scene.prior_confidence_np(v)
-        if conf is not None:
-            confident.append(float((ok & (conf >= CONFIDENT)).mean()))
+        share, confident_share = pixel_shares(ok & np.isfinite(inv) & (inv > 0), scene.prior_confidence_np(v))
+        valid.append(share)
+        if confident_share is not None:
+            confident.append(confident_share)
     if not valid:
         return None
     return {"views": len(valid), "valid": float(np.mean(valid)), "valid_min": min(valid), "valid_max": max(valid),
