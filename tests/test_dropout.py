@@ -63,3 +63,17 @@ def test_the_start_line_says_whether_auto_turned_dropout_on():
     assert "off" in off and f"{AUTO_MAX_VIEWS + 1} training views" in off and f"at most {AUTO_MAX_VIEWS}" in off
     assert dropout_note("auto", 0.1, 3) == dropout_note(0.1, 0.1, 3) == "; primitive dropout 0.1"
     assert dropout_note(0.0, 0.0, 3) == ""  # not asked for: nothing to explain
+
+
+def test_a_ramped_rate_rises_from_zero_to_the_rate_at_the_last_step(tmp_path):
+    from warpgs.train.dropout import rate_at, schedule_note
+    assert rate_at(0.2, "constant", 0, 100) == rate_at(0.2, "constant", 99, 100) == 0.2
+    ramp = [rate_at(0.2, "ramp", s, 100) for s in range(100)]
+    assert ramp[0] == pytest.approx(0.002) and ramp[49] == pytest.approx(0.1) and ramp[-1] == pytest.approx(0.2)
+    assert all(a < b for a, b in zip(ramp, ramp[1:]))
+    assert rate_at(0.0, "ramp", 50, 100) == 0.0
+    assert schedule_note("ramp", 0.1) and not schedule_note("constant", 0.1) and not schedule_note("ramp", 0.0)
+    trainer = run(tmp_path, "train.drop_rate=0.5", "train.drop_schedule=ramp", "strategy.refine_start=1000", steps=3)
+    assert trainer.drop_schedule == "ramp" and trainer.drop_rate == 0.5
+    with pytest.raises(ConfigError, match="train.drop_schedule"):
+        run(tmp_path / "bad", "train.drop_schedule=linear")

@@ -137,6 +137,9 @@ class TrainConfig:
     # divided by 1 - drop_rate (DropGaussian; train/dropout.py); evaluation renders them all. 0: off; "auto":
     # dropout.AUTO_RATE_3 with at most 3 training views, dropout.AUTO_RATE with up to dropout.AUTO_MAX_VIEWS, else off.
     drop_rate: Union[float, str] = 0.0
+    # How the rate runs over the run: "constant", or "ramp": from 0 at the first step up to drop_rate at the last
+    # (DropGaussian's schedule, r_t = r * t / T; train/dropout.py).
+    drop_schedule: str = "constant"
 
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""
@@ -206,6 +209,7 @@ CHOICES = {
     "train.batch_scaling": ("sqrt", "none"),
     "train.dist_backend": ("auto", "nccl", "gloo"),
     "train.parallel": ("data", "model"),
+    "train.drop_schedule": ("constant", "ramp"),
 }
 AUTO_BOOLS = {"train.fused_ssim"}  # true, false or "auto"
 POSITIVE = {"data.width", "data.height", "data.downscale", "data.n_train", "model.init_points", "model.init_knn",

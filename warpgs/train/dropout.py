@@ -26,9 +26,23 @@ def drop_rate_for(setting, num_train_views: int) -> float:
     return RULE.value(setting, num_train_views, float)
 
 
+def rate_at(rate: float, schedule: str, step: int, steps: int) -> float:
+    """The dropout rate of training step `step` (0-based) of `steps`: `rate` throughout ("constant"), or rising from 0
+    to `rate` at the last step ("ramp", DropGaussian's r_t = r * t / T: the early steps, which place the primitives,
+    see them all)."""
+    if schedule == "ramp":
+        return rate * min(step + 1, steps) / max(steps, 1)
+    return rate
+
+
 def dropout_note(setting, rate: float, num_train_views: int) -> str:
     """The start line's words on dropout: its rate when on, why not when "auto" left it off, else ""."""
     return RULE.note(setting, rate, num_train_views, f"; primitive dropout {rate:g}")
+
+
+def schedule_note(schedule: str, rate: float) -> str:
+    """The start line's words on a dropout rate that ramps up ("" when constant or off)."""
+    return " ramped up from 0" if rate and schedule == "ramp" else ""
 
 
 def dropped_opacities(opacities: torch.Tensor, rate: float) -> torch.Tensor:

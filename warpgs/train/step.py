@@ -8,6 +8,7 @@ import time
 from warpgs.train import setup as train_setup
 from warpgs.train.batch import (BatchScalars, HostScalars, ViewPass, batch_result, batch_summary,
                                 device_batch_result, local_sums, scalar_names, without_graph)
+from warpgs.train.dropout import rate_at
 from warpgs.train.opacity_decay import decay_opacities
 from warpgs.train.optim import means_lr_at, update_learning_rates
 from warpgs.train.step_info import StepInfo
@@ -118,7 +119,8 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
     model = trainer.model
     batch = trainer.make_batch(view, step)
     out = trainer.render(view, trainer.outputs_at(step), batch, track_means2d=densify, step=step,
-                         speculative_pairs=speculative_pairs(trainer), drop_rate=trainer.drop_rate)
+                         speculative_pairs=speculative_pairs(trainer),
+                         drop_rate=rate_at(trainer.drop_rate, trainer.drop_schedule, step, trainer.max_steps))
     result = trainer.loss_set(out, batch, model, step, trainer.max_steps)
     if first:
         trainer.strategy.step_pre_backward(model, step)
