@@ -39,11 +39,13 @@ def test_the_config_refuses_a_rate_outside_zero_to_one(tmp_path):
         run(tmp_path, "train.drop_rate=1.0")
 
 
-def test_auto_drops_with_few_training_views_only(tmp_path):
-    from warpgs.train.dropout import AUTO_MAX_VIEWS, AUTO_RATE, AUTO_RATE_3, drop_rate_for
+def test_auto_drops_with_few_or_many_training_views(tmp_path):
+    from warpgs.train.dropout import AUTO_MAX_VIEWS, AUTO_OFF_MAX_VIEWS, AUTO_RATE, AUTO_RATE_3, drop_rate_for
 
-    assert AUTO_MAX_VIEWS == 4 and AUTO_RATE_3 != AUTO_RATE  # two measured rates: 3 views and 4
-    assert [drop_rate_for("auto", n) for n in (2, 3, 4, 5, 24)] == [AUTO_RATE_3, AUTO_RATE_3, AUTO_RATE, 0.0, 0.0]
+    assert AUTO_MAX_VIEWS == 4 and AUTO_OFF_MAX_VIEWS == 9 and AUTO_RATE_3 != AUTO_RATE  # rates measured at 3 and 4
+    counts = (2, 3, 4, 5, 9, 10, 24)
+    assert [drop_rate_for("auto", n) for n in counts] == [AUTO_RATE_3, AUTO_RATE_3, AUTO_RATE, 0.0, 0.0, AUTO_RATE,
+                                                           AUTO_RATE]
     assert drop_rate_for(0.0, 3) == 0.0 and drop_rate_for(0.3, 30) == 0.3
     # The tiny light field trains on its 3x3 array: 9 views, so "auto" leaves dropout off; with 3 of them, on.
     nine = run(tmp_path / "nine", "train.drop_rate=auto", steps=2)
@@ -60,7 +62,8 @@ def test_the_start_line_says_whether_auto_turned_dropout_on():
     from warpgs.train.dropout import AUTO_MAX_VIEWS, dropout_note
 
     off = dropout_note("auto", 0.0, AUTO_MAX_VIEWS + 1)
-    assert "off" in off and f"{AUTO_MAX_VIEWS + 1} training views" in off and f"at most {AUTO_MAX_VIEWS}" in off
+    assert "off" in off and f"{AUTO_MAX_VIEWS + 1} training views" in off
+    assert f"on with at most {AUTO_MAX_VIEWS} or more than 9" in off
     assert dropout_note("auto", 0.1, 3) == dropout_note(0.1, 0.1, 3) == "; primitive dropout 0.1"
     assert dropout_note(0.0, 0.0, 3) == ""  # not asked for: nothing to explain
 

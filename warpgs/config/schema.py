@@ -135,7 +135,8 @@ class TrainConfig:
     opacity_decay: float = 0.0
     # Each training view renders with a random share drop_rate of the primitives left out and the others' opacities
     # divided by 1 - drop_rate (DropGaussian; train/dropout.py); evaluation renders them all. 0: off; "auto":
-    # dropout.AUTO_RATE_3 with at most 3 training views, dropout.AUTO_RATE with up to dropout.AUTO_MAX_VIEWS, else off.
+    # dropout.AUTO_RATE_3 with at most 3 training views, dropout.AUTO_RATE with up to dropout.AUTO_MAX_VIEWS and with
+    # more than dropout.AUTO_OFF_MAX_VIEWS, off in between.
     drop_rate: Union[float, str] = 0.0
     # How the rate runs over the run: "constant", or "ramp": from 0 at the first step up to drop_rate at the last
     # (DropGaussian's schedule, r_t = r * t / T; train/dropout.py).

@@ -36,6 +36,11 @@ class FewViewsRule:
         if value:
             return on_words
         if setting == "auto":
-            when = f"more than {self.most}" if self.more else f"at most {self.most}"
-            return f"; {self.what} off ({self.key}=auto: {num_train_views} training views, on with {when})"
+            return f"; {self.what} off ({self.key}=auto: {num_train_views} training views, on with {self.when_on()})"
         return ""
+
+    def when_on(self) -> str:
+        """The view counts at which "auto" is on, in words ("at most 4", "more than 9", "at most 4 or more than 9")."""
+        fewest_on = max([views for views, value in self.fewer if value] + ([self.most] if self.on else []), default=0)
+        parts = ([f"at most {fewest_on}"] if fewest_on else []) + ([f"more than {self.most}"] if self.more else [])
+        return " or ".join(parts)
