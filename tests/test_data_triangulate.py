@@ -185,6 +185,9 @@ def test_few_triangulated_points_are_kept_when_asked_for(tmp_path, monkeypatch, 
     else:
         with pytest.raises(SceneError, match=f"only {found} points.*model.init=auto"):
             ip.triangulated_points(scene, tmp_path, strict=True)
+    # With the prior's points joining them (model.prior_points), the presets keep any number and say so.
+    points, source = ip.triangulated_points(scene, tmp_path, strict=True, thin_ok=True)
+    assert len(points) == found and (("the prior's points carry the start" in source) == (not strict_ok))
     auto = ip.triangulated_points(scene, tmp_path)
     assert (auto is not None) == (found >= ip.MIN_TRIANGULATED_POINTS)
     assert ("using random points" in capsys.readouterr().err) == (auto is None)

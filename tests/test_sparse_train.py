@@ -177,3 +177,22 @@ def test_a_run_cut_from_a_longer_schedule_is_that_schedules_first_steps(tmp_path
     own = run(tmp_path / "own", steps=8)
     own.fit()
     assert not torch.equal(own.model.params["means"], cut.model.params["means"])
+
+
+def test_a_thin_triangulation_starts_beside_the_prior_points_and_stops_without_them(tmp_path, monkeypatch):
+    """model.init=triangulate finding under MIN_TRIANGULATED_POINTS_STRICT points (12 views around a capture's
+    textureless backdrop gave 19): with the prior's lifted points beside them the run starts from both, saying so;
+    asked for alone, it is the error naming model.init=auto."""
+    from warpgs.data import PointCloud
+    from warpgs.data.errors import SceneError
+    from warpgs.data.sfm.triangulate import Triangulation
+
+    few = PointCloud(np.zeros((5, 3), np.float32), np.full((5, 3), 0.5, np.float32))
+    monkeypatch.setattr("warpgs.data.sfm.triangulate.triangulate_scene",
+                        lambda scene, cache_dir, **kw: Triangulation(few, 0.4, 0.1, False, {}))
+    trainer = run(tmp_path / "lifted", "data.depth_priors=estimate", "model.init=triangulate", "model.prior_points=300")
+    assert trainer.model.num_primitives == 5 + 300
+    assert "5 points, under 20" in trainer.init_source and "300 from depth priors" in trainer.init_source
+    assert math.isfinite(trainer.train_step()["loss"])
+    with pytest.raises(SceneError, match="only 5 points.*model.init=auto"):
+        run(tmp_path / "alone", "data.depth_priors=estimate", "model.init=triangulate", "model.prior_points=0")

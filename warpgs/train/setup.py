@@ -218,7 +218,10 @@ def initial_points(scene, config: Config):
     elif how == "triangulate":
         if tri_dir is None:
             raise ValueError("model.init: 'triangulate' needs an output folder to cache the points in")
-        cloud, source = ip.triangulated_points(scene, tri_dir, strict=True, shared_dir=shared)
+        # With the prior's lifted points beside them (model.prior_points), a thin triangulation (12 views around a
+        # capture's textureless backdrop can give 19 points) is only part of the start, not a reason to stop.
+        cloud, source = ip.triangulated_points(scene, tri_dir, strict=True, thin_ok=bool(config.model.prior_points),
+                                               shared_dir=shared)
     elif how == "sfm":
         if scene.points is None or len(scene.points) == 0:
             raise ValueError(f"model.init: 'sfm' but the scene at {scene.root} has no SfM points (use auto/random)")

@@ -107,18 +107,22 @@ MIN_TRIANGULATED_POINTS = 100  # fewer than this (a textureless or badly posed s
 MIN_TRIANGULATED_POINTS_STRICT = 20
 
 
-def triangulated_points(scene: Scene, cache_dir: Path, *, strict: bool = False,
+def triangulated_points(scene: Scene, cache_dir: Path, *, strict: bool = False, thin_ok: bool = False,
                         **kwargs) -> Optional[tuple[PointCloud, str]]:
     """(points, "triangulated (...)") from the training views' known poses (warpgs.data.sfm.triangulate), cached
     in cache_dir. When that fails or finds under MIN_TRIANGULATED_POINTS points: None after saying why on
     stderr. strict (the points were asked for): the error when it fails or finds under
-    MIN_TRIANGULATED_POINTS_STRICT."""
+    MIN_TRIANGULATED_POINTS_STRICT, unless thin_ok (other points join them: model.prior_points), which keeps any
+    number, saying so in the description."""
     from warpgs.data.errors import SceneError
     from warpgs.data.sfm.triangulate import triangulate_scene
 
     try:
         tri = triangulate_scene(scene, cache_dir, **kwargs)
         least = MIN_TRIANGULATED_POINTS_STRICT if strict else MIN_TRIANGULATED_POINTS
+        if strict and thin_ok and len(tri.points) < least:
+            return tri.points, (f"triangulated ({len(tri.points)} points, under {least}: the prior's points carry "
+                                f"the start)")
         if len(tri.points) < least:
             hint = "; model.init=auto starts from the depth prior or random points instead" if strict else ""
             raise SceneError(cache_dir, f"triangulation found only {len(tri.points)} points (fewer than {least})"
