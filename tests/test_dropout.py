@@ -69,14 +69,50 @@ def test_the_start_line_says_whether_auto_turned_dropout_on():
 
 
 def test_a_ramped_rate_rises_from_zero_to_the_rate_at_the_last_step(tmp_path):
-    from warpgs.train.dropout import rate_at, schedule_note
+    from warpgs.train.dropout import manner_note, rate_at
     assert rate_at(0.2, "constant", 0, 100) == rate_at(0.2, "constant", 99, 100) == 0.2
     ramp = [rate_at(0.2, "ramp", s, 100) for s in range(100)]
     assert ramp[0] == pytest.approx(0.002) and ramp[49] == pytest.approx(0.1) and ramp[-1] == pytest.approx(0.2)
     assert all(a < b for a, b in zip(ramp, ramp[1:]))
     assert rate_at(0.0, "ramp", 50, 100) == 0.0
-    assert schedule_note("ramp", 0.1) and not schedule_note("constant", 0.1) and not schedule_note("ramp", 0.0)
+    assert manner_note("ramp", 0, 0.1) == " ramped up from 0" and manner_note("constant", 0, 0.1) == ""
+    assert manner_note("ramp", 2, 0.0) == "" and "near primitives more often (power 2)" in manner_note("constant", 2, 0.1)
     trainer = run(tmp_path, "train.drop_rate=0.5", "train.drop_schedule=ramp", "strategy.refine_start=1000", steps=3)
     assert trainer.drop_schedule == "ramp" and trainer.drop_rate == 0.5
     with pytest.raises(ConfigError, match="train.drop_schedule"):
         run(tmp_path / "bad", "train.drop_schedule=linear")
+
+
+def test_near_primitives_are_left_out_more_often_at_the_same_mean_rate():
+    """train.drop_near: in front of the camera the drop probability follows (median depth / depth) ** power, averaging
+    the rate, capped; behind the camera the plain rate. Each kept row is compensated by its own 1 - p."""
+    from warpgs.train.dropout import MAX_NEAR_PROBABILITY, near_probabilities
+
+    viewmat = torch.eye(4)  # camera at the origin looking down +z
+    depth = torch.tensor([0.5, 1.0, 2.0, 4.0, -1.0])
+    means = torch.stack([torch.zeros(5), torch.zeros(5), depth], 1)
+    p = near_probabilities(means, viewmat, 0.1, 1.0)
+    assert p[4] == pytest.approx(0.1)  # behind the camera
+    assert torch.all(p[:3] > p[1:4]) and p[:4].mean().item() == pytest.approx(0.1, rel=1e-5)
+    assert p[0] / p[3] == pytest.approx(8.0, rel=1e-5)  # proportional to 1 / depth
+    steep = near_probabilities(torch.stack([torch.zeros(3), torch.zeros(3), torch.tensor([0.01, 1.0, 1.0])], 1),
+                               viewmat, 0.5, 2.0)
+    assert steep.max().item() == pytest.approx(MAX_NEAR_PROBABILITY)
+    flat = near_probabilities(means, viewmat, 0.1, 0.0)
+    torch.testing.assert_close(flat, torch.full((5,), 0.1))
+    torch.manual_seed(0)
+    opacities = torch.full((100_000, 1), 0.5, requires_grad=True)
+    probs = torch.where(torch.arange(100_000) % 2 == 0, torch.tensor(0.6), torch.tensor(0.1))
+    out = dropped_opacities(opacities, 0.35, probs).detach()[:, 0]
+    assert abs((out[0::2] == 0).double().mean().item() - 0.6) < 0.01
+    assert abs((out[1::2] == 0).double().mean().item() - 0.1) < 0.01
+    assert out[0::2].max().item() == pytest.approx(0.5 / 0.4) and out[1::2].max().item() == pytest.approx(0.5 / 0.9)
+
+
+def test_training_renders_drop_near_primitives_and_the_config_checks_the_power(tmp_path):
+    trainer = run(tmp_path, "train.drop_rate=0.3", "train.drop_near=1", "strategy.refine_start=1000", steps=3)
+    view = trainer.view(trainer.train_indices[0])
+    assert not torch.equal(trainer.render(view, ("rgb",), drop_rate=0.3).rgb, trainer.render(view, ("rgb",)).rgb)
+    assert math.isfinite(trainer.train_step()["loss"])
+    with pytest.raises(ConfigError, match="train.drop_near"):
+        run(tmp_path / "bad", "train.drop_near=-1")

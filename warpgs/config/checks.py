@@ -331,6 +331,8 @@ def _check_cross(cfg: Config) -> None:
     for key in ("virtual_rgb", "virtual_depth"):
         if not 0.0 <= getattr(cfg.train, key) < float("inf"):
             raise ConfigError(f"train.{key}", f"expected a weight >= 0, got {getattr(cfg.train, key)}")
+    if not cfg.train.drop_near >= 0.0:
+        raise ConfigError("train.drop_near", f"expected a power >= 0 (0: off), got {cfg.train.drop_near}")
     if not 0.0 <= cfg.train.opacity_decay < 1.0:
         raise ConfigError("train.opacity_decay", f"expected a fraction in [0, 1), got {cfg.train.opacity_decay}")
     if cfg.train.max_sigmas < 0:

@@ -141,6 +141,9 @@ class TrainConfig:
     # How the rate runs over the run: "constant", or "ramp": from 0 at the first step up to drop_rate at the last
     # (DropGaussian's schedule, r_t = r * t / T; train/dropout.py).
     drop_schedule: str = "constant"
+    # 0: every primitive as likely to be left out; p > 0: in each view in proportion to (median depth / its depth) ** p,
+    # the same share in all (train/dropout.py near_probabilities: near-camera floaters left out more often).
+    drop_near: float = 0.0
 
     def render_options(self) -> dict:
         """The renderer settings every render of the model uses (training, evaluation, queries)."""

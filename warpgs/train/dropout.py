@@ -5,6 +5,8 @@ only work together; renders that miss a random share of them make each primitive
 Evaluation and every output render the whole model."""
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 from warpgs.train.few_views import FewViewsRule
@@ -42,16 +44,47 @@ def dropout_note(setting, rate: float, num_train_views: int) -> str:
     return RULE.note(setting, rate, num_train_views, f"; primitive dropout {rate:g}")
 
 
-def schedule_note(schedule: str, rate: float) -> str:
-    """The start line's words on a dropout rate that ramps up ("" when constant or off)."""
-    return " ramped up from 0" if rate and schedule == "ramp" else ""
+def manner_note(schedule: str, near_power: float, rate: float) -> str:
+    """The start line's words on how dropout draws: a rate ramped up, near primitives more often ("" for neither, or
+    with dropout off)."""
+    if not rate:
+        return ""
+    return ((" ramped up from 0" if schedule == "ramp" else "") +
+            (f", near primitives more often (power {near_power:g})" if near_power else ""))
 
 
-def dropped_opacities(opacities: torch.Tensor, rate: float) -> torch.Tensor:
+def dropped_opacities(opacities: torch.Tensor, rate: float,
+                      probabilities: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Opacities [N] or [N, 1] with a random share `rate` of the rows zeroed and the rest divided by 1 - rate
-    (differentiable; the kept rows' gradients scaled alike). rate 0: `opacities` itself."""
+    (differentiable; the kept rows' gradients scaled alike). probabilities: [N] per-row drop probabilities instead
+    (each kept row divided by its own 1 - p). rate 0: `opacities` itself."""
     if rate <= 0.0:
         return opacities
-    keep = torch.rand(opacities.shape[0], device=opacities.device) >= rate
-    scale = keep.to(opacities.dtype) * (1.0 / (1.0 - rate))
+    p = (torch.full((opacities.shape[0],), float(rate), device=opacities.device, dtype=opacities.dtype)
+         if probabilities is None else probabilities.to(opacities.dtype))
+    keep = torch.rand(opacities.shape[0], device=opacities.device) >= p
+    scale = keep.to(opacities.dtype) / (1.0 - p)
     return opacities * scale.view((-1,) + (1,) * (opacities.dim() - 1))
+
+
+# train.drop_near: no primitive's drop probability goes above this, so even the nearest are drawn now and then.
+MAX_NEAR_PROBABILITY = 0.9
+
+
+def near_probabilities(means: torch.Tensor, viewmat: torch.Tensor, rate: float, power: float) -> torch.Tensor:
+    """[N] drop probabilities for one view (train.drop_near): in front of the camera proportional to (median depth /
+    depth) ** power, scaled so that they average `rate` (then capped at MAX_NEAR_PROBABILITY); behind it `rate`
+    (not drawn anyway). Primitives near a training camera are where few views leave floaters that each view sees
+    against the scene behind them (sparse_view.md's figurine haze; D2GS, Song et al. 2025, drops by depth and density;
+    this is our own form of the depth half)."""
+    means = means.detach()
+    viewmat = torch.as_tensor(viewmat, device=means.device, dtype=means.dtype)
+    depth = means @ viewmat[2, :3] + viewmat[2, 3]
+    p = torch.full_like(depth, float(rate))
+    front = depth > 0
+    if not bool(front.any()):
+        return p
+    z = depth[front]
+    weight = (z.median() / z).pow(power)
+    p[front] = (rate * weight / weight.mean()).clamp(max=MAX_NEAR_PROBABILITY)
+    return p

@@ -20,7 +20,7 @@ from warpgs.train import setup as train_setup
 from warpgs.train.distributed import DistributedError
 from warpgs.train.evaluation import scores_over_ranks
 from warpgs.train.guard import NonFiniteError
-from warpgs.train.dropout import dropout_note, schedule_note
+from warpgs.train.dropout import dropout_note, manner_note
 from warpgs.train.unpool import unpool_note
 from warpgs.train.virtual_views import virtual_views_note
 from warpgs.train.warm_up import compile_step_kernels
@@ -86,7 +86,7 @@ class TrainingLoop:
             self.say(f"warpgs: {tr.scene.summary()}")
             virtual = virtual_views_note(cfg.train.virtual_views, tr.virtual_every, len(tr.views.indices))
             virtual += dropout_note(cfg.train.drop_rate, tr.drop_rate, len(tr.views.indices))
-            virtual += schedule_note(cfg.train.drop_schedule, tr.drop_rate)
+            virtual += manner_note(cfg.train.drop_schedule, cfg.train.drop_near, tr.drop_rate)
             virtual += unpool_note(cfg.strategy.unpool_every, tr.strategy.config.unpool_every, len(tr.scene.train))
             self.say(f"warpgs: {tr.num_primitives} {tr.model.kind} from {tr.init_source}; "
                      f"losses {tr.loss_set.names} render {list(tr.outputs)}{virtual}; "

@@ -37,7 +37,7 @@ from warpgs.config.loader import Config, load_config
 from warpgs.train.phase_timer import PhaseTimer
 from warpgs.train.stage_clock import StageClock
 from warpgs.model.gaussians import GaussianModel
-from warpgs.train.dropout import dropped_opacities
+from warpgs.train.dropout import dropped_opacities, near_probabilities
 from warpgs.train.extensions import Extension
 from warpgs.model.rendering import check_outputs, focal_length, render_model, screen_filter
 from warpgs.model import environment  # noqa: F401  (registers the built-in "environment" extension)
@@ -279,7 +279,9 @@ class Trainer(TrainerBuild):
                                 t.surfel_screen_sigma)
         inputs = self.render_inputs(batch, step, outputs)
         if drop_rate:
-            inputs["opacities"] = dropped_opacities(inputs["opacities"], drop_rate)
+            near = (near_probabilities(inputs["means"], view.viewmat, drop_rate, t.drop_near) if t.drop_near
+                    else None)
+            inputs["opacities"] = dropped_opacities(inputs["opacities"], drop_rate, near)
         out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,
                            background=self.background, inputs=inputs,
                            track_means2d=track_means2d, absgrad=self.config.strategy.absgrad,
