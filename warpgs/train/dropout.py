@@ -11,8 +11,8 @@ import torch
 
 from warpgs.train.few_views import FewViewsRule
 
-# train.drop_rate=auto: AUTO_RATE_3 with at most 3 training views, AUTO_RATE with 4 and with more than AUTO_OFF_MAX_VIEWS,
-# off in between. Measured on real captures (H200, 3 seeds, paired; docs/sparse_view.md): on 7 LLFF scenes at 3 views
+# train.drop_rate=auto: AUTO_RATE_3 with at most 3 training views, AUTO_RATE with 4 and with more than
+# AUTO_OFF_MAX_VIEWS, off in between. Measured on real captures (H200, 3 seeds, paired; docs/sparse_view.md): on 7 LLFF scenes at 3 views
 # none is 0.10 dB under 0.3 and 0.1 ties with 0.3 (+0.04 +- 0.08; the preset's figures are measured at 0.3); at 4
 # views 0.3 is 0.12 +- 0.03 under 0.1. Around 360° captures 0.1 against none: +0.16 / +0.38 / -0.09 / +0.25 at 24
 # views of four, +0.42 / +0.17 / +0.15 at 12 views of three (0.2 costs more than it gives). 9 views of a real light
