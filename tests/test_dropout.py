@@ -46,6 +46,7 @@ def test_auto_drops_with_few_or_many_training_views(tmp_path):
     counts = (2, 3, 4, 5, 9, 10, 24)
     assert [drop_rate_for("auto", n) for n in counts] == [AUTO_RATE_3, AUTO_RATE_3, AUTO_RATE, 0.0, 0.0, AUTO_RATE,
                                                            AUTO_RATE]
+    assert drop_rate_for("auto", AUTO_OFF_MAX_VIEWS) == 0.0 and drop_rate_for("auto", AUTO_OFF_MAX_VIEWS + 1) > 0
     assert drop_rate_for(0.0, 3) == 0.0 and drop_rate_for(0.3, 30) == 0.3
     # The tiny light field trains on its 3x3 array: 9 views, so "auto" leaves dropout off; with 3 of them, on.
     nine = run(tmp_path / "nine", "train.drop_rate=auto", steps=2)
@@ -59,11 +60,11 @@ def test_auto_drops_with_few_or_many_training_views(tmp_path):
 
 
 def test_the_start_line_says_whether_auto_turned_dropout_on():
-    from warpgs.train.dropout import AUTO_MAX_VIEWS, dropout_note
+    from warpgs.train.dropout import AUTO_MAX_VIEWS, AUTO_OFF_MAX_VIEWS, dropout_note
 
     off = dropout_note("auto", 0.0, AUTO_MAX_VIEWS + 1)
     assert "off" in off and f"{AUTO_MAX_VIEWS + 1} training views" in off
-    assert f"on with at most {AUTO_MAX_VIEWS} or more than 9" in off
+    assert f"on with at most {AUTO_MAX_VIEWS} or more than {AUTO_OFF_MAX_VIEWS}" in off
     assert dropout_note("auto", 0.1, 3) == dropout_note(0.1, 0.1, 3) == "; primitive dropout 0.1"
     assert dropout_note(0.0, 0.0, 3) == ""  # not asked for: nothing to explain
 
@@ -78,10 +79,17 @@ def test_a_ramped_rate_rises_from_zero_to_the_rate_at_the_last_step(tmp_path):
     assert manner_note("ramp", 0, 0.1) == " ramped up from 0" and manner_note("constant", 0, 0.1) == ""
     assert manner_note("ramp", 2, 0.0) == ""
     assert "near primitives more often (power 2)" in manner_note("constant", 2, 0.1)
-    trainer = run(tmp_path, "train.drop_rate=0.5", "train.drop_schedule=ramp", "strategy.refine_start=1000", steps=3)
-    assert trainer.drop_schedule == "ramp" and trainer.drop_rate == 0.5
+    trainer = run(tmp_path, "train.drop_rate=0.5", "train.drop_schedule=ramp", "strategy.refine_start=1000", steps=4)
+    asked = []  # the rate each training render is given
+    render = trainer.render
+    trainer.render = lambda *a, drop_rate=0.0, **k: asked.append(drop_rate) or render(*a, drop_rate=drop_rate, **k)
+    for _ in range(4):
+        trainer.train_step()
+    assert asked == pytest.approx([0.125, 0.25, 0.375, 0.5])
     with pytest.raises(ConfigError, match="train.drop_schedule"):
         run(tmp_path / "bad", "train.drop_schedule=linear")
+    with pytest.raises(ConfigError, match="train.drop_schedule.*train.steps"):
+        run(tmp_path / "auto", "train.drop_rate=0.1", "train.drop_schedule=ramp", "train.steps=auto")
 
 
 def test_near_primitives_are_left_out_more_often_at_the_same_mean_rate():
@@ -101,6 +109,11 @@ def test_near_primitives_are_left_out_more_often_at_the_same_mean_rate():
     assert steep.max().item() == pytest.approx(MAX_NEAR_PROBABILITY)
     flat = near_probabilities(means, viewmat, 0.1, 0.0)
     torch.testing.assert_close(flat, torch.full((5,), 0.1))
+    # A primitive at the camera counts as NEAREST_DEPTH_SHARE of the median: finite, and the rest keep their share.
+    crowd = torch.stack([torch.zeros(1000), torch.zeros(1000), torch.cat([torch.tensor([1e-7]), torch.ones(999)])], 1)
+    p = near_probabilities(crowd, viewmat, 0.3, 6.0)
+    assert torch.isfinite(p).all() and p[0] == pytest.approx(MAX_NEAR_PROBABILITY)
+    assert p.mean().item() == pytest.approx(0.3, rel=1e-4)  # what the cap cut went to the others
     torch.manual_seed(0)
     opacities = torch.full((100_000, 1), 0.5, requires_grad=True)
     probs = torch.where(torch.arange(100_000) % 2 == 0, torch.tensor(0.6), torch.tensor(0.1))
@@ -110,10 +123,25 @@ def test_near_primitives_are_left_out_more_often_at_the_same_mean_rate():
     assert out[0::2].max().item() == pytest.approx(0.5 / 0.4) and out[1::2].max().item() == pytest.approx(0.5 / 0.9)
 
 
-def test_training_renders_drop_near_primitives_and_the_config_checks_the_power(tmp_path):
-    trainer = run(tmp_path, "train.drop_rate=0.3", "train.drop_near=1", "strategy.refine_start=1000", steps=3)
+def test_training_renders_drop_near_primitives_and_the_config_checks_the_power(tmp_path, monkeypatch):
+    from warpgs.train import dropout
+
+    seen = []  # (rate, power) of each near_probabilities call the trainer makes
+    real = dropout.near_probabilities
+
+    def recording(means, viewmat, rate, power):
+        seen.append((rate, power))
+        return real(means, viewmat, rate, power)
+
+    monkeypatch.setattr("warpgs.train.trainer.near_probabilities", recording)
+    trainer = run(tmp_path, "train.drop_rate=0.3", "train.drop_near=2", "strategy.refine_start=1000", steps=3)
     view = trainer.view(trainer.train_indices[0])
     assert not torch.equal(trainer.render(view, ("rgb",), drop_rate=0.3).rgb, trainer.render(view, ("rgb",)).rgb)
     assert math.isfinite(trainer.train_step()["loss"])
+    assert seen and all(s == (0.3, 2.0) for s in seen)  # training renders draw by depth; the plain render does not
+    plain = run(tmp_path / "plain", "train.drop_rate=0.3", "strategy.refine_start=1000", steps=3)
+    count = len(seen)
+    plain.train_step()
+    assert len(seen) == count
     with pytest.raises(ConfigError, match="train.drop_near"):
         run(tmp_path / "bad", "train.drop_near=-1")

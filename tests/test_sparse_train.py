@@ -192,7 +192,7 @@ def test_a_thin_triangulation_starts_beside_the_prior_points_and_stops_without_t
                         lambda scene, cache_dir, **kw: Triangulation(few, 0.4, 0.1, False, {}))
     trainer = run(tmp_path / "lifted", "data.depth_priors=estimate", "model.init=triangulate", "model.prior_points=300")
     assert trainer.model.num_primitives == 5 + 300
-    assert "5 points, under 20" in trainer.init_source and "300 from depth priors" in trainer.init_source
+    assert "5 points, 0.40 px; under 20" in trainer.init_source and "300 from depth priors" in trainer.init_source
     assert math.isfinite(trainer.train_step()["loss"])
     with pytest.raises(SceneError, match="only 5 points.*model.init=auto"):
         run(tmp_path / "alone", "data.depth_priors=estimate", "model.init=triangulate", "model.prior_points=0")

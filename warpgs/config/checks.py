@@ -331,6 +331,9 @@ def _check_cross(cfg: Config) -> None:
     for key in ("virtual_rgb", "virtual_depth"):
         if not 0.0 <= getattr(cfg.train, key) < float("inf"):
             raise ConfigError(f"train.{key}", f"expected a weight >= 0, got {getattr(cfg.train, key)}")
+    if cfg.train.drop_schedule == "ramp" and cfg.train.steps == "auto":
+        raise ConfigError("train.drop_schedule", "'ramp' rises to the rate at the run's last step, which "
+                          "train.steps=auto does not know in advance: give a fixed train.steps or use 'constant'")
     if not cfg.train.drop_near >= 0.0:
         raise ConfigError("train.drop_near", f"expected a power >= 0 (0: off), got {cfg.train.drop_near}")
     if not 0.0 <= cfg.train.opacity_decay < 1.0:

@@ -138,8 +138,8 @@ class TrainConfig:
     # dropout.AUTO_RATE_3 with at most 3 training views, dropout.AUTO_RATE with up to dropout.AUTO_MAX_VIEWS and with
     # more than dropout.AUTO_OFF_MAX_VIEWS, off in between.
     drop_rate: Union[float, str] = 0.0
-    # How the rate runs over the run: "constant", or "ramp": from 0 at the first step up to drop_rate at the last
-    # (DropGaussian's schedule, r_t = r * t / T; train/dropout.py).
+    # How the rate runs over the run: "constant", or "ramp": rising linearly to drop_rate at the last step
+    # (DropGaussian's schedule, r_t = r * t / T; train/dropout.py; needs a fixed train.steps).
     drop_schedule: str = "constant"
     # 0: every primitive as likely to be left out; p > 0: in each view in proportion to (median depth / its depth) ** p,
     # the same share in all (train/dropout.py near_probabilities: near-camera floaters left out more often).

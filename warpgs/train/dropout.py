@@ -12,11 +12,12 @@ import torch
 from warpgs.train.few_views import FewViewsRule
 
 # train.drop_rate=auto: AUTO_RATE_3 with at most 3 training views, AUTO_RATE with 4 and with more than
-# AUTO_OFF_MAX_VIEWS, off in between. Measured on real captures (H200, 3 seeds, paired; docs/sparse_view.md): on 7 LLFF scenes at 3 views
-# none is 0.10 dB under 0.3 and 0.1 ties with 0.3 (+0.04 +- 0.08; the preset's figures are measured at 0.3); at 4
-# views 0.3 is 0.12 +- 0.03 under 0.1. Around 360° captures 0.1 against none: +0.16 / +0.38 / -0.09 / +0.25 at 24
-# views of four, +0.42 / +0.17 / +0.15 at 12 views of three (0.2 costs more than it gives). 9 views of a real light
-# field lose 1.52 dB at 0.1 (a CPU probe) and 5-8 views are unmeasured, so auto leaves it off there.
+# AUTO_OFF_MAX_VIEWS, off in between. Measured on real captures (H200, 3 seeds, paired; docs/sparse_view.md): on 7
+# LLFF scenes at 3 views none is 0.10 dB under 0.3 and 0.1 ties with 0.3 (+0.04 +- 0.08; the preset's figures are
+# measured at 0.3); at 4 views 0.3 is 0.12 +- 0.03 under 0.1. Around 360° captures 0.1 against none: +0.16 / +0.38 /
+# -0.09 / +0.25 at 24 views of four, +0.42 / +0.17 / +0.15 at 12 views of three (0.2 costs more than it gives). 9
+# views of a real light field lose 1.52 dB at 0.1 (a CPU probe) and 5-8 views are unmeasured, so auto leaves it off
+# there. Forward-facing captures with more than 9 views are unmeasured.
 AUTO_RATE_3 = 0.3
 AUTO_RATE = 0.1
 AUTO_MAX_VIEWS = 4
@@ -31,9 +32,9 @@ def drop_rate_for(setting, num_train_views: int) -> float:
 
 
 def rate_at(rate: float, schedule: str, step: int, steps: int) -> float:
-    """The dropout rate of training step `step` (0-based) of `steps`: `rate` throughout ("constant"), or rising from 0
-    to `rate` at the last step ("ramp", DropGaussian's r_t = r * t / T: the early steps, which place the primitives,
-    see them all)."""
+    """The dropout rate of training step `step` (0-based) of `steps`: `rate` throughout ("constant"), or rising
+    linearly from rate / steps at the first step to `rate` at the last ("ramp", DropGaussian's r_t = r * t / T: the
+    early steps, which place the primitives, see nearly all of them)."""
     if schedule == "ramp":
         return rate * min(step + 1, steps) / max(steps, 1)
     return rate
@@ -61,22 +62,25 @@ def dropped_opacities(opacities: torch.Tensor, rate: float,
     if rate <= 0.0:
         return opacities
     p = (torch.full((opacities.shape[0],), float(rate), device=opacities.device, dtype=opacities.dtype)
-         if probabilities is None else probabilities.to(opacities.dtype))
+         if probabilities is None else probabilities.to(opacities.device, opacities.dtype))
     keep = torch.rand(opacities.shape[0], device=opacities.device) >= p
     scale = keep.to(opacities.dtype) / (1.0 - p)
     return opacities * scale.view((-1,) + (1,) * (opacities.dim() - 1))
 
 
-# train.drop_near: no primitive's drop probability goes above this, so even the nearest are drawn now and then.
+# train.drop_near: no primitive's drop probability goes above this, so even the nearest are drawn now and then;
+# depths under NEAREST_DEPTH_SHARE of the median count as that, so one primitive at the camera cannot take the
+# whole rate (nor its weight overflow).
 MAX_NEAR_PROBABILITY = 0.9
+NEAREST_DEPTH_SHARE = 0.1
 
 
 def near_probabilities(means: torch.Tensor, viewmat: torch.Tensor, rate: float, power: float) -> torch.Tensor:
     """[N] drop probabilities for one view (train.drop_near): in front of the camera proportional to (median depth /
-    depth) ** power, scaled so that they average `rate` (then capped at MAX_NEAR_PROBABILITY); behind it `rate`
-    (not drawn anyway). Primitives near a training camera are where few views leave floaters that each view sees
-    against the scene behind them (sparse_view.md's figurine haze; D2GS, Song et al. 2025, drops by depth and density;
-    this is our own form of the depth half)."""
+    depth) ** power, capped at MAX_NEAR_PROBABILITY and averaging `rate` (what the cap cuts goes to the rest);
+    behind it `rate` (not drawn anyway). Primitives near a training camera are where few views leave floaters that
+    each view sees against the scene behind them (sparse_view.md's figurine haze; D2GS, Song et al. 2025, drops by
+    depth and density; this is our own form of the depth half)."""
     means = means.detach()
     viewmat = torch.as_tensor(viewmat, device=means.device, dtype=means.dtype)
     depth = means @ viewmat[2, :3] + viewmat[2, 3]
@@ -85,6 +89,20 @@ def near_probabilities(means: torch.Tensor, viewmat: torch.Tensor, rate: float, 
     if not bool(front.any()):
         return p
     z = depth[front]
-    weight = (z.median() / z).pow(power)
-    p[front] = (rate * weight / weight.mean()).clamp(max=MAX_NEAR_PROBABILITY)
+    median = z.median()
+    weight = (median / z.clamp(min=NEAREST_DEPTH_SHARE * median)).pow(power)
+    p[front] = _capped_shares(weight, rate)
     return p
+
+
+def _capped_shares(weight: torch.Tensor, rate: float, rounds: int = 4) -> torch.Tensor:
+    """Probabilities proportional to `weight`, none above MAX_NEAR_PROBABILITY, averaging `rate`: what the capped
+    rows cannot take goes to the others in proportion (a few rounds of water-filling, no host reads)."""
+    total = rate * weight.numel()
+    p = (total / weight.sum()) * weight
+    for _ in range(rounds):
+        capped = p >= MAX_NEAR_PROBABILITY
+        left = total - MAX_NEAR_PROBABILITY * capped.sum()
+        free = torch.where(capped, torch.zeros_like(weight), weight).sum().clamp_min(1e-12)
+        p = torch.where(capped, torch.full_like(p, MAX_NEAR_PROBABILITY), (left / free) * weight)
+    return p.clamp(max=MAX_NEAR_PROBABILITY)

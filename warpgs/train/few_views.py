@@ -1,6 +1,7 @@
 """What settings with an "auto" that depends on the training-view count (train.virtual_views, train.drop_rate,
 model.prior_points_confidence, strategy.unpool_every) share: "auto" is one value with at most a number of training
-views and another above (off, for the few-view switches; unpooling the other way round), and the start line says
+views and another above (off, for the few-view switches; unpooling the other way round), with other values below a
+few smaller counts if measured so (dropout: on with few views and with many, off between), and the start line says
 which."""
 from __future__ import annotations
 
@@ -41,6 +42,8 @@ class FewViewsRule:
 
     def when_on(self) -> str:
         """The view counts at which "auto" is on, in words ("at most 4", "more than 9", "at most 4 or more than 9")."""
-        fewest_on = max([views for views, value in self.fewer if value] + ([self.most] if self.on else []), default=0)
-        parts = ([f"at most {fewest_on}"] if fewest_on else []) + ([f"more than {self.most}"] if self.more else [])
+        if self.on and self.more:
+            return "any number"
+        most_on = max([views for views, value in self.fewer if value] + ([self.most] if self.on else []), default=0)
+        parts = ([f"at most {most_on}"] if most_on else []) + ([f"more than {self.most}"] if self.more else [])
         return " or ".join(parts)

@@ -121,8 +121,8 @@ def triangulated_points(scene: Scene, cache_dir: Path, *, strict: bool = False, 
         tri = triangulate_scene(scene, cache_dir, **kwargs)
         least = MIN_TRIANGULATED_POINTS_STRICT if strict else MIN_TRIANGULATED_POINTS
         if strict and thin_ok and len(tri.points) < least:
-            return tri.points, (f"triangulated ({len(tri.points)} points, under {least}: the prior's points carry "
-                                f"the start)")
+            return tri.points, (f"triangulated ({len(tri.points)} points, {tri.mean_error:.2f} px; under {least}: "
+                                f"the prior's points carry the start)")
         if len(tri.points) < least:
             hint = "; model.init=auto starts from the depth prior or random points instead" if strict else ""
             raise SceneError(cache_dir, f"triangulation found only {len(tri.points)} points (fewer than {least})"
