@@ -46,10 +46,10 @@ def dropout_note(setting, rate: float, num_train_views: int) -> str:
 
 
 def manner_note(schedule: str, near_power: float, rate: float) -> str:
-    """The start line's words on how dropout draws: a rate ramped up, near primitives more often ("" for neither, or
-    with dropout off)."""
+    """The start line's words on how dropout draws: a rate ramped up, near primitives more often ("" for neither);
+    with dropout off, that a train.drop_near asked for does nothing."""
     if not rate:
-        return ""
+        return "; train.drop_near unused (no dropout)" if near_power else ""
     return ((" ramped up from 0" if schedule == "ramp" else "") +
             (f", near primitives more often (power {near_power:g})" if near_power else ""))
 
