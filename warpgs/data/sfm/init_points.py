@@ -117,13 +117,13 @@ def triangulated_points(scene: Scene, cache_dir: Path, *, strict: bool = False, 
     from warpgs.data.errors import SceneError
     from warpgs.data.sfm.triangulate import triangulate_scene
 
+    least = MIN_TRIANGULATED_POINTS_STRICT if strict else MIN_TRIANGULATED_POINTS
+    thin = ""
     try:
         tri = triangulate_scene(scene, cache_dir, **kwargs)
-        least = MIN_TRIANGULATED_POINTS_STRICT if strict else MIN_TRIANGULATED_POINTS
         if strict and thin_ok and len(tri.points) < least:
-            return tri.points, (f"triangulated ({len(tri.points)} points, {tri.mean_error:.2f} px; under {least}: "
-                                f"the prior's points carry the start)")
-        if len(tri.points) < least:
+            thin = f"; under {least}: the prior's points carry the start"
+        elif len(tri.points) < least:
             hint = "; model.init=auto starts from the depth prior or random points instead" if strict else ""
             raise SceneError(cache_dir, f"triangulation found only {len(tri.points)} points (fewer than {least})"
                              f"{hint}")
@@ -132,7 +132,7 @@ def triangulated_points(scene: Scene, cache_dir: Path, *, strict: bool = False, 
             raise
         print(f"triangulate: {exc}; using random points", file=sys.stderr)
         return None
-    return tri.points, f"triangulated ({len(tri.points)} points, {tri.mean_error:.2f} px)"
+    return tri.points, f"triangulated ({len(tri.points)} points, {tri.mean_error:.2f} px{thin})"
 
 
 def initial_points(scene: Scene, n: int = 100_000, seed: int = 0, triangulate_dir: Optional[Path] = None,
