@@ -120,7 +120,8 @@ def view_pass(trainer, view, step: int, *, views_in_loss: int = 1, densify: bool
     batch = trainer.make_batch(view, step)
     out = trainer.render(view, trainer.outputs_at(step), batch, track_means2d=densify, step=step,
                          speculative_pairs=speculative_pairs(trainer),
-                         drop_rate=rate_at(trainer.drop_rate, trainer.drop_schedule, step, trainer.max_steps))
+                         drop_rate=rate_at(trainer.drop_rate, trainer.config.train.drop_schedule, step,
+                                           trainer.max_steps))
     result = trainer.loss_set(out, batch, model, step, trainer.max_steps)
     if first:
         trainer.strategy.step_pre_backward(model, step)

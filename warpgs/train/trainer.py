@@ -279,7 +279,7 @@ class Trainer(TrainerBuild):
                                 t.surfel_screen_sigma)
         inputs = self.render_inputs(batch, step, outputs)
         if drop_rate:
-            near = (near_probabilities(inputs["means"], view.viewmat, drop_rate, self.drop_near) if self.drop_near
+            near = (near_probabilities(inputs["means"], view.viewmat, drop_rate, t.drop_near) if t.drop_near
                     else None)
             inputs["opacities"] = dropped_opacities(inputs["opacities"], drop_rate, near)
         out = render_model(self.model, view.viewmat, view.K, view.width, view.height, outputs=outputs,

@@ -147,7 +147,6 @@ class TrainerBuild:
             self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth)[1])
         self.best_state = BestState() if self.auto_steps and cfg.schedule.keep_best else None
         self.drop_rate = drop_rate_for(cfg.train.drop_rate, len(self.views.indices))  # train/dropout.py
-        self.drop_schedule, self.drop_near = cfg.train.drop_schedule, cfg.train.drop_near
         if self.drop_rate and self.model_parallel:
             raise ValueError("train.drop_rate: not supported with train.parallel=model (use the default data parallel)")
         self.virtual_views = None  # train.virtual_views: cameras between the training ones (train/virtual_views.py)
