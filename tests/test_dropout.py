@@ -59,6 +59,21 @@ def test_auto_drops_with_few_or_many_training_views(tmp_path):
         run(tmp_path / "bad", "train.drop_rate=sometimes")
 
 
+def test_auto_counts_the_held_out_validation_views_as_training_views(tmp_path):
+    # 4 training views with train.steps=auto: one is held out for validation and trains again after the stop, so the
+    # few-view rules count 4, as unpooling and the prior points do: dropout at 4 views' rate, no virtual views.
+    from warpgs.train.dropout import AUTO_RATE
+    from warpgs.train.virtual_views import AUTO_MAX_VIEWS
+
+    nine = run(tmp_path / "nine", steps=2)
+    dropped = [nine.scene.names[v] for v in nine.scene.train[4:]]
+    four = run(tmp_path / "four", "train.drop_rate=auto", "train.virtual_views=auto", "train.steps=auto",
+               f"data.exclude=[{', '.join(dropped)}]")
+    assert len(four.scene.train) == 4 and len(four.views.indices) == 3 and len(four.views.held_out) == 1
+    assert AUTO_MAX_VIEWS == 3 and four.virtual_every == 0
+    assert four.drop_rate == AUTO_RATE
+
+
 def test_the_start_line_says_whether_auto_turned_dropout_on():
     from warpgs.train.dropout import AUTO_MAX_VIEWS, AUTO_OFF_MAX_VIEWS, dropout_note
 

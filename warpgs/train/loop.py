@@ -84,8 +84,8 @@ class TrainingLoop:
                                  log_every=cfg.train.log_every)
         if tr.step == 0 or tr.init_source != "checkpoint":
             self.say(f"warpgs: {tr.scene.summary()}")
-            virtual = virtual_views_note(cfg.train.virtual_views, tr.virtual_every, len(tr.views.indices))
-            virtual += dropout_note(cfg.train.drop_rate, tr.drop_rate, len(tr.views.indices))
+            virtual = virtual_views_note(cfg.train.virtual_views, tr.virtual_every, len(tr.scene.train))
+            virtual += dropout_note(cfg.train.drop_rate, tr.drop_rate, len(tr.scene.train))
             virtual += manner_note(cfg.train.drop_schedule, cfg.train.drop_near, tr.drop_rate)
             virtual += unpool_note(cfg.strategy.unpool_every, tr.strategy.config.unpool_every, len(tr.scene.train))
             self.say(f"warpgs: {tr.num_primitives} {tr.model.kind} from {tr.init_source}; "

@@ -146,15 +146,18 @@ class TrainerBuild:
             self.strategy.schedule.auto = AutoStop(cfg.schedule)
             self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth)[1])
         self.best_state = BestState() if self.auto_steps and cfg.schedule.keep_best else None
-        self.drop_rate = drop_rate_for(cfg.train.drop_rate, len(self.views.indices))  # train/dropout.py
+        # Every "auto" that depends on the view count counts the scene's training views, train.steps=auto's held-out
+        # ones included (they train again after its stop), as unpooling and the prior points do (train/few_views.py).
+        num_views = len(self.scene.train)
+        self.drop_rate = drop_rate_for(cfg.train.drop_rate, num_views)  # train/dropout.py
         if self.drop_rate and self.model_parallel:
             raise ValueError("train.drop_rate: not supported with train.parallel=model (use the default data parallel)")
         self.virtual_views = None  # train.virtual_views: cameras between the training ones (train/virtual_views.py)
-        self.virtual_every = virtual_every(cfg.train.virtual_views, len(self.views.indices))
+        self.virtual_every = virtual_every(cfg.train.virtual_views, num_views)
         if self.virtual_every:
             if self.model_parallel:
                 raise ValueError("train.virtual_views: not with train.parallel=model (use the default data parallel)")
-            confidence = confidence_for(cfg.model.prior_points_confidence, len(self.views.indices))
+            confidence = confidence_for(cfg.model.prior_points_confidence, num_views)
             self.virtual_views = virtual_views_for(self.scene, self.views.indices, confidence, self.device,
                                                    cfg.train.seed)
         self.evaluator = Evaluator(self.scene, cfg.eval, self.device, self.out_dir,
