@@ -1,5 +1,6 @@
 """Run benchmark processes side by side: at most `at_once` per group (a GPU, or one group for all), each with its
-own log, reported as each one ends. The first failure stops the others and shows the end of its log.
+own log, reported as each one ends. The first failure stops the others and shows the end of its log; with
+keep_going, a failure is reported (the end of its log) and the other jobs go on.
 
 Used by ablation_jobs.py, real_capture_jobs.py and sparse.py (few-view and real-capture runs leave a GPU mostly
 idle, so several share one)."""
@@ -44,9 +45,11 @@ def gpu_slot(gpus: List[int], i: int) -> Tuple[str, Dict[str, str]]:
 
 
 def run_jobs(jobs: List[Job], at_once: int, log_dir: Path, *, env: Optional[dict] = None,
-             summary: Callable[[Job, str], str] = lambda job, log: job.name, poll_seconds: float = 1.0) -> List[Job]:
-    """Runs every job (in order, as slots free up) and returns them in the order they ended. summary(job, log text)
-    is the line printed (to stderr) when a job ends."""
+             summary: Callable[[Job, str], str] = lambda job, log: job.name, poll_seconds: float = 1.0,
+             keep_going: bool = False) -> List[Job]:
+    """Runs every job (in order, as slots free up) and returns the ones that succeeded, in the order they ended.
+    summary(job, log text) is the line printed (to stderr) when a job ends. A failure stops the rest (SystemExit
+    with the end of its log), or with keep_going is printed and left out of the returned list."""
     if at_once < 1:
         raise ValueError(f"at_once: expected at least 1, got {at_once}")
     names = [j.name for j in jobs]
@@ -71,9 +74,13 @@ def run_jobs(jobs: List[Job], at_once: int, log_dir: Path, *, env: Optional[dict
             del running[name]
             text = (log_dir / f"{name}.log").read_text()
             if proc.returncode != 0:
+                failure = f"{name} failed (exit {proc.returncode}); the end of its log:\n{text[-2000:]}"
+                if keep_going:
+                    print(f"  [{time.perf_counter() - start:6.0f} s] {failure}", file=sys.stderr, flush=True)
+                    continue
                 for _, other, _ in running.values():
                     other.terminate()
-                raise SystemExit(f"{name} failed (exit {proc.returncode}); the end of its log:\n{text[-2000:]}")
+                raise SystemExit(failure)
             print(f"  [{time.perf_counter() - start:6.0f} s] {summary(job, text)}", file=sys.stderr, flush=True)
             done.append(job)
         if waiting or running:

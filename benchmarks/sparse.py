@@ -135,6 +135,9 @@ def parse(argv):
     ap.add_argument("--at-step", type=int, default=None,
                     help="with --table: the image scores each run's history has at this step")
     ap.add_argument("--detach", action="store_true", help="start the wave in its own process session and return")
+    ap.add_argument("--keep-going", action="store_true",
+                    help="a failed prior or run does not stop the others: the tables take the runs made, and the "
+                         "command exits non-zero naming the failures")
     ap.add_argument("--marr", action="append", default=[], metavar="KEY=VALUE",
                     help="a warpgs.losses.marr setting for every run (e.g. confidence_power=2; repeatable); a "
                          "setting that sets the key itself (wo_confidence) keeps its own")
@@ -235,15 +238,26 @@ def main(argv=None):
               if not prior_done(out, args.tag, sc)]
     start = time.perf_counter()
     logs = out / "logs"
+    failed = []
     if priors:
         print(f"priors: {', '.join(sc.name for sc in priors)}", file=sys.stderr, flush=True)
-        run_jobs([Job(f"prior_{args.tag}_{sc.name}", worker_cmd(args, "prior", sc), *gpu_slot(gpus, i))
-                  for i, sc in enumerate(priors)], args.per_gpu, logs)
+        jobs = [Job(f"prior_{args.tag}_{sc.name}", worker_cmd(args, "prior", sc), *gpu_slot(gpus, i))
+                for i, sc in enumerate(priors)]
+        made = {j.name for j in run_jobs(jobs, args.per_gpu, logs, keep_going=args.keep_going)}
+        no_prior = {sc.name for sc, j in zip(priors, jobs) if j.name not in made}
+        failed += [j.name for j in jobs if j.name not in made]
+        # without its prior a run that reads one cannot start (--keep-going only: otherwise run_jobs has stopped)
+        todo = [r for r in todo if not (r.scene.name in no_prior and needs_prior(r, args.overrides))]
     print(f"runs: {len(todo)} to do of {len(runs)}", file=sys.stderr, flush=True)
-    run_jobs([Job(r.id, worker_cmd(args, "run", r.scene, r), *gpu_slot(gpus, i)) for i, r in enumerate(todo)],
-             args.per_gpu, logs, summary=lambda job, log: _summary(out, job))
+    jobs = [Job(r.id, worker_cmd(args, "run", r.scene, r), *gpu_slot(gpus, i)) for i, r in enumerate(todo)]
+    made = {j.name for j in run_jobs(jobs, args.per_gpu, logs, summary=lambda job, log: _summary(out, job),
+                                     keep_going=args.keep_going)}
+    failed += [j.name for j in jobs if j.name not in made]
     print(f"all runs done in {time.perf_counter() - start:.0f} s", file=sys.stderr)
-    return tables(args, runs, argv)
+    payload = tables(args, runs, argv)
+    if failed:
+        raise SystemExit(f"{len(failed)} failed (logs in {logs}): {', '.join(failed)}")
+    return payload
 
 
 def _summary(out: Path, job: Job) -> str:

@@ -43,6 +43,14 @@ def test_a_failing_job_stops_the_run_with_its_log(tmp_path):
         run_jobs(jobs, 2, tmp_path)
 
 
+def test_keep_going_reports_a_failure_and_finishes_the_others(tmp_path, capsys):
+    jobs = [Job("bad", [sys.executable, "-c", "raise SystemExit('broken input')"]),
+            Job("ok", [sys.executable, "-c", "import time; time.sleep(1); print('finished')"])]
+    done = run_jobs(jobs, 2, tmp_path, keep_going=True)
+    assert [j.name for j in done] == ["ok"] and (tmp_path / "ok.log").read_text().strip() == "finished"
+    assert "bad failed (exit 1)" in capsys.readouterr().err
+
+
 def test_plan_pairs_a_seed_on_one_gpu_and_spreads_seeds():
     jobs = real_capture_jobs.plan("data/beer", [1, 2, 3], [0, 1], ["--gsplat"], "t")
     assert [(j.name, j.group) for j in jobs] == [("warpgs_s1", "0"), ("gsplat_s1", "0"), ("warpgs_s2", "1"),

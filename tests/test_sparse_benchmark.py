@@ -68,6 +68,31 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
         sparse.main(common + ["--at-step", "4"])
 
 
+def test_keep_going_tabulates_the_runs_made_and_names_the_failed_one(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path))
+    scene = synthetic_dir("orbit")
+    out = tmp_path / "out"
+    made = sparse.worker_cmd
+
+    def failing_seed_1(args, kind, sc, run=None):  # seed 1's run cannot start, as a capture too thin for an arm
+        if run is not None and run.seed == 1:
+            return [sys.executable, "-c", "raise SystemExit('triangulation found only 19 points')"]
+        return made(args, kind, sc, run)
+
+    monkeypatch.setattr(sparse, "worker_cmd", failing_seed_1)
+    common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--seeds", "0,1",
+              "--steps", "4", "--budget", "1000", "--threads", "1", "--per-gpu", "2", "--out", str(out),
+              "--name", "t_keep"]
+    with pytest.raises(SystemExit, match="failed"):  # by default the first failure stops the wave
+        sparse.main(common)
+    with pytest.raises(SystemExit, match=r"1 failed .*m360_24_orbit_baseline_s1"):
+        sparse.main(common + ["--keep-going"])
+    assert set(_runs(out)) == {"m360_24_orbit_baseline_s0.json"}
+    table = json.loads((tmp_path / "sparse_t_keep.json").read_text())
+    assert table["missing"] == ["m360_24_orbit_baseline_s1"] and len(table["runs"]) == 1
+    assert "19 points" in capsys.readouterr().err
+
+
 def test_a_run_file_made_with_other_steps_is_not_reused(tmp_path):
     """Run files are named without the steps, budget and downscale: resuming into the same --out with other ones
     must not count (or tabulate) the old runs as done."""
