@@ -233,31 +233,44 @@ def main(argv=None):
         pid = detach(cmd, out / f"{args.name}_jobs.log")
         print(f"detached: pid {pid}, output in {out / f'{args.name}_jobs.log'} (pid beside it)")
         return None
+    failed, skipped = make_runs(args, runs, out, gpus)
+    problems = ((f"{len(failed)} failed (logs in {out / 'logs'}): {', '.join(failed)}" if failed else "")
+                + (f"; skipped, their prior failed: {', '.join(skipped)}" if skipped else ""))
+    try:
+        payload = tables(args, runs, argv)
+    except SystemExit as no_runs:  # nothing made: the failures are the news
+        raise SystemExit(f"{no_runs}\n{problems}" if problems else no_runs) from None
+    if problems:
+        raise SystemExit(problems)
+    return payload
+
+
+def make_runs(args, runs: list[Run], out: Path, gpus: list[int]) -> tuple[list[str], list[str]]:
+    """Makes the runs not done yet, after the priors they need. Returns (failed jobs, runs skipped because their
+    prior failed): both empty unless --keep-going, without which the first failure stops the wave."""
     todo = [r for r in runs if not run_done(args, r)]
     priors = [sc for sc in {r.scene: None for r in todo if needs_prior(r, args.overrides)}
               if not prior_done(out, args.tag, sc)]
     start = time.perf_counter()
     logs = out / "logs"
-    failed = []
+    failed, skipped = [], []
     if priors:
         print(f"priors: {', '.join(sc.name for sc in priors)}", file=sys.stderr, flush=True)
         jobs = [Job(f"prior_{args.tag}_{sc.name}", worker_cmd(args, "prior", sc), *gpu_slot(gpus, i))
                 for i, sc in enumerate(priors)]
         made = {j.name for j in run_jobs(jobs, args.per_gpu, logs, keep_going=args.keep_going)}
-        no_prior = {sc.name for sc, j in zip(priors, jobs) if j.name not in made}
         failed += [j.name for j in jobs if j.name not in made]
-        # without its prior a run that reads one cannot start (--keep-going only: otherwise run_jobs has stopped)
-        todo = [r for r in todo if not (r.scene.name in no_prior and needs_prior(r, args.overrides))]
-    print(f"runs: {len(todo)} to do of {len(runs)}", file=sys.stderr, flush=True)
+        no_prior = {sc.name for sc, j in zip(priors, jobs) if j.name not in made}
+        skipped = [r.id for r in todo if r.scene.name in no_prior and needs_prior(r, args.overrides)]
+        todo = [r for r in todo if r.id not in skipped]
+    print(f"runs: {len(todo)} to do of {len(runs)}" + (f" ({len(skipped)} skipped: their prior failed)" if skipped
+                                                        else ""), file=sys.stderr, flush=True)
     jobs = [Job(r.id, worker_cmd(args, "run", r.scene, r), *gpu_slot(gpus, i)) for i, r in enumerate(todo)]
     made = {j.name for j in run_jobs(jobs, args.per_gpu, logs, summary=lambda job, log: _summary(out, job),
                                      keep_going=args.keep_going)}
     failed += [j.name for j in jobs if j.name not in made]
     print(f"all runs done in {time.perf_counter() - start:.0f} s", file=sys.stderr)
-    payload = tables(args, runs, argv)
-    if failed:
-        raise SystemExit(f"{len(failed)} failed (logs in {logs}): {', '.join(failed)}")
-    return payload
+    return failed, skipped
 
 
 def _summary(out: Path, job: Job) -> str:

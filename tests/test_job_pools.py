@@ -46,7 +46,7 @@ def test_a_failing_job_stops_the_run_with_its_log(tmp_path):
 def test_keep_going_reports_a_failure_and_finishes_the_others(tmp_path, capsys):
     jobs = [Job("bad", [sys.executable, "-c", "raise SystemExit('broken input')"]),
             Job("ok", [sys.executable, "-c", "import time; time.sleep(1); print('finished')"])]
-    done = run_jobs(jobs, 2, tmp_path, keep_going=True)
+    done = run_jobs(jobs, 1, tmp_path, keep_going=True)  # one slot: "ok" starts after "bad" has failed
     assert [j.name for j in done] == ["ok"] and (tmp_path / "ok.log").read_text().strip() == "finished"
     assert "bad failed (exit 1)" in capsys.readouterr().err
 

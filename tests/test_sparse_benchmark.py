@@ -93,6 +93,27 @@ def test_keep_going_tabulates_the_runs_made_and_names_the_failed_one(tmp_path, c
     assert "19 points" in capsys.readouterr().err
 
 
+def test_keep_going_skips_the_runs_of_a_failed_prior_and_names_every_failure(tmp_path, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path))
+    scene = synthetic_dir("orbit")
+    made = sparse.worker_cmd
+    broken = [sys.executable, "-c", "raise SystemExit('broken')"]
+    common = ["--protocol", "m360_24", "--scenes", str(scene), "--seeds", "0", "--steps", "4", "--budget", "1000",
+              "--threads", "1", "--per-gpu", "2", "--keep-going", "--name", "t_prior"]
+    # The prior fails: 3DGS (no prior) is still made, the preset is skipped, and both are named.
+    monkeypatch.setattr(sparse, "worker_cmd", lambda args, kind, sc, run=None:
+                        broken if kind == "prior" else made(args, kind, sc, run))
+    out = tmp_path / "a"
+    with pytest.raises(SystemExit, match=r"1 failed .*prior_m360_24_orbit; skipped, their prior failed: "
+                                          r"m360_24_orbit_preset_s0"):
+        sparse.main(common + ["--settings", "baseline,preset", "--out", str(out)])
+    assert set(_runs(out)) == {"m360_24_orbit_baseline_s0.json"}
+    # Every run fails: no table can be made, and the failures are still named.
+    monkeypatch.setattr(sparse, "worker_cmd", lambda args, kind, sc, run=None: broken)
+    with pytest.raises(SystemExit, match=r"(?s)no run files.*1 failed .*m360_24_orbit_baseline_s0"):
+        sparse.main(common + ["--settings", "baseline", "--out", str(tmp_path / "b")])
+
+
 def test_a_run_file_made_with_other_steps_is_not_reused(tmp_path):
     """Run files are named without the steps, budget and downscale: resuming into the same --out with other ones
     must not count (or tabulate) the old runs as done."""

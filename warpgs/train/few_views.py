@@ -3,7 +3,7 @@ model.prior_points_confidence, strategy.unpool_every) share: "auto" is one value
 views and another above (off, for the few-view switches; unpooling the other way round), with other values below a
 few smaller counts if measured so (dropout: on with few views and with many, off between), and the start line says
 which. The count is the scene's training views (scene.train), train.steps=auto's held-out validation views included:
-they train again after its stop, and the priors and initial points are made from all of them."""
+the priors and initial points are made from all of them, and they train again in its polish (schedule.polish)."""
 from __future__ import annotations
 
 from dataclasses import dataclass

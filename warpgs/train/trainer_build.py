@@ -146,9 +146,7 @@ class TrainerBuild:
             self.strategy.schedule.auto = AutoStop(cfg.schedule)
             self.views.hold_out(validation_split(self.scene.train, cfg.schedule.val_nth)[1])
         self.best_state = BestState() if self.auto_steps and cfg.schedule.keep_best else None
-        # Every "auto" that depends on the view count counts the scene's training views, train.steps=auto's held-out
-        # ones included (they train again after its stop), as unpooling and the prior points do (train/few_views.py).
-        num_views = len(self.scene.train)
+        num_views = len(self.scene.train)  # what every few-view "auto" counts (train/few_views.py)
         self.drop_rate = drop_rate_for(cfg.train.drop_rate, num_views)  # train/dropout.py
         if self.drop_rate and self.model_parallel:
             raise ValueError("train.drop_rate: not supported with train.parallel=model (use the default data parallel)")
