@@ -263,8 +263,10 @@ def read_reference_depth(scene_dir: Path, names, width: int, height: int) -> dic
     scene's served one is an error naming the file."""
     path = Path(scene_dir) / REFERENCE_FILE
     with np.load(path) as data:
-        if tuple(int(x) for x in data["__size__"]) != (width, height):
-            raise SystemExit(f"{path}: made at {tuple(data['__size__'])}, the scene is served at {(width, height)}")
+        made = tuple(int(x) for x in data["__size__"])
+        if made != (width, height):
+            raise SystemExit(f"{path}: made for {made[0]}x{made[1]} images, but the scene is served at {width}x{height}: "
+                             f"give the downscale it was made at (--scenes FOLDER@N), or make it again at this size")
         out = {}
         for name in names:
             depth = np.zeros((height, width), np.float32)

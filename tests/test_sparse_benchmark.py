@@ -315,6 +315,13 @@ def test_an_llff_folder_trimmed_to_another_resolution_needs_its_downscale(tmp_pa
     assert sparse_runs.parse_scene(f"{scene}@2", protocol).downscale == 2
 
 
+def test_a_reference_depth_made_at_another_size_names_both_sizes(tmp_path):
+    np.savez(tmp_path / sparse_data.REFERENCE_FILE, __size__=np.array([480, 270]))
+    with pytest.raises(SystemExit, match=r"made for 480x270 images, but the scene is served at 240x135: .*@N"):
+        sparse_data.read_reference_depth(tmp_path, [], 240, 135)
+    assert sparse_data.read_reference_depth(tmp_path, [], 480, 270) == {}
+
+
 def test_marr_settings_reach_every_worker_and_bad_ones_are_refused():
     scene = synthetic_dir("orbit")
     base = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "preset,wo_confidence"]
