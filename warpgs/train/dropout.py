@@ -16,7 +16,8 @@ from warpgs.train.few_views import FewViewsRule
 # LLFF scenes at 3 views none is 0.10 dB under 0.3 and 0.1 ties with 0.3 (+0.04 +- 0.08; the preset's figures are
 # measured at 0.3); at 4 views 0.3 is 0.12 +- 0.03 under 0.1. Around 360° captures 0.1 against none: +0.16 / +0.38 /
 # -0.09 / +0.25 at 24 views of four, +0.42 / +0.17 / +0.15 / +0.10 at 12 views (0.2 costs more than it gives). 9
-# views of a real light field lose 0.56 +- 0.08 dB at 0.1 and 5-8 views are unmeasured, so auto leaves it off there. Forward-facing captures with more than 9 views are unmeasured.
+# views of a real light field lose 0.56 +- 0.08 dB at 0.1 and 5-8 views are unmeasured, so auto leaves it off there.
+# Forward-facing captures with more than 9 views are unmeasured.
 AUTO_RATE_3 = 0.3
 AUTO_RATE = 0.1
 AUTO_MAX_VIEWS = 4
