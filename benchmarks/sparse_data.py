@@ -265,8 +265,9 @@ def read_reference_depth(scene_dir: Path, names, width: int, height: int) -> dic
     with np.load(path) as data:
         made = tuple(int(x) for x in data["__size__"])
         if made != (width, height):
-            raise SystemExit(f"{path}: made for {made[0]}x{made[1]} images, but the scene is served at {width}x{height}: "
-                             f"give the downscale it was made at (--scenes FOLDER@N), or make it again at this size")
+            raise SystemExit(f"{path}: made for {made[0]}x{made[1]} images, but the scene is served at "
+                             f"{width}x{height}: give the downscale it was made at (--scenes FOLDER@N), or make it "
+                             f"again at this size")
         out = {}
         for name in names:
             depth = np.zeros((height, width), np.float32)
