@@ -39,7 +39,8 @@ given when its weights are on disk.
 Runs are the presets' 1000 steps on either device; a shorter or longer run (--steps) is the same schedule cut or
 extended (the presets give their horizons in absolute steps). On the CPU the primitive budget is 10k (prior points
 scaled with it) unless --budget says otherwise. --at-step N tabulates the held-out image scores that runs made with
-eval.every=N (their history) had at step N; depth is scored at the end of a run only, so those tables leave it out.
+eval.every=N (their history) had at step N; depth is scored at the end of a run only, so those tables leave it out
+(at the runs' last step, N = --steps, the tables are the final ones, depth included).
 Run files: <out>/runs/<protocol>_<scene>_<setting>_s<seed>.json; a run whose file exists is skipped (so a cut wave
 resumes), one made with other steps, budget or downscale is an error. The tables go to
 benchmarks/results/sparse_<name>.json (or $OUT). On a device, $OUT is emptied between commands: give --out a folder of
@@ -100,7 +101,10 @@ def tables(args, runs: list[Run], argv=None) -> dict:
 
 
 def at_step(run: dict, step: int) -> dict:
-    """The run's record with its image scores, size and time as its history has them at `step` (depth: None)."""
+    """The run's record with its image scores, size and time as its history has them at `step` (depth: None); at
+    the run's last step, its final record (the periodic evaluation skips the last step: the final one scores it)."""
+    if step == run.get("steps"):
+        return run
     entry = next((h for h in run.get("history") or [] if h["step"] == step), None)
     if entry is None:
         raise SystemExit(f"--at-step {step}: run {run['id']} has no score at that step (history at "
@@ -133,7 +137,7 @@ def parse(argv):
     ap.add_argument("--dry-run", action="store_true", help="list the runs (done / to do) and the splits, run nothing")
     ap.add_argument("--table", action="store_true", help="only the tables, from the run files there are")
     ap.add_argument("--at-step", type=int, default=None,
-                    help="with --table: the image scores each run's history has at this step")
+                    help="with --table: the image scores each run's history has at this step (at --steps: the final scores)")
     ap.add_argument("--detach", action="store_true", help="start the wave in its own process session and return")
     ap.add_argument("--keep-going", action="store_true",
                     help="a failed prior or run does not stop the others: the tables take the runs made, and the "

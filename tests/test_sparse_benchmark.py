@@ -64,6 +64,8 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
     assert "scored at step 4" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="no score at that step"):
         sparse.main(common + ["--name", "t_orbit_5", "--table", "--at-step", "5"])
+    last = sparse.main(common + ["--name", "t_orbit_8", "--table", "--at-step", "8"])  # the run's end: its final scores
+    assert last["summary"]["scenes"]["orbit"]["baseline"]["psnr"] == (run["psnr"], None)
     with pytest.raises(SystemExit, match="only with --table"):
         sparse.main(common + ["--at-step", "4"])
 
