@@ -137,7 +137,8 @@ def parse(argv):
     ap.add_argument("--dry-run", action="store_true", help="list the runs (done / to do) and the splits, run nothing")
     ap.add_argument("--table", action="store_true", help="only the tables, from the run files there are")
     ap.add_argument("--at-step", type=int, default=None,
-                    help="with --table: the image scores each run's history has at this step (at --steps: the final scores)")
+                    help="with --table: the image scores each run's history has at this step "
+                         "(at --steps: the final scores)")
     ap.add_argument("--detach", action="store_true", help="start the wave in its own process session and return")
     ap.add_argument("--keep-going", action="store_true",
                     help="a failed prior or run does not stop the others: the tables take the runs made, and the "
