@@ -5,9 +5,11 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from torch.overrides import TorchFunctionMode
 
 from warpgs.losses import compute_losses, get_loss, resolve_losses, required_outputs
 from warpgs.losses import gestalt, marr
+from warpgs.losses.sobel import sobel_gradient
 
 MARR = ("depth", "depth_grad", "depth_local")
 GESTALT = ("opacity", "scale", "count")
@@ -129,6 +131,42 @@ def test_marr_terms_accept_batched_maps():
     assert value("depth", out, b) == pytest.approx(float((pred - prior).abs().mean()), rel=1e-5)
     for name in ("depth_grad", "depth_local"):
         assert math.isfinite(value(name, out, b))
+
+
+class _HostTensors(TorchFunctionMode):
+    """Counts tensors made from host data (torch.tensor / as_tensor): on a GPU each is a copy torch ends with a
+    stream synchronisation."""
+
+    def __init__(self):
+        super().__init__()
+        self.made = 0
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        if func in (torch.tensor, torch.as_tensor):
+            self.made += 1
+        return func(*args, **(kwargs or {}))
+
+
+def test_sobel_gradient_is_kornias_bit_for_bit():
+    from kornia.filters import spatial_gradient
+    torch.manual_seed(0)
+    for shape, dtype in (((2, 3, 7, 9), torch.float32), ((1, 1, 5, 4), torch.float32), ((1, 2, 6, 6), torch.float64)):
+        x = torch.randn(shape, dtype=dtype)
+        assert torch.equal(sobel_gradient(x), spatial_gradient(x, mode="sobel", order=1, normalized=True))
+
+
+def test_marr_terms_make_no_tensor_from_host_data_once_warm():
+    # depth_grad's Sobel kernel came from a Python list on every call (kornia), a host sync a step on a GPU
+    torch.manual_seed(0)
+    out = render(torch.rand(6, 7) + 0.1)
+    out.inv_depth.requires_grad_(True)
+    b = batch(torch.rand(6, 7) + 0.1)
+    b["inv_depth_confidence"] = torch.rand(6, 7, 1)
+    for name in MARR:
+        get_loss(name).fn(out, b, None, 0).backward()  # warm: caches made once
+        with _HostTensors() as mode:
+            get_loss(name).fn(out, b, None, 0).backward()
+        assert mode.made == 0, name
 
 
 def test_missing_prior_names_the_fix():

@@ -27,13 +27,14 @@ from warpgs.losses.marr import (DEPTH_SCHEDULE, OUTPUTS, PRIOR_KEY, SETTINGS, _b
                                 prior_and_mask, prior_weight, rendered_inverse_depth, window_min, window_valid)
 from warpgs.losses.photometric import IMAGE_KEY
 from warpgs.losses.registry import batch_field, register_loss
+from warpgs.losses.sobel import sobel_gradient
 
 EDGE = 10.0  # edge sensitivity: an image step of 0.1 per pixel (normalised Sobel) leaves e^-1 of the weight
 
 
 def edge_weight(image: torch.Tensor, edge: float = EDGE) -> torch.Tensor:
     """[B, 3, H, W] image in [0, 1] -> [B, 1, H, W] exp(-edge x mean over channels of |∂x I| + |∂y I|)."""
-    g = spatial_gradient(image, mode="sobel", order=1, normalized=True)  # [B, C, 2, H, W]
+    g = sobel_gradient(image)  # [B, C, 2, H, W]
     return torch.exp(-edge * g.abs().sum(2).mean(1, keepdim=True))
 
 

@@ -41,9 +41,10 @@ from typing import Optional
 
 import torch
 import torch.nn.functional as F
-from kornia.filters import box_blur, spatial_gradient
+from kornia.filters import box_blur
 
 from warpgs.losses.registry import batch_field, register_loss, render_output
+from warpgs.losses.sobel import sobel_gradient
 
 PRIOR_KEY = "inv_depth_prior"
 VALID_KEY = "inv_depth_valid"
@@ -137,7 +138,7 @@ def depth_gradient_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tenso
     """mean over pixels with an all-valid 3x3 window of |∂x D̂ - ∂x D*| + |∂y D̂ - ∂y D*|, with kornia's
     normalised Sobel (a ramp of slope 1 per pixel has gradient 1); weighted by the window's smallest weight."""
     diff = torch.where(mask, pred - prior, torch.zeros_like(pred))  # ∇ is linear: ∇D̂ - ∇D* = ∇(D̂ - D*)
-    g = spatial_gradient(diff, mode="sobel", order=1, normalized=True)  # [B, 1, 2, H, W]
+    g = sobel_gradient(diff)  # [B, 1, 2, H, W]; kornia's, without its per-call host copy (sobel.py)
     inner = window_valid(mask)
     return masked_mean(g.abs().sum(2), inner, None if weight is None else window_min(weight))
 
