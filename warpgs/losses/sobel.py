@@ -11,18 +11,17 @@ import functools
 
 import torch
 import torch.nn.functional as F
-
-# kornia's pair (d/dx, d/dy): the 3x3 Sobel kernels over their absolute sums (8), so exact in binary floats
-_NORMALISED_SOBEL = (((-0.125, 0.0, 0.125), (-0.25, 0.0, 0.25), (-0.125, 0.0, 0.125)),
-                     ((-0.125, -0.25, -0.125), (0.0, 0.0, 0.0), (0.125, 0.25, 0.125)))
+from kornia.filters import get_spatial_gradient_kernel2d
 
 
 @functools.lru_cache(maxsize=16)
 def sobel_kernel(device: torch.device, dtype: torch.dtype) -> torch.Tensor:
-    """[2, 1, 3, 3] conv2d weight of the pair; never an inference tensor (a first call under inference_mode would
-    otherwise break every differentiated one after)."""
+    """[2, 1, 3, 3] conv2d weight: kornia's pair (d/dx, d/dy), the 3x3 Sobel kernels over their absolute sums (8),
+    built by kornia once; never an inference tensor (a first call under inference_mode would otherwise break every
+    differentiated one after)."""
     with torch.inference_mode(False):
-        return torch.tensor(_NORMALISED_SOBEL, dtype=dtype, device=device)[:, None]
+        pair = get_spatial_gradient_kernel2d("sobel", 1, device=device, dtype=dtype)
+        return (pair / pair.abs().sum((-2, -1), keepdim=True))[:, None]  # kornia's normalisation (normalized=True)
 
 
 def sobel_gradient(x: torch.Tensor) -> torch.Tensor:
