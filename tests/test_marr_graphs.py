@@ -3,6 +3,10 @@ go through the graphs and with which arguments, the graphed core against the ter
 kept values. CI has no GPU: the capture is a stand-in that keeps the graphs' contract on the CPU (the sample's
 tensors are the static inputs each call copies into; the output is one buffer each call overwrites); the real
 graphs are checked against the eager terms on a GPU by benchmarks/marr_graphs.py."""
+import json
+import os
+import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -10,6 +14,9 @@ import torch
 
 from warpgs.losses import compute_losses, cuda_graphs, get_loss, marr, resolve_losses
 from warpgs.losses.cuda_graphs import KeyedGraphs
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import marr_graphs  # noqa: E402 - benchmarks/marr_graphs.py
 
 MARR = ("depth", "depth_grad", "depth_local")
 
@@ -194,3 +201,13 @@ def test_the_confidence_check_stays_outside_the_graph(capture):
     conf = batch["view"].inv_depth_confidence.permute(2, 0, 1)[None]
     assert torch.isnan(core(*args[:3], *args[3], conf))
 
+
+def test_the_gpu_benchmark_runs_on_the_cpu(tmp_path, monkeypatch):
+    monkeypatch.setenv("OUT", str(tmp_path))
+    monkeypatch.delenv("WARPGS_LOSS_GRAPHS", raising=False)
+    assert marr_graphs.main(["--sizes", "12x10", "--calls", "2", "--rounds", "1", "--device", "cpu", "--tag", "t"]) == 0
+    result = json.loads((tmp_path / "marr_graphs_cpu_t.json").read_text())
+    assert result["ok"] and not result["graphs"] and "WARPGS_LOSS_GRAPHS" not in os.environ
+    row = result["rows"][0]
+    assert set(row["checks"]) == {"trainer", "no_confidence", "batch_mask", "settings", "trainer_again", "kept_values"}
+    assert set(row["timings"]) == {"depth", "depth_grad", "depth_local", "all"}
