@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from warpgs.losses import cuda_graphs
-from warpgs.losses.cuda_graphs import ShapeGraphs, loss_graphs_enabled
+from warpgs.losses.cuda_graphs import KeyedGraphs, ShapeGraphs, loss_graphs_enabled
 from warpgs.metrics.image import ssim
 
 
@@ -74,3 +74,22 @@ def test_torch_dssim_goes_through_the_graphs_wrapper():
 
     assert isinstance(photometric._graphed_ssim, ShapeGraphs) and photometric._graphed_ssim.fn is ssim
     assert cuda_graphs._is_training_call((torch.zeros(1, requires_grad=True),)) is False  # CPU
+
+
+def test_keyed_graphs_make_a_function_a_key_and_keep_the_keys_used_last():
+    capture, made = RecordingCapture(), []
+
+    def make(key):
+        made.append(key)
+        return lambda pred, target: ssim(pred, target) * key
+
+    graphs = KeyedGraphs(make, max_keys=2, capture=capture)
+    pred, target = images(8, 8)
+    for key in (1.0, 2.0, 1.0, 3.0, 1.0):
+        tag, value = graphs.graphs_for(key).lookup((pred, target))(pred, target)
+        assert tag == "replayed" and torch.allclose(value, ssim(pred, target) * key)
+    assert made == [1.0, 2.0, 3.0] and list(graphs.keys) == [3.0, 1.0]  # 3.0 dropped 2.0, used least recently
+    assert len(capture.samples) == 3
+    out = graphs(2.0, pred, target)  # CPU: the function made for the key, as written (2.0 made again)
+    assert torch.allclose(out, ssim(pred, target) * 2.0) and len(capture.samples) == 3
+    assert made[-1] == 2.0 and list(graphs.keys) == [1.0, 2.0]

@@ -11,7 +11,10 @@ The function must be graph-safe: no host reads, no shapes that depend on values.
 the graphs off (for A/B runs and debugging).
 
 The output of a replay is the graph's own buffer, overwritten by the next replay: callers use it at once
-(`1 - ssim(...)`), they do not keep it.
+(`1 - ssim(...)`), or return a copy (a loss term's value is kept by compute_losses), they do not keep it.
+
+KeyedGraphs: ShapeGraphs per Python-level key, for a function whose settings or optional arguments are fixed
+when its graph is captured (the Marr depth terms': their settings, whether a confidence map comes).
 """
 from __future__ import annotations
 
@@ -52,6 +55,32 @@ class ShapeGraphs:
             sample = tuple(a.detach().clone().requires_grad_(a.requires_grad) for a in args)
             graphed = self.graphs[key] = self.capture(self.fn, sample)
         return graphed
+
+
+class KeyedGraphs:
+    """fn(key, *tensors): ShapeGraphs of make(key), a function of the tensors with whatever the key stands for
+    (settings, which optional maps are given) fixed in it, so a capture never replays a stale setting. The
+    `max_keys` keys used last keep their graphs; an older key's are dropped (settings changed between benchmark
+    runs), which frees their buffers."""
+
+    def __init__(self, make: Callable, max_keys: int = 2, max_graphs: int = 4, capture: Optional[Callable] = None):
+        self.make = make
+        self.max_keys = int(max_keys)
+        self.max_graphs = int(max_graphs)
+        self.capture = capture
+        self.keys = {}  # key -> ShapeGraphs, least recently used first
+
+    def __call__(self, key, *args):
+        return self.graphs_for(key)(*args)
+
+    def graphs_for(self, key) -> ShapeGraphs:
+        graphs = self.keys.pop(key, None)
+        if graphs is None:
+            while len(self.keys) >= self.max_keys:
+                self.keys.pop(next(iter(self.keys)))
+            graphs = ShapeGraphs(self.make(key), self.max_graphs, self.capture)
+        self.keys[key] = graphs  # the most recently used last
+        return graphs
 
 
 def _is_training_call(args) -> bool:

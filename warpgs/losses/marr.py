@@ -32,6 +32,9 @@ unsure of (weakly textured, confirmed by fewer views) pull less. confidence_powe
 
 Options that the config's loss entries cannot carry (they take only weight and schedule) live in
 `SETTINGS` (change them with `configure(alpha_min=...)`, e.g. from a module listed under `imports`).
+
+On a GPU training step each term's tensor work (normalisation, mask, weight, term) replays from a CUDA graph after
+its checks, one launch a direction (cuda_graphs.py; WARPGS_LOSS_GRAPHS=0 turns it off); a graph per settings.
 """
 from __future__ import annotations
 
@@ -43,6 +46,7 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import box_blur
 
+from warpgs.losses.cuda_graphs import KeyedGraphs
 from warpgs.losses.registry import batch_field, register_loss, render_output
 from warpgs.losses.sobel import sobel_gradient
 
@@ -167,17 +171,28 @@ def depth_local_l1(pred: torch.Tensor, prior: torch.Tensor, mask: torch.Tensor,
 
 
 # ----- from the render and the batch ---------------------------------------------------------------------------
-def rendered_inverse_depth(render_out, alpha_eps: Optional[float] = None) -> tuple:
-    """(D̂, alpha) as [B, 1, H, W]: the alpha-normalised accumulated inverse depth (see module doc)."""
-    eps = SETTINGS.alpha_eps if alpha_eps is None else alpha_eps
+# In two parts, so that a GPU training step replays each term's tensor work from a CUDA graph (cuda_graphs.py):
+# the checks (shapes, a missing prior, the confidence's finiteness: a host read) run eagerly on the maps as given,
+# and `_maps` and the terms are tensor work only, on the checked maps, with the settings fixed.
+def _render_maps(render_out) -> tuple:
+    """(accumulated inverse depth, alpha) as [B, 1, H, W] (views of the render's maps)."""
     inv = _bchw(render_output(render_out, "inv_depth"), "render_out.inv_depth")
     alpha = _bchw(render_output(render_out, "alpha"), "render_out.alpha")
-    return inv / alpha.clamp_min(max(eps, 1e-12)), alpha
+    return inv, alpha
 
 
-def prior_and_mask(batch, like: torch.Tensor, alpha: Optional[torch.Tensor] = None,
-                   alpha_min: Optional[float] = None) -> tuple:
-    """(D*, mask) as [B, 1, H, W] matching `like`: valid prior, and-ed with batch["mask"] and alpha >= alpha_min."""
+def _normalised(inv: torch.Tensor, alpha: torch.Tensor, alpha_eps: float) -> torch.Tensor:
+    return inv / alpha.clamp_min(max(alpha_eps, 1e-12))
+
+
+def rendered_inverse_depth(render_out, alpha_eps: Optional[float] = None) -> tuple:
+    """(D̂, alpha) as [B, 1, H, W]: the alpha-normalised accumulated inverse depth (see module doc)."""
+    inv, alpha = _render_maps(render_out)
+    return _normalised(inv, alpha, SETTINGS.alpha_eps if alpha_eps is None else alpha_eps), alpha
+
+
+def _batch_prior(batch, dtype: torch.dtype, device: torch.device, size) -> torch.Tensor:
+    """batch["inv_depth_prior"] as [B, 1, H, W] in `dtype` on `device`, its H, W checked against `size`."""
     try:
         prior = batch_field(batch, PRIOR_KEY)
     except ValueError:
@@ -185,24 +200,43 @@ def prior_and_mask(batch, like: torch.Tensor, alpha: Optional[torch.Tensor] = No
                          "none for this view; set data.depth_priors (a folder of priors, or 'estimate' for the built-in "
                          "plane-sweep stereo), or give depth/depth_grad/depth_local weight 0"
                          ) from None
-    prior = _bchw(prior, f"batch.{PRIOR_KEY}").to(like)
-    if prior.shape[-2:] != like.shape[-2:]:
-        raise ValueError(f"batch.{PRIOR_KEY}: {list(prior.shape[-2:])} does not match the render "
-                         f"{list(like.shape[-2:])}")
-    prior = prior.expand_as(like)
-    mask = torch.isfinite(prior) & (prior > 0)
+    prior = _bchw(prior, f"batch.{PRIOR_KEY}").to(device=device, dtype=dtype)
+    if prior.shape[-2:] != tuple(size):
+        raise ValueError(f"batch.{PRIOR_KEY}: {list(prior.shape[-2:])} does not match the render {list(size)}")
+    return prior
+
+
+def _batch_masks(batch, device: torch.device) -> tuple:
+    """The batch's pixel masks that are present (inv_depth_valid, mask) as bool [B, 1, H, W] on `device`."""
+    masks = []
     for key in (VALID_KEY, MASK_KEY):
         try:
             m = batch_field(batch, key)
         except ValueError:
             continue
-        mask = mask & _bchw(m, f"batch.{key}").to(device=like.device, dtype=torch.bool)
-    if alpha is not None:
-        amin = SETTINGS.alpha_min if alpha_min is None else alpha_min
-        if amin > 0:
-            mask = mask & (alpha.detach() >= amin)
+        masks.append(_bchw(m, f"batch.{key}").to(device=device, dtype=torch.bool))
+    return tuple(masks)
+
+
+def _masked_prior(prior: torch.Tensor, masks, like: torch.Tensor, alpha: Optional[torch.Tensor],
+                  alpha_min: float) -> tuple:
+    """(D*, mask): the valid prior pixels (finite, > 0, in every mask, alpha >= alpha_min), D* 0 elsewhere."""
+    prior = prior.expand_as(like)
+    mask = torch.isfinite(prior) & (prior > 0)
+    for m in masks:
+        mask = mask & m
+    if alpha is not None and alpha_min > 0:
+        mask = mask & (alpha.detach() >= alpha_min)
     prior = torch.where(mask, prior, torch.zeros_like(prior))
     return prior, mask
+
+
+def prior_and_mask(batch, like: torch.Tensor, alpha: Optional[torch.Tensor] = None,
+                   alpha_min: Optional[float] = None) -> tuple:
+    """(D*, mask) as [B, 1, H, W] matching `like`: valid prior, and-ed with batch["mask"] and alpha >= alpha_min."""
+    amin = SETTINGS.alpha_min if alpha_min is None else alpha_min
+    prior = _batch_prior(batch, like.dtype, like.device, like.shape[-2:])
+    return _masked_prior(prior, _batch_masks(batch, like.device), like, alpha, amin)
 
 
 # Confidence maps already found finite, by identity and version (weakly held, so no map outlives its view): a view
@@ -222,12 +256,9 @@ def _seen_finite(t: torch.Tensor) -> bool:
     return False
 
 
-def prior_weight(batch, like: torch.Tensor, power: Optional[float] = None) -> Optional[torch.Tensor]:
-    """confidence ** power as [B, 1, H, W] matching `like`, from batch["inv_depth_confidence"] or the batch's
-    view; None when there is none or power is 0 (plain means)."""
-    power = SETTINGS.confidence_power if power is None else power
-    if power == 0:
-        return None
+def _batch_confidence(batch, dtype: torch.dtype, device: torch.device, size) -> Optional[torch.Tensor]:
+    """The prior's confidence as [B, 1, H, W] in `dtype` on `device` (batch["inv_depth_confidence"] or the batch's
+    view's), checked: H, W against `size`, finite (once per map: `_seen_finite`); None when there is none."""
     try:
         conf = batch_field(batch, CONFIDENCE_KEY)
     except ValueError:
@@ -236,38 +267,106 @@ def prior_weight(batch, like: torch.Tensor, power: Optional[float] = None) -> Op
         if conf is None:
             return None
     given = conf
-    conf = _bchw(conf, f"batch.{CONFIDENCE_KEY}").to(like)
-    if conf.shape[-2:] != like.shape[-2:]:
-        raise ValueError(f"batch.{CONFIDENCE_KEY}: {list(conf.shape[-2:])} does not match the render "
-                         f"{list(like.shape[-2:])}")
+    conf = _bchw(conf, f"batch.{CONFIDENCE_KEY}").to(device=device, dtype=dtype)
+    if conf.shape[-2:] != tuple(size):
+        raise ValueError(f"batch.{CONFIDENCE_KEY}: {list(conf.shape[-2:])} does not match the render {list(size)}")
     if not _seen_finite(given) and not bool(torch.isfinite(conf).all()):
         raise ValueError(f"batch.{CONFIDENCE_KEY}: contains NaN or Inf")
     if not given.is_inference():
         _SEEN_FINITE[id(given)] = (weakref.ref(given), given._version)
+    return conf
+
+
+def _confidence_weight(conf: torch.Tensor, power: float, like: torch.Tensor) -> torch.Tensor:
     return conf.clamp(0.0, 1.0).pow(power).expand_as(like)
+
+
+def prior_weight(batch, like: torch.Tensor, power: Optional[float] = None) -> Optional[torch.Tensor]:
+    """confidence ** power as [B, 1, H, W] matching `like`, from batch["inv_depth_confidence"] or the batch's
+    view; None when there is none or power is 0 (plain means)."""
+    power = SETTINGS.confidence_power if power is None else power
+    if power == 0:
+        return None
+    conf = _batch_confidence(batch, like.dtype, like.device, like.shape[-2:])
+    return None if conf is None else _confidence_weight(conf, power, like)
+
+
+def current_settings() -> tuple:
+    """(alpha_eps, alpha_min, confidence_power) as the terms read them now: part of each graph's key."""
+    return (float(SETTINGS.alpha_eps), float(SETTINGS.alpha_min), float(SETTINGS.confidence_power))
+
+
+def checked_maps(render_out, batch, settings: tuple) -> tuple:
+    """(inv_depth, alpha, prior, masks, confidence) as [B, 1, H, W], after every check the terms make (eager:
+    shapes, a missing prior, the confidence's finiteness); confidence None when there is none or its power is 0."""
+    inv, alpha = _render_maps(render_out)
+    dtype, device = torch.promote_types(inv.dtype, alpha.dtype), inv.device
+    size = torch.broadcast_shapes(inv.shape, alpha.shape)[-2:]  # D̂'s, as the division will make it
+    prior = _batch_prior(batch, dtype, device, size)
+    masks = _batch_masks(batch, device)
+    conf = None if settings[2] == 0 else _batch_confidence(batch, dtype, device, size)
+    return inv, alpha, prior, masks, conf
+
+
+def _maps(settings: tuple, inv, alpha, prior, masks, conf) -> tuple:
+    """(D̂, D*, mask, weight) from checked maps: tensor work only (graph-safe: no host reads, shapes fixed)."""
+    alpha_eps, alpha_min, power = settings
+    pred = _normalised(inv, alpha, alpha_eps)
+    prior, mask = _masked_prior(prior, masks, pred, alpha, alpha_min)
+    return pred, prior, mask, None if conf is None else _confidence_weight(conf, power, pred)
 
 
 def depth_inputs(render_out, batch):
     """(rendered inverse depth, prior, valid mask, per-pixel weight) of a render against its batch's depth prior, as
     every depth term here (and losses/depth_patch.py) takes them."""
-    pred, alpha = rendered_inverse_depth(render_out)
-    prior, mask = prior_and_mask(batch, pred, alpha)
-    return pred, prior, mask, prior_weight(batch, pred)
+    settings = current_settings()
+    inv, alpha, prior, masks, conf = checked_maps(render_out, batch, settings)
+    return _maps(settings, inv, alpha, prior, masks, conf)
+
+
+# ----- the registered terms: checks eager, the rest one graph replay a direction on a GPU training step -------
+TERMS = {"depth": depth_l1, "depth_grad": depth_gradient_l1, "depth_local": depth_local_l1}
+
+
+def term_core(name: str, settings: tuple, has_confidence: bool):
+    """Term `name` as fn(inv_depth, alpha, prior, *masks[, confidence]) on checked_maps' maps, with `settings`
+    (current_settings()) fixed: the alpha normalisation, the mask, the confidence weight and the term."""
+    term = TERMS[name]
+
+    def core(inv, alpha, prior, *rest):
+        masks, conf = (rest[:-1], rest[-1]) if has_confidence else (rest, None)
+        return term(*_maps(settings, inv, alpha, prior, masks, conf))
+
+    core.__name__ = core.__qualname__ = f"{name}_core"
+    return core
+
+
+# A graph per term, settings, confidence or not (the key) and argument shapes; CPU, evaluation: term_core as is.
+_GRAPHS = {name: KeyedGraphs(lambda key, name=name: term_core(name, *key)) for name in TERMS}
+
+
+def _graphed_term(name: str, render_out, batch) -> torch.Tensor:
+    settings = current_settings()
+    inv, alpha, prior, masks, conf = checked_maps(render_out, batch, settings)
+    args = (inv, alpha, prior, *masks) + (() if conf is None else (conf,))
+    # A copy: a replay's output is the graph's buffer, which the next replay overwrites, and compute_losses keeps
+    # the value (read a step later).
+    return _GRAPHS[name]((settings, conf is not None), *args).clone()
 
 
 @register_loss("depth", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE, batch=(PRIOR_KEY,))
 def depth(render_out, batch, model, step) -> torch.Tensor:
     """L_D = mean |D̂ - D*| over valid prior pixels (paper eq. 4)."""
-    return depth_l1(*depth_inputs(render_out, batch))
+    return _graphed_term("depth", render_out, batch)
 
 
 @register_loss("depth_grad", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE, batch=(PRIOR_KEY,))
 def depth_grad(render_out, batch, model, step) -> torch.Tensor:
     """L_grad = mean |∇D̂ - ∇D*| (paper eq. 5)."""
-    return depth_gradient_l1(*depth_inputs(render_out, batch))
+    return _graphed_term("depth_grad", render_out, batch)
 
 
 @register_loss("depth_local", outputs=OUTPUTS, weight=1.0, schedule=DEPTH_SCHEDULE, batch=(PRIOR_KEY,))
 def depth_local(render_out, batch, model, step) -> torch.Tensor:
     """L_local = mean |μ_D̂ - μ_D*| + |σ²_D̂ - σ²_D*| over 3x3 windows (paper eqs. 6-8)."""
-    return depth_local_l1(*depth_inputs(render_out, batch))
+    return _graphed_term("depth_local", render_out, batch)
