@@ -93,3 +93,17 @@ def test_keyed_graphs_make_a_function_a_key_and_keep_the_keys_used_last():
     out = graphs(2.0, pred, target)  # CPU: the function made for the key, as written (2.0 made again)
     assert torch.allclose(out, ssim(pred, target) * 2.0) and len(capture.samples) == 3
     assert made[-1] == 2.0 and list(graphs.keys) == [1.0, 2.0]
+
+
+def test_a_failed_capture_warns_and_runs_the_function_as_written():
+    calls = []
+
+    def failing(fn, sample):
+        calls.append(sample)
+        raise RuntimeError("operation not permitted when stream is capturing")
+
+    graphs = ShapeGraphs(ssim, capture=failing)
+    pred, target = images(16, 12)
+    with pytest.warns(RuntimeWarning, match="capture failed"):
+        assert graphs.lookup((pred, target)) is ssim
+    assert graphs.lookup((pred, target)) is ssim and len(calls) == 1  # not tried again for these inputs

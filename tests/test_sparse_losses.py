@@ -259,3 +259,13 @@ def test_compute_losses_weighs_terms_by_schedule():
     assert first.values["depth_local"] == pytest.approx(0.1, abs=1e-6) and abs(float(first.values["depth_grad"])) < 1e-6
     assert float(first.total) == pytest.approx(0.2 + gest, abs=1e-5)
     assert float(last.total) == pytest.approx(0.002 + gest, abs=1e-5)
+
+
+def test_sobel_kernel_first_made_under_inference_mode_serves_differentiated_calls():
+    from warpgs.losses.sobel import sobel_kernel
+    sobel_kernel.cache_clear()  # the kernel is made by the first call, here an evaluation's
+    with torch.inference_mode():
+        sobel_gradient(torch.rand(1, 1, 5, 6))
+    x = torch.rand(1, 1, 5, 6, requires_grad=True)
+    sobel_gradient(x).abs().sum().backward()  # an inference-tensor kernel could not be saved for backward
+    assert x.grad is not None and torch.isfinite(x.grad).all()

@@ -12,6 +12,10 @@ the graphs off (for A/B runs and debugging).
 
 The output of a replay is the graph's own buffer, overwritten by the next replay: callers use it at once
 (`1 - ssim(...)`), or return a copy (a loss term's value is kept by compute_losses), they do not keep it.
+A graph's backward differentiates its last replay, so each replay's backward must run before the same graph
+replays again (the trainer's steps do: render, loss and backward per view); two forward calls of one signature
+before one backward would give the first call wrong gradients, silently. A capture that fails (an op a graph
+cannot hold) warns and leaves those inputs' calls to the function as written.
 
 KeyedGraphs: ShapeGraphs per Python-level key, for a function whose settings or optional arguments are fixed
 when its graph is captured (the Marr depth terms': their settings, whether a confidence map comes).
@@ -53,7 +57,14 @@ class ShapeGraphs:
             if len(self.graphs) >= self.max_graphs:
                 return self.fn
             sample = tuple(a.detach().clone().requires_grad_(a.requires_grad) for a in args)
-            graphed = self.graphs[key] = self.capture(self.fn, sample)
+            try:
+                graphed = self.capture(self.fn, sample)
+            except Exception as e:  # an op a graph cannot hold must cost speed, not the training run
+                name = getattr(self.fn, "__name__", "a loss")
+                warnings.warn(f"{name}: CUDA graph capture failed ({type(e).__name__}: {e}); it runs as written "
+                              "for these inputs", RuntimeWarning)
+                graphed = self.fn
+            self.graphs[key] = graphed
         return graphed
 
 

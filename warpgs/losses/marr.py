@@ -34,7 +34,9 @@ Options that the config's loss entries cannot carry (they take only weight and s
 `SETTINGS` (change them with `configure(alpha_min=...)`, e.g. from a module listed under `imports`).
 
 On a GPU training step each term's tensor work (normalisation, mask, weight, term) replays from a CUDA graph after
-its checks, one launch a direction (cuda_graphs.py; WARPGS_LOSS_GRAPHS=0 turns it off); a graph per settings.
+its checks, one launch a direction (cuda_graphs.py; WARPGS_LOSS_GRAPHS=0 turns it off); a graph per settings. Each
+graph keeps buffers the size of its images (552 MiB for 9 graphs at 960x540 on an H200,
+benchmarks/marr_graphs.py): a term holds at most 2 settings x 4 image sizes of them, a training run one.
 """
 from __future__ import annotations
 

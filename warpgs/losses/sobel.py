@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from kornia.filters import get_spatial_gradient_kernel2d
 
 
-@functools.lru_cache(maxsize=16)
+@functools.cache  # unbounded: a CUDA graph captured with a kernel keeps pointing at it
 def sobel_kernel(device: torch.device, dtype: torch.dtype) -> torch.Tensor:
     """[2, 1, 3, 3] conv2d weight: kornia's pair (d/dx, d/dy), the 3x3 Sobel kernels over their absolute sums (8),
     built by kornia once; never an inference tensor (a first call under inference_mode would otherwise break every
