@@ -199,8 +199,8 @@ def _batch_prior(batch, dtype: torch.dtype, device: torch.device, size) -> torch
         prior = batch_field(batch, PRIOR_KEY)
     except ValueError:
         raise ValueError(f"batch: the depth terms need {PRIOR_KEY!r} (an aligned inverse-depth prior): the scene has "
-                         "none for this view; set data.depth_priors (a folder of priors, or 'estimate' for the built-in "
-                         "plane-sweep stereo), or give depth/depth_grad/depth_local weight 0"
+                         "none for this view; set data.depth_priors (a folder of priors, or 'estimate' for the "
+                         "built-in plane-sweep stereo), or give depth/depth_grad/depth_local weight 0"
                          ) from None
     prior = _bchw(prior, f"batch.{PRIOR_KEY}").to(device=device, dtype=dtype)
     if prior.shape[-2:] != tuple(size):
