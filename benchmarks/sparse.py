@@ -9,6 +9,7 @@ over scenes, and the per-term ablation beside the paper's Table 2.
         --out /tmp/sparse --name llff3 --detach
     python benchmarks/sparse.py ... --table        # only the tables, from the run files there are
     python benchmarks/sparse.py ... --steps 10000 --table --at-step 1000   # a longer run's scores at an earlier step
+    python benchmarks/sparse.py ... --steps 10000 --table --along          # and every scored step's, one table
 
 Protocols (every 8th view, 0, 8, 16, ... in sorted name order, tests; n_train views spread evenly over the rest
 train: warpgs.data.formats.splits.llff_split, FSGS's and DNGaussian's reader):
@@ -64,6 +65,7 @@ from common import ROOT, write_json
 from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
 from sparse_runs import (FULL_STEPS, PROTOCOLS, Run, SceneSpec, expand_settings, load, protocol_for,  # the plan
                          needs_prior, parse_scene, plan, prior_done, read_run, run_budget, run_done, run_steps)
+from sparse_along import along_runs, print_along  # scores along the runs (--along)
 from sparse_tables import PAPER_TABLE2, SETTINGS, print_tables, summarise  # statistics and tables
 from sparse_worker import make_prior, reference_source, train_one  # the worker processes
 from warpgs.data.errors import SceneError
@@ -89,10 +91,13 @@ def tables(args, runs: list[Run], argv=None) -> dict:
               f"{len(results)} of {len(runs)} runs, {first['steps']} steps{scored}, {first['device']}, budget "
               f"{first['budget'] or 'preset'}" + (f"; missing {len(missing)}" if missing else ""))
     print_tables(summary, header)
+    along = along_runs(results, settings)
+    if args.along:
+        print_along(along, {k: SETTINGS[k][0] for k in settings})
     payload = {"protocol": args.protocol, "tag": args.tag, "about": args.proto.about, "missing": missing,
                "command": shlex.join(["python", "benchmarks/sparse.py", *[a for a in (argv or sys.argv[1:])
                                                                            if a not in ("--table", "--detach")]]),
-               "paper_table2": PAPER_TABLE2, "summary": summary,
+               "paper_table2": PAPER_TABLE2, "summary": summary, "along": along,
                "splits": {r["scene"]: {k: r[k] for k in ("size", "downscale", "train", "train_index", "test",
                                                          "test_index", "reference")} for r in results},
                "runs": results}
@@ -139,6 +144,8 @@ def parse(argv):
     ap.add_argument("--at-step", type=int, default=None,
                     help="with --table: the image scores each run's history has at this step "
                          "(at --steps: the final scores)")
+    ap.add_argument("--along", action="store_true",
+                    help="with --table: also each setting's held-out PSNR at every step its runs were scored at")
     ap.add_argument("--detach", action="store_true", help="start the wave in its own process session and return")
     ap.add_argument("--keep-going", action="store_true",
                     help="a failed prior or run does not stop the others: the tables take the runs made, and the "
@@ -163,6 +170,8 @@ def parse(argv):
         raise SystemExit("--gpus: give --device cuda too")
     if args.at_step is not None and not args.table:
         raise SystemExit("--at-step: only with --table (it reads the histories of runs already made)")
+    if args.along and not args.table:
+        raise SystemExit("--along: only with --table (it reads the histories of runs already made)")
     if any("=" not in o for o in args.overrides):
         raise SystemExit(f"overrides: expected key=value, got {args.overrides}")
     args.marr_settings = parse_marr(args.marr)

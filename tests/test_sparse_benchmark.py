@@ -17,6 +17,7 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 sys.path.insert(0, str(BENCH))
 
 import sparse  # noqa: E402
+import sparse_along  # noqa: E402
 import sparse_data  # noqa: E402
 import sparse_runs  # noqa: E402
 import sparse_tables  # noqa: E402
@@ -66,6 +67,12 @@ def test_a_wave_writes_a_file_a_run_resumes_and_tabulates(tmp_path, capsys, monk
         sparse.main(common + ["--name", "t_orbit_5", "--table", "--at-step", "5"])
     last = sparse.main(common + ["--name", "t_orbit_8", "--table", "--at-step", "8"])  # the run's end: its final scores
     assert last["summary"]["scenes"]["orbit"]["baseline"]["psnr"] == (run["psnr"], None)
+    # --along: the scores at every scored step, the final one included, one table
+    along = sparse.main(common + ["--name", "t_orbit_along", "--table", "--along"])["along"]
+    assert along == {"orbit": {"baseline": {4: (run["history"][0]["psnr"], None), 8: (run["psnr"], None)}}}
+    assert "| orbit | 3DGS | " in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="--along: only with --table"):
+        sparse.main(common + ["--along"])
     with pytest.raises(SystemExit, match="only with --table"):
         sparse.main(common + ["--at-step", "4"])
 
@@ -337,3 +344,15 @@ def test_marr_settings_reach_every_worker_and_bad_ones_are_refused():
         sparse.parse(base + ["--marr", "confidence_power=high"])
     with pytest.raises(SystemExit, match=">= 0"):
         sparse.parse(base + ["--marr", "confidence_power=-1"])
+
+
+def test_scores_along_the_runs_keep_the_steps_every_seed_has():
+    def run(seed, history, final, **extra):
+        return {"scene": "a", "setting": "preset", "seed": seed, "steps": 3000, "psnr": final,
+                "history": [{"step": st, "psnr": p} for st, p in history], **extra}
+    runs = [run(0, [(1000, 20.0), (2000, 22.0)], 23.0), run(1, [(1000, 21.0)], 24.0)]  # seed 1 missed step 2000
+    along = sparse_along.along_runs(runs, ["baseline", "preset"])["a"]
+    assert list(along) == ["preset"] and list(along["preset"]) == [1000, 3000]
+    assert along["preset"][1000] == pytest.approx((20.5, 0.5)) and along["preset"][3000] == pytest.approx((23.5, 0.5))
+    early = [{**r, "scored_at_step": 1000} for r in runs]  # tabulated at an earlier step: the final is not that step's
+    assert list(sparse_along.along_runs(early, ["preset"])["a"]["preset"]) == [1000]
