@@ -25,18 +25,13 @@ from types import SimpleNamespace
 
 import torch
 
-from common import run_host, write_json
+from common import run_host, sync, write_json
 from warpgs.losses import compute_losses, get_loss, marr, resolve_losses
 
 TERMS = ("depth", "depth_grad", "depth_local")
 VALUE_TOL = (1e-6, 1e-5)  # (absolute, relative): float32 reductions in another order at most
 GRAD_TOL = 1e-4  # of the largest gradient
 OTHER_SETTINGS = {"alpha_eps": 1e-3, "alpha_min": 0.3, "confidence_power": 2.0}
-
-
-def sync(device) -> None:
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
 
 
 def step_inputs(width: int, height: int, device, g: torch.Generator, confidence: bool = True, mask: bool = False):

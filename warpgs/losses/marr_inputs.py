@@ -214,7 +214,7 @@ def _maps(settings: tuple, inv, alpha, prior, masks, conf) -> tuple:
 
 def depth_inputs(render_out, batch):
     """(rendered inverse depth, prior, valid mask, per-pixel weight) of a render against its batch's depth prior, as
-    every depth term here (and losses/depth_patch.py) takes them."""
+    the depth terms (marr.py, which graph the same two steps) and losses/depth_patch.py take them."""
     settings = current_settings()
     inv, alpha, prior, masks, conf = checked_maps(render_out, batch, settings)
     return _maps(settings, inv, alpha, prior, masks, conf)
