@@ -100,6 +100,12 @@ def read_results(files, what: str) -> list:
     return payloads
 
 
+def stopped_by_rule(run: dict) -> bool:
+    """Whether a run file's step count was the run's own: a train.steps=auto override, whose rule ends the run within
+    the bound it was given (so its steps need not match another run's)."""
+    return "train.steps=auto" in (run.get("overrides") or ())
+
+
 def mean_se(values: list) -> tuple[Optional[float], Optional[float]]:
     """(mean, standard error of the mean) of the values that are numbers (None and NaN left out); (None, None) for
     none, and a None error for one."""

@@ -19,7 +19,7 @@ import json
 import statistics
 from pathlib import Path
 
-from common import fmt, mean_se, write_json
+from common import fmt, mean_se, stopped_by_rule, write_json
 
 METRICS = ("psnr", "ssim", "abs_rel", "num_primitives")
 # What must agree between the variants' runs of one scene and seed for their difference to mean anything.
@@ -54,6 +54,8 @@ def check_alike(variants: dict) -> list[tuple[str, int]]:
     for key in sorted(common):
         for runs in variants.values():
             for field in SAME:
+                if field == "steps" and (stopped_by_rule(runs[key]) or stopped_by_rule(first[key])):
+                    continue  # train.steps=auto: each run ends where its rule says
                 if runs[key].get(field) != first[key].get(field):
                     raise SystemExit(f"{runs[key]['file']} and {first[key]['file']} differ in {field!r}: "
                                      f"{runs[key].get(field)!r} against {first[key].get(field)!r}")

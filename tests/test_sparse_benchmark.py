@@ -141,6 +141,26 @@ def test_a_run_file_made_with_other_steps_is_not_reused(tmp_path):
         sparse.main(common[:-4] + ["--budget", "2000", "--steps", "8", "--out", str(out), "--dry-run"])
 
 
+def test_a_run_that_stopped_by_its_own_rule_is_read_within_the_plans_steps(tmp_path):
+    """train.steps=auto ends a run where its validation rule says, bounded by the plan's steps: its file counts as
+    made by the plan when it stopped within them, never when it ran past them."""
+    scene = synthetic_dir("orbit")
+    out = tmp_path / "out"
+    (out / "runs").mkdir(parents=True)
+    run_file = out / "runs" / "m360_24_orbit_baseline_s0.json"
+    common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--budget", "1000",
+              "--steps", "10", "--out", str(out), "--dry-run", "train.steps=auto"]
+    for steps, reused in ((8, True), (12, False)):
+        run = {"id": "m360_24_orbit_baseline_s0", "scene": "orbit", "setting": "baseline", "seed": 0, "steps": steps,
+               "budget": 1000, "downscale": 1, "psnr": 10.0, "overrides": ["train.steps=auto"]}
+        run_file.write_text(json.dumps(run))
+        if reused:
+            sparse.main(common)
+        else:
+            with pytest.raises(SystemExit, match="made with steps 12; this plan asks for steps 10"):
+                sparse.main(common)
+
+
 def test_a_prior_made_at_another_downscale_is_not_reused(tmp_path):
     scene = synthetic_dir("orbit")
     out = tmp_path / "out"

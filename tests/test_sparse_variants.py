@@ -53,6 +53,20 @@ def test_runs_made_differently_are_refused_naming_the_files(tmp_path):
         sparse_variants.load_variant(str(a))
 
 
+def test_a_run_that_stopped_by_its_own_rule_may_differ_in_steps_only(tmp_path):
+    """A train.steps=auto run ends where its rule says: its step count is its own, the rest of the set-up must agree."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    _write(a, "preset", "fern", 0, 20.0)
+    _write(b, "preset", "fern", 0, 20.4, steps=700, overrides=["train.steps=auto"])
+    variants = dict(sparse_variants.load_variant(s) for s in (f"fixed={a}:preset", f"auto={b}:preset"))
+    assert sparse_variants.compare(variants, ["fixed"])["scenes"]["fern"]["auto"]["d_psnr_vs_fixed"][0] == \
+        pytest.approx(0.4)
+    _write(b, "preset", "fern", 0, 20.4, steps=700, n_train=4, overrides=["train.steps=auto"])
+    variants["auto"] = sparse_variants.load_variant(f"auto={b}:preset")[1]
+    with pytest.raises(SystemExit, match="differ in 'n_train'"):
+        sparse_variants.compare(variants, ["fixed"])
+
+
 def test_a_label_given_twice_gathers_both_folders_and_refuses_a_run_twice(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("OUT", str(tmp_path))  # the table goes there, not into benchmarks/results
     a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
