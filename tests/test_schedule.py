@@ -259,7 +259,7 @@ def test_config_accepts_auto_and_checks_the_schedule():
     assert load_config(resolve_config_source("gaussians")).train.steps == "auto"
     assert load_config(None, ["steps=auto"]).train.steps == "auto"
     assert load_config(None, ["steps=1200"]).train.steps == 1200
-    with pytest.raises(ConfigError, match="train.steps: expected a positive integer or 'auto'"):
+    with pytest.raises(ConfigError, match="train.steps: expected a positive integer, 'auto' or 'by_views'"):
         load_config(None, ["steps=often"])
     with pytest.raises(ConfigError, match="schedule.polish"):
         load_config(None, ["schedule.max_steps=500", "schedule.polish=500"])

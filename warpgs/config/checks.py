@@ -192,8 +192,13 @@ def _number_or_auto(key: str, value, kind, fits, expected: str):
 
 
 def _check_steps(key: str, value):
-    """A positive step count, or "auto" (train/schedule.py)."""
-    return _number_or_auto(key, value, int, lambda n: n >= 1, "a positive integer")
+    """A positive step count, "auto" (train/schedule.py) or "by_views" (train/steps_by_views.py)."""
+    if isinstance(value, str) and value.strip().lower() == "by_views":
+        return "by_views"
+    try:
+        return _number_or_auto(key, value, int, lambda n: n >= 1, "a positive integer")
+    except ConfigError:
+        raise ConfigError(key, f"expected a positive integer, 'auto' or 'by_views', got {value!r}") from None
 
 
 def _check_virtual_views(key: str, value):

@@ -67,7 +67,9 @@ class ModelConfig:
 
 @dataclass
 class TrainConfig:
-    steps: Union[int, str] = 30_000  # or "auto": stop by a validation split of the training views (`schedule`)
+    # or "auto": stop by a validation split of the training views (`schedule`); or "by_views": 1000 steps for every
+    # three training views, 1000 to 10000 (train/steps_by_views.py)
+    steps: Union[int, str] = 30_000
     seed: int = 0
     device: str = "auto"  # "auto" (CUDA when available), "cpu", "cuda", "cuda:N"
     background: Any = "auto"  # "auto" (the scene's, else black), "black", "white" or [r, g, b] in [0, 1]

@@ -21,6 +21,7 @@ from warpgs.train.distributed import DistributedError
 from warpgs.train.evaluation import scores_over_ranks
 from warpgs.train.guard import NonFiniteError
 from warpgs.train.dropout import dropout_note, manner_note
+from warpgs.train.steps_by_views import steps_note
 from warpgs.train.unpool import unpool_note
 from warpgs.train.virtual_views import virtual_views_note
 from warpgs.train.warm_up import compile_step_kernels
@@ -164,7 +165,7 @@ class TrainingLoop:
     def _length(self) -> str:
         tr = self.trainer
         if tr.strategy.schedule.auto is None:
-            return f"{tr.max_steps} steps"
+            return steps_note(tr.config.train.steps, tr.max_steps, len(tr.scene.train))
         return (f"steps=auto (at most {tr.max_steps}; validation on {len(tr.views.held_out)} held-out training "
                 f"views every {tr.config.schedule.val_every} steps)")
 

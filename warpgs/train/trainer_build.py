@@ -29,6 +29,7 @@ from warpgs.train.resolution import ScaledViews
 from warpgs.train.scaling import apply_batch_scaling, lr_scale
 from warpgs.train.schedule import AutoStop, validation_split
 from warpgs.train.state import RunCounters
+from warpgs.train.steps_by_views import fixed_steps
 from warpgs.train.strategy import DensifyStrategy
 from warpgs.train.unpool import unpool_every_for
 from warpgs.train.views import TrainViews
@@ -78,8 +79,10 @@ class TrainerBuild:
         self.background = train_setup.resolve_background(cfg.train.background, self.scene, self.device)
         # train.steps=auto: the run is bounded by schedule.max_steps (its learning-rate horizon) and ends when
         # train/schedule.py's rule says so; the strategy and the loop apply its decisions.
+        # train.steps=by_views counts the scene's training views (train/steps_by_views.py).
         self.auto_steps = cfg.train.steps == "auto"
-        self.max_steps = int(cfg.schedule.max_steps if self.auto_steps else cfg.train.steps)
+        self.max_steps = int(cfg.schedule.max_steps) if self.auto_steps else fixed_steps(cfg.train.steps,
+                                                                                         len(self.scene.train))
 
     def _build_model(self, cfg: Config, state: Optional[dict], model: Optional[GaussianModel]) -> None:
         """The model: from the checkpoint, the caller, or the config's initialisation."""

@@ -1,0 +1,37 @@
+"""train.steps=by_views (train/steps_by_views.py): a fixed step count from the training views."""
+from pathlib import Path
+
+import pytest
+from test_sparse_train import run
+
+from warpgs.config import ConfigError, load_config
+from warpgs.train.steps_by_views import fixed_steps, steps_by_views, steps_note
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def test_the_count_grows_with_the_views_between_its_bounds():
+    assert [steps_by_views(n) for n in (1, 2, 3, 5, 6, 12, 24, 29, 30, 300)] == \
+        [1000, 1000, 1000, 1000, 2000, 4000, 8000, 9000, 10000, 10000]
+    assert fixed_steps("by_views", 12) == 4000 and fixed_steps(1234, 12) == 1234
+    assert steps_note("by_views", 4000, 12) == "4000 steps (train.steps=by_views: 12 training views)"
+    assert steps_note(4000, 4000, 12) == "4000 steps"
+
+
+def test_the_config_takes_the_keyword_and_names_it_in_errors():
+    assert load_config(None, ["train.steps=by_views"]).train.steps == "by_views"
+    assert load_config(None, ["steps=BY_VIEWS"]).train.steps == "by_views"
+    with pytest.raises(ConfigError, match=r"train.steps.*'by_views'"):
+        load_config(None, ["train.steps=views"])
+
+
+def test_the_sparse_presets_count_their_steps_from_the_views():
+    for preset in ("sparse_llff", "sparse_llff_baseline"):
+        assert load_config(CONFIGS / f"{preset}.yaml").train.steps == "by_views"
+
+
+def test_a_run_with_by_views_trains_the_steps_its_views_ask_for(tmp_path):
+    # The tiny light field has 9 training views: 3000 steps, fixed when the scene loads (a dropout ramp needs that).
+    trainer = run(tmp_path, "train.steps=by_views", "train.drop_rate=0.1", "train.drop_schedule=ramp")
+    assert len(trainer.scene.train) == 9 and trainer.max_steps == 3000 and not trainer.auto_steps
+    assert trainer.strategy.schedule.run_steps == 3000
