@@ -100,7 +100,7 @@ REAL_SETTINGS = ([("baseline", "3DGS", "sparse_llff_baseline", [], {})]
 CPU_STEPS = 500
 CPU_STEPS_REAL = 300  # a smoke run: 504x378 views cost ~1 s a step on 2 cores
 CPU_BUDGET = 10_000  # primitives, on CPU only (the presets' budget otherwise); the same for every setting
-FULL_STEPS = {"synthetic": 30_000, "real": 1_000}  # the presets' train.steps
+FULL_STEPS = {"synthetic": 30_000, "real": 1_000}  # the presets' train.steps (sparse_llff's by_views at 3 views)
 
 
 def schedule_overrides(steps: int, full: int = 30_000) -> list[str]:
@@ -176,8 +176,8 @@ def setting_overrides_for_run(preset: str, setting: list, budget: Optional[int],
 
 def run_schedule(steps: int, real: bool) -> list[str]:
     """A shorter run's schedule overrides: the synthetic presets' 30k schedule scaled to it; the real-capture
-    presets are already the first 1000 steps of a 10k schedule (configs/sparse_llff_baseline.yaml), so a shorter
-    run is the preset's first `steps` steps, unscaled."""
+    presets' schedule is a 10k one in absolute steps, of which a run trains the first 1000 at 3 views
+    (configs/sparse_llff_baseline.yaml), so a shorter run is the preset's first `steps` steps, unscaled."""
     return [] if real else schedule_overrides(steps, FULL_STEPS["synthetic"])
 
 
