@@ -38,8 +38,9 @@ Depth (order, AbsRel, coverage) is scored at the capture's all-view SfM points s
 given when its weights are on disk.
 
 Runs are 1000 steps on either device (the presets' train.steps=by_views at 3 views; pass --steps for more views:
-8000 at 24); a shorter or longer run (--steps) is the same schedule cut or extended (the presets give their horizons in absolute steps). On the CPU the primitive budget is 10k (prior points
-scaled with it) unless --budget says otherwise. --at-step N tabulates the held-out image scores that runs made with
+8000 at 24); a shorter or longer run (--steps) is the same schedule cut or extended (the presets give their horizons
+in absolute steps). On the CPU the primitive budget is 10k (prior points scaled with it) unless --budget says
+otherwise. --at-step N tabulates the held-out image scores that runs made with
 eval.every=N (their history) had at step N; depth is scored at the end of a run only, so those tables leave it out
 (at the runs' last step, N = --steps, the tables are the final ones, depth included).
 Run files: <out>/runs/<protocol>_<scene>_<setting>_s<seed>.json; a run whose file exists is skipped (so a cut wave
