@@ -11,8 +11,8 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 def test_the_count_grows_with_the_views_between_its_bounds():
-    assert [steps_by_views(n) for n in (1, 2, 3, 5, 6, 12, 24, 29, 30, 300)] == \
-        [1000, 1000, 1000, 1000, 2000, 4000, 8000, 9000, 10000, 10000]
+    assert [steps_by_views(n) for n in (1, 3, 6, 9, 10, 12, 13, 24, 29, 30, 300)] == \
+        [1000, 1000, 1000, 1000, 3000, 4000, 4000, 8000, 9000, 10000, 10000]
     assert fixed_steps("by_views", 12) == 4000 and fixed_steps(1234, 12) == 1234
     assert steps_note("by_views", 4000, 12) == "4000 steps (train.steps=by_views: 12 training views)"
     assert steps_note(4000, 4000, 12) == "4000 steps"
@@ -30,8 +30,12 @@ def test_the_sparse_presets_count_their_steps_from_the_views():
         assert load_config(CONFIGS / f"{preset}.yaml").train.steps == "by_views"
 
 
-def test_a_run_with_by_views_trains_the_steps_its_views_ask_for(tmp_path):
-    # The tiny light field has 9 training views: 3000 steps, fixed when the scene loads (a dropout ramp needs that).
-    trainer = run(tmp_path, "train.steps=by_views", "train.drop_rate=0.1", "train.drop_schedule=ramp")
-    assert len(trainer.scene.train) == 9 and trainer.max_steps == 3000 and not trainer.auto_steps
-    assert trainer.strategy.schedule.run_steps == 3000
+def test_a_run_with_by_views_trains_the_steps_its_views_ask_for(tmp_path, monkeypatch):
+    # The tiny light field has 9 training views: 1000 steps, fixed when the scene loads (a dropout ramp needs that);
+    # with the few-view bound lowered, 9 views count as three threes.
+    from warpgs.train import steps_by_views
+    trainer = run(tmp_path / "nine", "train.steps=by_views", "train.drop_rate=0.1", "train.drop_schedule=ramp")
+    assert len(trainer.scene.train) == 9 and trainer.max_steps == 1000 and not trainer.auto_steps
+    monkeypatch.setattr(steps_by_views, "FEW_VIEWS", 6)
+    trainer = run(tmp_path / "more", "train.steps=by_views")
+    assert trainer.max_steps == trainer.strategy.schedule.run_steps == 3000

@@ -67,8 +67,8 @@ class ModelConfig:
 
 @dataclass
 class TrainConfig:
-    # or "auto": stop by a validation split of the training views (`schedule`); or "by_views": 1000 steps for every
-    # three training views, 1000 to 10000 (train/steps_by_views.py)
+    # or "auto": stop by a validation split of the training views (`schedule`); or "by_views": 1000 steps with at most
+    # 9 training views, above that 1000 for every three views up to 10000 (train/steps_by_views.py)
     steps: Union[int, str] = 30_000
     seed: int = 0
     device: str = "auto"  # "auto" (CUDA when available), "cpu", "cuda", "cuda:N"
