@@ -25,8 +25,8 @@ sparse, and for evaluation only. The CPU default is a smoke run (300 steps); res
 Synthetic runs shorter than the presets' 30k steps scale the 3DGS step schedule (densification window, SH bands,
 size pruning) by steps/preset-steps with floors so a short run still densifies, and switch opacity resets off below
 a third of it (the depth-term decay always spans the whole run: it is relative to train.steps). The real-capture
-presets are the first 1000 steps of a 10k schedule with absolute horizons, so a real run of other length is that
-schedule cut or extended, unscaled (run_schedule). The defaults used are printed and stored in the JSON. Writes
+presets cut a 10k schedule with absolute horizons (1000 steps at 3 views: train.steps=by_views), so a real run of
+another length is that schedule cut or extended, unscaled (run_schedule). The defaults used are printed and stored in the JSON. Writes
 benchmarks/results/ablation_<device>_<steps>.json, or ablation_<scene>_<device>_<steps>.json with --data (or
 $OUT/...).
 """

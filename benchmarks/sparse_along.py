@@ -1,7 +1,7 @@
 """benchmarks/sparse.py --along: each setting's held-out PSNR along its runs (mean ± standard error over seeds at
 every step the runs were scored: eval.every's periodic scores and the final one), per scene. How long a protocol
 should train is read from this table: on the 360° captures at 24 views 3DGS stops gaining by step 4000-6000 while
-the sparse preset gains to 10k (docs/sparse_view.md)."""
+the sparse preset's mean is level from 4000 to 10k (docs/sparse_view.md; train.steps=by_views)."""
 from __future__ import annotations
 
 from common import fmt, mean_se
