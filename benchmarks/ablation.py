@@ -323,7 +323,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N")
     ap.add_argument("--steps", type=int, default=None,
                     help=f"training steps (default on CPU: {CPU_STEPS}, {CPU_STEPS_REAL} with --data; on CUDA the "
-                         f"presets': {FULL_STEPS['synthetic']}, {FULL_STEPS['real']} with --data)")
+                         f"presets': {FULL_STEPS['synthetic']}, {FULL_STEPS['real']} with --data, the sparse presets' count at up to 9 "
+                         f"training views)")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
     ap.add_argument("--only", default=None, help="comma-separated subset of: " + ",".join(s[0] for s in SETTINGS)
                     + " (with --data also wo_confidence)")

@@ -100,10 +100,19 @@ def read_results(files, what: str) -> list:
     return payloads
 
 
+def asks_auto_steps(overrides) -> bool:
+    """Whether key=value overrides ask for train.steps=auto (its alias steps=, any case): a run whose rule ends it
+    within the bound it was given, so its step count is its own."""
+    for item in overrides or ():
+        key, _, value = str(item).partition("=")
+        if key.strip() in ("train.steps", "steps") and value.strip().lower() == "auto":
+            return True
+    return False
+
+
 def stopped_by_rule(run: dict) -> bool:
-    """Whether a run file's step count was the run's own: a train.steps=auto override, whose rule ends the run within
-    the bound it was given (so its steps need not match another run's)."""
-    return "train.steps=auto" in (run.get("overrides") or ())
+    """Whether a run file's step count was the run's own (made with train.steps=auto, asks_auto_steps)."""
+    return asks_auto_steps(run.get("overrides"))
 
 
 def mean_se(values: list) -> tuple[Optional[float], Optional[float]]:

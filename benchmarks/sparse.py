@@ -62,7 +62,7 @@ from pathlib import Path
 from typing import Optional
 
 import ablation
-from common import ROOT, write_json
+from common import ROOT, asks_auto_steps, write_json
 from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
 from sparse_runs import (FULL_STEPS, PROTOCOLS, Run, SceneSpec, expand_settings, load, protocol_for,  # the plan
                          needs_prior, parse_scene, plan, prior_done, read_run, run_budget, run_done, run_steps)
@@ -88,8 +88,9 @@ def tables(args, runs: list[Run], argv=None) -> dict:
     summary = summarise(results, settings)
     first = results[0]
     scored = f" scored at step {args.at_step}" if args.at_step is not None else ""
+    length = f"train.steps=auto within {run_steps(args)}" if asks_auto_steps(args.overrides) else first['steps']
     header = (f"\nsparse-view benchmark, protocol {args.protocol} ({args.proto.about}): "
-              f"{len(results)} of {len(runs)} runs, {first['steps']} steps{scored}, {first['device']}, budget "
+              f"{len(results)} of {len(runs)} runs, {length} steps{scored}, {first['device']}, budget "
               f"{first['budget'] or 'preset'}" + (f"; missing {len(missing)}" if missing else ""))
     print_tables(summary, header)
     along = along_runs(results, settings)
@@ -129,7 +130,8 @@ def parse(argv):
     ap.add_argument("--n-train", type=int, default=None, help="training views, instead of the protocol's")
     ap.add_argument("--settings", default="main", help="setting keys and groups (main, terms, paper, all)")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
-    ap.add_argument("--steps", type=int, default=None, help=f"default: the presets' {FULL_STEPS}")
+    ap.add_argument("--steps", type=int, default=None, help=f"default {FULL_STEPS}: the presets' count at up to 9 training views "
+                    "(train.steps=by_views; 24 views: 8000)")
     ap.add_argument("--budget", type=int, default=None,
                     help=f"strategy.max_primitives (default: the preset's on CUDA, {ablation.CPU_BUDGET} on CPU)")
     ap.add_argument("--device", default="cpu", help="cpu (default) or cuda")

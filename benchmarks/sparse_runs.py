@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Optional
 
 import ablation
-from common import stopped_by_rule
+from common import asks_auto_steps, stopped_by_rule
 from sparse_tables import SETTINGS, TERMS
 
 GROUPS = {"main": ["baseline", "preset", "full"],
@@ -175,7 +175,8 @@ def read_run(args, run: Run) -> Optional[dict]:
     recorded = json.loads(f.read_text())
     wanted = {"steps": run_steps(args), "budget": run_budget(args), "downscale": run.scene.downscale}
     differ = {k: (recorded.get(k), v) for k, v in wanted.items() if recorded.get(k) != v}
-    if stopped_by_rule(recorded) and recorded.get("steps", wanted["steps"] + 1) <= wanted["steps"]:
+    if (stopped_by_rule(recorded) and asks_auto_steps(args.overrides)
+            and recorded.get("steps", wanted["steps"] + 1) <= wanted["steps"]):
         differ.pop("steps", None)  # train.steps=auto ends where its rule says, within the plan's steps
     if differ:
         raise SystemExit(f"{f}: made with " + ", ".join(f"{k} {a}" for k, (a, _) in differ.items())

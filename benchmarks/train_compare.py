@@ -158,6 +158,8 @@ def run_gsplat(cfg, eval_every: int, scene, start: dict, gsplat_reset: str = "au
         env_opt = torch.optim.Adam(env.parameters(), lr=opts.get("lr", 0.01))
         background = torch.zeros(3, device=device)
     steps = cfg.train.steps
+    if not isinstance(steps, int):  # "auto" and "by_views" are resolved by warpgs's Trainer only
+        raise ValueError(f"train.steps: gsplat's loop needs a fixed step count, got {steps!r}")
     strategy = DefaultStrategy(
         prune_opa=s.prune_opacity, grow_grad2d=s.grad_threshold, grow_scale3d=s.dense_scale,
         prune_scale3d=s.prune_world_scale if s.prune_world_scale > 0 else float("inf"),

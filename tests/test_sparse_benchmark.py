@@ -150,15 +150,16 @@ def test_a_run_that_stopped_by_its_own_rule_is_read_within_the_plans_steps(tmp_p
     run_file = out / "runs" / "m360_24_orbit_baseline_s0.json"
     common = ["--protocol", "m360_24", "--scenes", str(scene), "--settings", "baseline", "--budget", "1000",
               "--steps", "10", "--out", str(out), "--dry-run", "train.steps=auto"]
-    for steps, reused in ((8, True), (12, False)):
+    for steps, plan, reused in ((8, common, True), (8, common[:-1] + ["steps=AUTO"], True), (8, common[:-1], False),
+                                (12, common, False)):
         run = {"id": "m360_24_orbit_baseline_s0", "scene": "orbit", "setting": "baseline", "seed": 0, "steps": steps,
                "budget": 1000, "downscale": 1, "psnr": 10.0, "overrides": ["train.steps=auto"]}
         run_file.write_text(json.dumps(run))
         if reused:
-            sparse.main(common)
-        else:
-            with pytest.raises(SystemExit, match="made with steps 12; this plan asks for steps 10"):
-                sparse.main(common)
+            sparse.main(plan)
+        else:  # run past the bound, or a plan of fixed length: not this plan's run
+            with pytest.raises(SystemExit, match=f"made with steps {steps}; this plan asks for steps 10"):
+                sparse.main(plan)
 
 
 def test_a_prior_made_at_another_downscale_is_not_reused(tmp_path):

@@ -61,6 +61,10 @@ def test_a_run_that_stopped_by_its_own_rule_may_differ_in_steps_only(tmp_path):
     variants = dict(sparse_variants.load_variant(s) for s in (f"fixed={a}:preset", f"auto={b}:preset"))
     assert sparse_variants.compare(variants, ["fixed"])["scenes"]["fern"]["auto"]["d_psnr_vs_fixed"][0] == \
         pytest.approx(0.4)
+    _write(b, "preset", "fern", 0, 20.4, steps=1500, overrides=["steps=AUTO"])  # ran past the fixed run's length
+    variants["auto"] = sparse_variants.load_variant(f"auto={b}:preset")[1]
+    with pytest.raises(SystemExit, match="differ in 'steps'"):
+        sparse_variants.compare(variants, ["fixed"])
     _write(b, "preset", "fern", 0, 20.4, steps=700, n_train=4, overrides=["train.steps=auto"])
     variants["auto"] = sparse_variants.load_variant(f"auto={b}:preset")[1]
     with pytest.raises(SystemExit, match="differ in 'n_train'"):
