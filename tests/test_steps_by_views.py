@@ -2,7 +2,8 @@
 from pathlib import Path
 
 import pytest
-from test_sparse_train import run
+from test_sparse_train import CONFIGS as SPARSE_CONFIGS
+from test_sparse_train import run, tiny_lightfield
 
 from warpgs.config import ConfigError, load_config
 from warpgs.train.steps_by_views import fixed_steps, steps_by_views, steps_note
@@ -39,3 +40,24 @@ def test_a_run_with_by_views_trains_the_steps_its_views_ask_for(tmp_path, monkey
     monkeypatch.setattr(steps_by_views, "FEW_VIEWS", 6)
     trainer = run(tmp_path / "more", "train.steps=by_views")
     assert trainer.max_steps == trainer.strategy.schedule.run_steps == 3000
+
+
+def test_a_by_views_run_says_its_count_finishes_and_reloads(tmp_path, monkeypatch, capsys):
+    # A 2-step count (the bounds lowered) keeps the run short: the start line names the rule, the run ends at its
+    # count, and its folder reloads (config.yaml keeps "by_views") at the same count for rendering and evaluation.
+    from warpgs.cli.commands import load_run
+    from warpgs.train import steps_by_views
+    from warpgs.train.trainer import Trainer
+
+    monkeypatch.setattr(steps_by_views, "LEAST_STEPS", 2)
+    out = tmp_path / "run"
+    overrides = [f"data.path={tiny_lightfield()}", "data.depth_priors=priors", "train.steps=by_views",
+                 "train.device=cpu", "train.progress=false", "train.checkpoint_every=0", "eval.every=0",
+                 "eval.lpips=false", "eval.save_images=false", "model.sh_degree=0", "strategy.max_primitives=2000",
+                 f"output.dir={out}"]
+    result = Trainer(SPARSE_CONFIGS / "sparse_lightfield.yaml", overrides=overrides).fit()
+    assert result.steps == 2
+    assert "2 steps (train.steps=by_views: 9 training views)" in capsys.readouterr().err
+    assert "steps: by_views" in (out / "config.yaml").read_text()
+    reloaded = load_run(out)
+    assert reloaded.max_steps == reloaded.step == 2
