@@ -2,7 +2,6 @@
 from pathlib import Path
 
 import pytest
-from test_sparse_train import CONFIGS as SPARSE_CONFIGS
 from test_sparse_train import run, tiny_lightfield
 
 from warpgs.config import ConfigError, load_config
@@ -55,7 +54,7 @@ def test_a_by_views_run_says_its_count_finishes_and_reloads(tmp_path, monkeypatc
                  "train.device=cpu", "train.progress=false", "train.checkpoint_every=0", "eval.every=0",
                  "eval.lpips=false", "eval.save_images=false", "model.sh_degree=0", "strategy.max_primitives=2000",
                  f"output.dir={out}"]
-    result = Trainer(SPARSE_CONFIGS / "sparse_lightfield.yaml", overrides=overrides).fit()
+    result = Trainer(CONFIGS / "sparse_lightfield.yaml", overrides=overrides).fit()
     assert result.steps == 2
     assert "2 steps (train.steps=by_views: 9 training views)" in capsys.readouterr().err
     assert "steps: by_views" in (out / "config.yaml").read_text()
