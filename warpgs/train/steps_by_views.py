@@ -7,9 +7,9 @@ keep 1000 steps (7 LLFF scenes, seeds 0-2: 1500 and 2000 +0.16 and +0.15 dB in t
 along 10k-step runs 1000 was the best scored step), and every other measurement at 4-9 views (LLFF at 4 and 6, a real
 3x3 light field's 9) is at 1000 steps; around four 360-degree captures, scored every 1000 steps along 10k-step runs, the
 preset's mean was best at 4000 with 12 views (seed 0; 1000 and 10000 within 0.2 dB of it) and level from 4000 to 10000
-with 24 (seeds 0-2; 1.1 dB under it at 1000). 10, 11 and 13-23 views lie between measured counts; past 10k the presets'
-depth-weight decay has ended and nothing was measured. The validation rule (`train.steps=auto`, train/schedule.py) lost
-0.55 dB to a fixed 10k with 24 views (3 captures, seeds 0-2)."""
+with 24 (seeds 0-2; 1.1 dB under it at 1000). 10, 11, 13-23 and 25-29 views lie between measured counts; past 10k the
+presets' depth-weight decay has ended and nothing was measured. The validation rule (`train.steps=auto`,
+train/schedule.py) lost 0.55 dB to a fixed 10k with 24 views (3 captures, seeds 0-2)."""
 from __future__ import annotations
 
 KEYWORD = "by_views"
