@@ -26,9 +26,9 @@ Synthetic runs shorter than the presets' 30k steps scale the 3DGS step schedule 
 size pruning) by steps/preset-steps with floors so a short run still densifies, and switch opacity resets off below
 a third of it (the depth-term decay always spans the whole run: it is relative to train.steps). The real-capture
 presets cut a 10k schedule with absolute horizons (1000 steps at 3 views: train.steps=by_views), so a real run of
-another length is that schedule cut or extended, unscaled (run_schedule). The defaults used are printed and stored in the JSON. Writes
-benchmarks/results/ablation_<device>_<steps>.json, or ablation_<scene>_<device>_<steps>.json with --data (or
-$OUT/...).
+another length is that schedule cut or extended, unscaled (run_schedule). The defaults used are printed and stored in
+the JSON. Writes benchmarks/results/ablation_<device>_<steps>.json, or ablation_<scene>_<device>_<steps>.json with
+--data (or $OUT/...).
 """
 from __future__ import annotations
 
@@ -323,8 +323,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N")
     ap.add_argument("--steps", type=int, default=None,
                     help=f"training steps (default on CPU: {CPU_STEPS}, {CPU_STEPS_REAL} with --data; on CUDA the "
-                         f"presets': {FULL_STEPS['synthetic']}, {FULL_STEPS['real']} with --data, the sparse presets' count at up to 9 "
-                         f"training views)")
+                         f"presets': {FULL_STEPS['synthetic']}, {FULL_STEPS['real']} with --data, the sparse "
+                         "presets' count at up to 9 training views)")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
     ap.add_argument("--only", default=None, help="comma-separated subset of: " + ",".join(s[0] for s in SETTINGS)
                     + " (with --data also wo_confidence)")

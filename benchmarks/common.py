@@ -101,11 +101,13 @@ def read_results(files, what: str) -> list:
 
 
 def asks_auto_steps(overrides) -> bool:
-    """Whether key=value overrides ask for train.steps=auto (its alias steps=, any case): a run whose rule ends it
-    within the bound it was given, so its step count is its own."""
+    """Whether key=value overrides ask for train.steps=auto (aliases expanded as the config does, any case): a run
+    whose rule ends it within the bound it was given, so its step count is its own."""
+    from warpgs.config.loader import parse_override
+
     for item in overrides or ():
-        key, _, value = str(item).partition("=")
-        if key.strip() in ("train.steps", "steps") and value.strip().lower() == "auto":
+        key, value = parse_override(str(item))
+        if key == "train.steps" and str(value).strip().lower() == "auto":
             return True
     return False
 

@@ -31,7 +31,7 @@ import sys
 from pathlib import Path
 
 import real_capture_seeds
-from common import RESULTS
+from common import RESULTS, asks_auto_steps
 from job_pool import Job, detach, gpu_slot, parse_seeds_gpus, run_jobs
 
 HERE = Path(__file__).resolve().parent
@@ -109,7 +109,7 @@ def main(argv=None) -> dict:
     gsplat_runs = [f for f in files if "_gsplat_only_" in Path(f).name]
     for variant, overrides in args.variant.items():  # each variant against the same gsplat runs
         # train.steps=auto ends where its rule says, not on the marks: its final model against gsplat's best point
-        best = ["--against-best"] if "train.steps=auto" in overrides else []
+        best = ["--against-best"] if asks_auto_steps(overrides) else []
         real_capture_seeds.main([f"real_capture_seeds_{args.name}_{variant}", *gsplat_runs,
                                  *_results(out, f"{args.name}_{variant}"), *best])
     return real_capture_seeds.main([f"real_capture_seeds_{args.name}", *files])

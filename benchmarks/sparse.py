@@ -40,9 +40,9 @@ given when its weights are on disk.
 Runs are 1000 steps on either device (the presets' train.steps=by_views at 3 views; pass --steps for more views:
 8000 at 24); a shorter or longer run (--steps) is the same schedule cut or extended (the presets give their horizons
 in absolute steps). On the CPU the primitive budget is 10k (prior points scaled with it) unless --budget says
-otherwise. --at-step N tabulates the held-out image scores that runs made with
-eval.every=N (their history) had at step N; depth is scored at the end of a run only, so those tables leave it out
-(at the runs' last step, N = --steps, the tables are the final ones, depth included).
+otherwise. --at-step N tabulates the held-out image scores that runs made with eval.every=N (their history) had at
+step N; depth is scored at the end of a run only, so those tables leave it out (at the runs' last step, N = --steps,
+the tables are the final ones, depth included).
 Run files: <out>/runs/<protocol>_<scene>_<setting>_s<seed>.json; a run whose file exists is skipped (so a cut wave
 resumes), one made with other steps, budget or downscale is an error. The tables go to
 benchmarks/results/sparse_<name>.json (or $OUT). On a device, $OUT is emptied between commands: give --out a folder of
@@ -130,8 +130,9 @@ def parse(argv):
     ap.add_argument("--n-train", type=int, default=None, help="training views, instead of the protocol's")
     ap.add_argument("--settings", default="main", help="setting keys and groups (main, terms, paper, all)")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
-    ap.add_argument("--steps", type=int, default=None, help=f"default {FULL_STEPS}: the presets' count at up to 9 training views "
-                    "(train.steps=by_views; 24 views: 8000)")
+    ap.add_argument("--steps", type=int, default=None,
+                    help=f"default {FULL_STEPS}: the presets' count at up to 9 training views "
+                         "(train.steps=by_views; 24 views: 8000)")
     ap.add_argument("--budget", type=int, default=None,
                     help=f"strategy.max_primitives (default: the preset's on CUDA, {ablation.CPU_BUDGET} on CPU)")
     ap.add_argument("--device", default="cpu", help="cpu (default) or cuda")
