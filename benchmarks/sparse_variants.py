@@ -46,12 +46,11 @@ def load_variant(spec: str) -> tuple[str, dict]:
 def auto_steps_fit(a: dict, b: dict) -> bool:
     """Whether two runs' step counts may differ: one or both stopped by train.steps=auto's rule, and such a run no
     longer than a fixed-length one beside it (an auto run bounded at 30k is not a variant of a 10k run)."""
-    if stopped_by_rule(a) and stopped_by_rule(b):
-        return True
-    if stopped_by_rule(a) or stopped_by_rule(b):
-        auto, fixed = (a, b) if stopped_by_rule(a) else (b, a)
-        return auto.get("steps", 0) <= fixed.get("steps", 0)
-    return False
+    a_auto, b_auto = stopped_by_rule(a), stopped_by_rule(b)
+    if a_auto == b_auto:
+        return a_auto  # both stopped by the rule, or both fixed (whose counts must match)
+    auto, fixed = (a, b) if a_auto else (b, a)
+    return auto.get("steps", 0) <= fixed.get("steps", 0)
 
 
 def check_alike(variants: dict) -> list[tuple[str, int]]:
